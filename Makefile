@@ -1,0 +1,31 @@
+# Two commands: `make run` and `make test`. Each creates .venv if it is missing and installs the
+# project into it; re-running is quick because the install is stamped on pyproject.toml.
+PYTHON ?= $(shell command -v python3.11 || command -v python3.12 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: run test lint venv clean
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	@touch $(STAMP)
+
+# Until the daemon lands, the main job records the `compress` scenario and renders its preview.
+run: $(STAMP)
+	$(BIN)/hwsim record compress --out out/compress
+	$(BIN)/hwsim preview out/compress
+
+lint: $(STAMP)
+	$(BIN)/ruff check clothd hwsim tests
+	$(BIN)/mypy
+
+test: lint
+	$(BIN)/pytest -q
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache out
