@@ -1,0 +1,262 @@
+"""Scenario files: the pydantic schema of a simulated-cell run, and loading with clear errors.
+
+A scenario fixes everything a recording depends on: duration and frame rate, the table of conveyor
+modules, the cloth and its texture, the camera, sensor noise, the cloth's initial pose, a timeline of
+module commands, and occluders. The schema is documented in docs/scenarios.md; every number is bounded
+and unknown keys are refused, so a typo is an error that names the key, not a silent default.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Annotated, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+SCENARIO_DIR = Path(__file__).parent / "scenarios"
+
+
+class ScenarioError(ValueError):
+    """A scenario file that cannot be used; the message names the file and the offending key."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class TableSpec(_Strict):
+    """The array of steerable conveyor modules, centred on the world origin."""
+
+    modules_x: int = Field(8, ge=1, le=64)
+    modules_y: int = Field(6, ge=1, le=64)
+    pitch_m: float = Field(0.075, gt=0.01, le=0.5)
+    module_size_m: float = Field(0.065, gt=0.005, le=0.5, description="side of a module's square belt")
+    max_speed_m_s: float = Field(0.2, gt=0, le=2.0)
+    accel_limit_m_s2: float = Field(2.0, gt=0, le=20.0)
+    steer_rate_limit_rad_s: float = Field(3.0, gt=0, le=50.0)
+
+    @model_validator(mode="after")
+    def _module_fits_pitch(self) -> TableSpec:
+        if self.module_size_m > self.pitch_m:
+            raise ValueError(f"module_size_m ({self.module_size_m}) must not exceed pitch_m ({self.pitch_m})")
+        return self
+
+
+class FrictionSpec(_Strict):
+    mu: float = Field(1.1, gt=0, le=3.0, description="Coulomb coefficient, denim on rubber belt")
+    stick_speed_m_s: float = Field(0.001, gt=0, le=0.1, description="regularised stick zone half-width")
+
+
+class ClothSpec(_Strict):
+    """Ground-truth cloth: a fine XPBD sheet. Defaults are a mid-weight (400 g/m²) denim."""
+
+    size_m: tuple[Annotated[float, Field(gt=0.02, le=2.0)], Annotated[float, Field(gt=0.02, le=2.0)]] = (
+        0.25,
+        0.20,
+    )
+    spacing_m: float = Field(0.005, ge=0.002, le=0.05, description="node spacing of the truth mesh")
+    areal_density_kg_m2: float = Field(0.40, gt=0.01, le=5.0)
+    stretch_stiffness_n_m: float = Field(2.0e4, gt=0, le=1e7)
+    shear_stiffness_n_m: float = Field(2.0e3, gt=0, le=1e7)
+    bending_stiffness_n_m: float = Field(1.0e-5, gt=0, le=1.0, description="flexural rigidity B, N·m")
+    damping_1_s: float = Field(0.5, ge=0, le=100.0, description="velocity damping rate")
+    friction: FrictionSpec = FrictionSpec()
+    substep_s: float = Field(1.0 / 1000, ge=1e-5, le=0.01, description="XPBD substep")
+    stretch_iterations: int = Field(5, ge=1, le=50, description="stretch sweeps per substep")
+    vibration_m_s: float = Field(
+        0.003, ge=0, le=0.1, description="std of vertical kicks from running belts (seeds buckling)"
+    )
+
+
+class TextureSpec(_Strict):
+    kind: Literal["denim", "plain_twill", "image"] = "denim"
+    seed: int = Field(7, ge=0)
+    path: str | None = Field(None, description="image file, for kind: image")
+    texels_per_m: float = Field(4000.0, ge=500.0, le=20000.0)
+
+    @model_validator(mode="after")
+    def _path_for_image(self) -> TextureSpec:
+        if (self.kind == "image") != (self.path is not None):
+            raise ValueError("path is required for kind 'image' and only allowed there")
+        return self
+
+
+class CameraSpec(_Strict):
+    """Pinhole camera looking at the table. The default hangs 1 m above the origin, straight down."""
+
+    width: int = Field(640, ge=64, le=4096)
+    height: int = Field(480, ge=64, le=4096)
+    f_px: float = Field(900.0, gt=50, le=20000)
+    principal_px: tuple[float, float] | None = Field(None, description="(cx, cy); default image centre")
+    dist: tuple[float, float, float, float, float] = Field(
+        (0.0, 0.0, 0.0, 0.0, 0.0), description="OpenCV order k1, k2, p1, p2, k3"
+    )
+    position_m: tuple[float, float, Annotated[float, Field(gt=0.1, le=10.0)]] = (0.0, 0.0, 1.0)
+    tilt_rad: float = Field(0.0, ge=-0.5, le=0.5, description="rotation about the world x axis")
+    yaw_rad: float = Field(0.0, ge=-math.pi, le=math.pi, description="rotation about the view axis")
+
+
+class NoiseSpec(_Strict):
+    sigma: float = Field(1.5, ge=0, le=50, description="Gaussian sensor noise, grey levels of 255")
+    motion_blur_samples: int = Field(1, ge=1, le=16, description="sub-frame renders averaged per frame")
+    exposure_s: float = Field(0.008, ge=0, le=0.1, description="shutter time spanned by those samples")
+    seed: int = Field(11, ge=0)
+
+
+class LightSpec(_Strict):
+    direction: tuple[float, float, float] = Field((0.35, -0.25, 1.0), description="towards the light")
+    ambient: float = Field(0.35, ge=0, le=1)
+
+
+class Hump(_Strict):
+    """A smooth ridge of slack across the cloth's middle, parallel to its short side (the t axis), as a
+    hand-laid cloth has. The sheet keeps its material length: the ridge draws the two halves inward."""
+
+    height_m: float = Field(gt=0, le=0.05)
+    sigma_m: float = Field(0.012, gt=0.002, le=0.2, description="Gaussian width of the ridge")
+
+
+class Pose(_Strict):
+    x_m: float = Field(0.0, ge=-5, le=5)
+    y_m: float = Field(0.0, ge=-5, le=5)
+    theta_rad: float = Field(0.0, ge=-2 * math.pi, le=2 * math.pi)
+    hump: Hump | None = None
+
+
+class ModuleSelector(_Strict):
+    """Which modules a command applies to. Exactly one way of choosing."""
+
+    all: bool = False
+    ids: list[Annotated[int, Field(ge=0)]] | None = None
+    region_m: tuple[float, float, float, float] | None = Field(
+        None, description="x_min, y_min, x_max, y_max of module centres, world metres"
+    )
+
+    @model_validator(mode="after")
+    def _exactly_one(self) -> ModuleSelector:
+        chosen = [self.all, self.ids is not None, self.region_m is not None]
+        if sum(chosen) != 1:
+            raise ValueError("choose modules with exactly one of: all, ids, region_m")
+        return self
+
+
+class SetCommand(_Strict):
+    """From t_s on, the selected modules are told this speed and heading (held until changed)."""
+
+    t_s: float = Field(ge=0)
+    modules: ModuleSelector
+    speed_m_s: float = Field(ge=0, le=2.0)
+    heading_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi)
+
+
+class RandomDrive(_Strict):
+    """From t_s to t_end_s, every module follows a random rigid velocity field (translation plus
+    rotation about the cloth's centre) that wanders smoothly (Ornstein-Uhlenbeck) and is pulled back
+    towards the table centre, so the cloth stays on the table."""
+
+    t_s: float = Field(ge=0)
+    t_end_s: float = Field(gt=0)
+    seed: int = Field(3, ge=0)
+    speed_m_s: float = Field(0.04, gt=0, le=0.5, description="typical translation speed")
+    yaw_rate_rad_s: float = Field(0.3, ge=0, le=5.0, description="typical rotation rate")
+    correlation_s: float = Field(1.5, gt=0.05, le=60.0)
+    keep_within_m: float = Field(0.08, gt=0, le=2.0, description="centre pull starts past this radius")
+
+
+class Occluder(_Strict):
+    """An arm reaching over the table: a capsule at height_m from the shoulder to the hand. The hand
+    reaches in from the shoulder in reach_s, sweeps from from_m to to_m, and withdraws in reach_s."""
+
+    t_start_s: float = Field(ge=0)
+    t_end_s: float = Field(gt=0)
+    reach_s: float = Field(0.15, gt=0, le=10)
+    shoulder_m: tuple[float, float] = Field(description="where the arm enters, world x, y (off the table)")
+    from_m: tuple[float, float]
+    to_m: tuple[float, float]
+    width_m: float = Field(0.07, gt=0.005, le=0.5)
+    height_m: float = Field(0.25, gt=0.0, le=0.9)
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Occluder:
+        if self.t_end_s - self.t_start_s <= 2 * self.reach_s:
+            raise ValueError("t_end_s - t_start_s must leave time to reach in and withdraw (2 x reach_s)")
+        return self
+
+
+class Scenario(_Strict):
+    name: str = Field(min_length=1, max_length=64)
+    seed: int = Field(1, ge=0, description="the world's own randomness (belt vibration)")
+    duration_s: float = Field(gt=0, le=3600)
+    fps: float = Field(30.0, ge=1, le=240)
+    settle_s: float = Field(0.3, ge=0, le=10, description="simulated before frame 0, modules stopped")
+    table: TableSpec = TableSpec()
+    cloth: ClothSpec = ClothSpec()
+    texture: TextureSpec = TextureSpec()
+    camera: CameraSpec = CameraSpec()
+    noise: NoiseSpec = NoiseSpec()
+    light: LightSpec = LightSpec()
+    initial_pose: Pose = Pose()
+    supersample: int = Field(2, ge=1, le=4, description="render scale before area downsampling")
+    timeline: list[SetCommand] = []
+    random_drives: list[RandomDrive] = []
+    occluders: list[Occluder] = []
+
+    @property
+    def frame_count(self) -> int:
+        return math.floor(self.duration_s * self.fps + 1e-9) + 1
+
+    @model_validator(mode="after")
+    def _module_ids_exist(self) -> Scenario:
+        n_modules = self.table.modules_x * self.table.modules_y
+        for i, cmd in enumerate(self.timeline):
+            bad = [m for m in cmd.modules.ids or [] if m >= n_modules]
+            if bad:
+                raise ValueError(f"timeline[{i}].modules.ids: {bad} out of range (table has {n_modules})")
+        return self
+
+
+def _format_errors(source: str, err: ValidationError) -> str:
+    lines = [f"{source}: invalid scenario"]
+    for e in err.errors():
+        key = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        lines.append(f"  {key}: {e['msg']}")
+    return "\n".join(lines)
+
+
+def resolve_path(name_or_path: str | Path) -> Path:
+    """A path as given, or the name of a shipped scenario ('compress' -> hwsim/scenarios/compress.yaml)."""
+    path = Path(name_or_path)
+    if path.exists():
+        return path
+    shipped = SCENARIO_DIR / f"{name_or_path}.yaml"
+    if shipped.exists():
+        return shipped
+    names = ", ".join(sorted(p.stem for p in SCENARIO_DIR.glob("*.yaml")))
+    raise ScenarioError(f"{name_or_path}: no such file, and not a shipped scenario ({names})")
+
+
+def shipped_names() -> list[str]:
+    return sorted(p.stem for p in SCENARIO_DIR.glob("*.yaml"))
+
+
+def parse(data: object, source: str = "<scenario>") -> Scenario:
+    if not isinstance(data, dict):
+        raise ScenarioError(f"{source}: a scenario is a mapping of keys, got {type(data).__name__}")
+    try:
+        return Scenario.model_validate(data)
+    except ValidationError as err:
+        raise ScenarioError(_format_errors(source, err)) from None
+
+
+def load(name_or_path: str | Path, **overrides: object) -> Scenario:
+    """Read and validate a scenario; `overrides` replace top-level keys (e.g. duration_s for a short run)."""
+    path = resolve_path(name_or_path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise ScenarioError(f"{path}: not valid YAML: {err}") from None
+    if isinstance(data, dict):
+        data.update({k: v for k, v in overrides.items() if v is not None})
+    return parse(data, str(path))
