@@ -1,0 +1,255 @@
+"""Ground-truth cloth: a fine XPBD sheet on the conveyor table (Taichi, float64, one thread).
+
+This is deliberately a different model from the tracker's (an explicit Provot mass-spring on a coarse
+mesh): extended position-based dynamics with small steps (Macklin et al. 2019, one constraint iteration
+per substep) on a mesh at least 3x finer, with
+
+- stretch: distance constraints on the grid edges, membrane stiffness `stretch_stiffness_n_m`
+  (for a square lattice a spring's k equals the sheet's tension per unit strain, whatever the spacing);
+- shear: distance constraints on both diagonals of every cell;
+- bending: linear second-difference constraints C = x[i-1] - 2 x[i] + x[i+1] along rows and columns,
+  i.e. the discrete curvature energy ½ B ∫ |∂²x|² dA of an (almost) inextensible sheet, with
+  compliance h⁴ / (B · cell area);
+- table contact: z >= 0, its normal impulse m·Δz/h measured from the projection;
+- friction: Coulomb against the surface velocity of the belt under each node, bounded by μ times that
+  normal impulse (the belts stand proud of the deck, so a node over a gap between belts is supported
+  but feels no friction), with a regularised stick zone |v_rel| < stick_speed where the force is proportional
+  to the slip, applied implicitly so that it is stable at any step;
+- gravity, and a linear velocity damping.
+
+Running belts shake the cloth a little (`vibration_m_s`, seeded): real modules do, and without any
+vertical disturbance a perfectly flat sheet under exactly in-plane compression never leaves the plane.
+
+The whole frame (all substeps) is one serial kernel: no launch overhead per substep, and the result is
+bit-for-bit reproducible, which a ground truth must be.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import taichi as ti
+
+from hwsim.belt_geometry import belt_at, belt_hit
+from hwsim.scenario import ClothSpec, Pose, TableSpec
+
+GRAVITY_M_S2 = 9.81
+vec2d = ti.types.vector(2, ti.f64)
+# A belt this fast shakes the cloth with the full vibration_m_s; slower belts proportionally less.
+_VIBRATION_REF_SPEED_M_S = 0.05
+
+
+@ti.func
+def _swept(k: ti.i32, n: ti.i32, flip: ti.i32) -> ti.i32:
+    """Loop index k of n, run backwards when flip is 1."""
+    return ti.select(flip == 1, n - 1 - k, k)
+
+
+@dataclass(frozen=True)
+class ClothGrid:
+    """Node layout of the truth mesh. `st_m` (ny, nx, 2): material (flat) coordinates, origin at a corner."""
+
+    nx: int
+    ny: int
+    dx_m: float
+    dy_m: float
+
+    @classmethod
+    def from_spec(cls, spec: ClothSpec) -> "ClothGrid":
+        w, h = spec.size_m
+        nx = round(w / spec.spacing_m) + 1
+        ny = round(h / spec.spacing_m) + 1
+        return cls(nx, ny, w / (nx - 1), h / (ny - 1))
+
+    @property
+    def st_m(self) -> np.ndarray:
+        s, t = np.meshgrid(np.arange(self.nx) * self.dx_m, np.arange(self.ny) * self.dy_m)
+        return np.stack([s, t], axis=-1)
+
+    def placed(self, pose: Pose) -> np.ndarray:
+        """World positions (ny, nx, 3) of the cloth with its centre at (x, y), rotated by theta: flat, or
+        with the pose's hump, which keeps every row's arc length."""
+        s_m = np.arange(self.nx) * self.dx_m - (self.nx - 1) * self.dx_m / 2.0
+        z_m = np.zeros(self.nx)
+        if pose.hump is not None:
+            z_m = pose.hump.height_m * np.exp(-0.5 * (s_m / pose.hump.sigma_m) ** 2)
+            # Re-integrate x along the row so each edge keeps its length: dx = sqrt(ds² - dz²).
+            dx = np.sqrt(np.clip(self.dx_m**2 - np.diff(z_m) ** 2, 0.0, None))
+            s_m = np.concatenate([[0.0], np.cumsum(dx)])
+            s_m -= s_m[-1] / 2.0
+        t_m = np.arange(self.ny) * self.dy_m - (self.ny - 1) * self.dy_m / 2.0
+        sx, ty = np.meshgrid(s_m, t_m)
+        c, s = np.cos(pose.theta_rad), np.sin(pose.theta_rad)
+        x = c * sx - s * ty + pose.x_m
+        y = s * sx + c * ty + pose.y_m
+        return np.stack([x, y, np.broadcast_to(z_m, x.shape)], axis=-1)
+
+    def node_masses_kg(self, areal_density_kg_m2: float) -> np.ndarray:
+        """Lumped masses (ny, nx): each node carries the area of the cell quarters around it."""
+        wx = np.full(self.nx, self.dx_m)
+        wx[[0, -1]] /= 2
+        wy = np.full(self.ny, self.dy_m)
+        wy[[0, -1]] /= 2
+        return np.asarray(areal_density_kg_m2 * np.outer(wy, wx))
+
+
+@ti.data_oriented
+class ClothSim:
+    """XPBD cloth. Positions are world metres; call `advance(dt_s, module_speed, module_heading)`."""
+
+    def __init__(self, spec: ClothSpec, table: TableSpec, pose: Pose, substep_s: float, seed: int) -> None:
+        self.spec = spec
+        self.substep_s = substep_s
+        self.table = table
+        self.grid = ClothGrid.from_spec(spec)
+        g = self.grid
+        shape = (g.ny, g.nx)
+        self._rng = np.random.default_rng(seed)
+        self.x = ti.Vector.field(3, ti.f64, shape=shape)
+        self.v = ti.Vector.field(3, ti.f64, shape=shape)
+        self.x_prev = ti.Vector.field(3, ti.f64, shape=shape)
+        self.inv_mass = ti.field(ti.f64, shape=shape)
+        self.kick = ti.field(ti.f64, shape=shape)
+        n_mod = table.modules_x * table.modules_y
+        self.mod_speed = ti.field(ti.f64, shape=n_mod)
+        self.mod_direction = ti.Vector.field(2, ti.f64, shape=n_mod)  # cos, sin of heading
+        self.mass_kg = g.node_masses_kg(spec.areal_density_kg_m2)
+        self.inv_mass.from_numpy(1.0 / self.mass_kg)
+        self.set_positions(g.placed(pose))
+
+    def set_positions(self, x_m: np.ndarray) -> None:
+        """Place the cloth at rest at the given node positions (ny, nx, 3)."""
+        self.x.from_numpy(np.ascontiguousarray(x_m, dtype=np.float64))
+        self.v.fill(0.0)
+
+    def positions_m(self) -> np.ndarray:
+        return np.asarray(self.x.to_numpy())
+
+    def velocities_m_s(self) -> np.ndarray:
+        return np.asarray(self.v.to_numpy())
+
+    def advance(self, dt_s: float, module_speed_m_s: np.ndarray, module_heading_rad: np.ndarray) -> None:
+        """Advance by dt_s (a whole number of substeps) with the belts at the given signed speeds and
+        headings. The belts' vertical shake is drawn once per call."""
+        self.mod_speed.from_numpy(np.asarray(module_speed_m_s, dtype=np.float64))
+        heading = np.asarray(module_heading_rad, dtype=np.float64)
+        self.mod_direction.from_numpy(np.stack([np.cos(heading), np.sin(heading)], axis=1))
+        self.kick.from_numpy(
+            self._rng.standard_normal((self.grid.ny, self.grid.nx)) * self.spec.vibration_m_s
+        )
+        s, t = self.spec, self.table
+        substeps = max(1, round(dt_s / self.substep_s))
+        h = dt_s / substeps
+        self._advance(
+            substeps,
+            s.stretch_iterations,
+            h,
+            1.0 / s.stretch_stiffness_n_m / h**2,
+            1.0 / s.shear_stiffness_n_m / h**2,
+            # Bending compliance h⁴/(B·cell area), with dx ≈ dy: dx·dy/B.
+            self.grid.dx_m * self.grid.dy_m / s.bending_stiffness_n_m / h**2,
+            s.friction.mu,
+            s.friction.stick_speed_m_s,
+            float(np.exp(-s.damping_1_s * h)),
+            t.pitch_m,
+            t.module_size_m / 2.0,
+        )
+
+    @ti.func
+    def _distance(self, a: ti.template(), b: ti.template(), rest: ti.f64, alpha: ti.f64):
+        wa, wb = self.inv_mass[a], self.inv_mass[b]
+        d = self.x[a] - self.x[b]
+        length = d.norm()
+        if length > 1e-12:
+            dlam = -(length - rest) / (wa + wb + alpha)
+            n = d / length
+            self.x[a] += wa * dlam * n
+            self.x[b] -= wb * dlam * n
+
+    @ti.func
+    def _bend(self, a: ti.template(), b: ti.template(), c: ti.template(), alpha: ti.f64):
+        wa, wb, wc = self.inv_mass[a], self.inv_mass[b], self.inv_mass[c]
+        dlam = -(self.x[a] - 2.0 * self.x[b] + self.x[c]) / (wa + 4.0 * wb + wc + alpha)
+        self.x[a] += wa * dlam
+        self.x[b] -= 2.0 * wb * dlam
+        self.x[c] += wc * dlam
+
+    @ti.func
+    def _belt_velocity(self, p: ti.template(), pitch: ti.f64, half_belt: ti.f64) -> belt_hit:
+        """(vx, vy, on_belt, 0): surface velocity of the belt under world point p; zero over the deck."""
+        hit = belt_at(
+            p[0], p[1], self.mod_direction, pitch, half_belt, self.table.modules_x, self.table.modules_y
+        )
+        vel = belt_hit(0.0, 0.0, 0.0, 0.0)
+        if hit[3] > 0.0:
+            m = ti.cast(hit[0], ti.i32)
+            speed = self.mod_speed[m]
+            vel = belt_hit(speed * self.mod_direction[m][0], speed * self.mod_direction[m][1], 1.0, 0.0)
+        return vel
+
+    @ti.kernel
+    def _advance(
+        self,
+        substeps: ti.i32,
+        stretch_iterations: ti.i32,
+        h: ti.f64,
+        alpha_stretch: ti.f64,
+        alpha_shear: ti.f64,
+        alpha_bend: ti.f64,
+        mu: ti.f64,
+        stick_speed: ti.f64,
+        damping: ti.f64,
+        pitch: ti.f64,
+        half_belt: ti.f64,
+    ):
+        nx, ny = ti.static(self.grid.nx, self.grid.ny)
+        dx, dy = ti.static(self.grid.dx_m, self.grid.dy_m)
+        diag = ti.static((self.grid.dx_m**2 + self.grid.dy_m**2) ** 0.5)
+        ti.loop_config(serialize=True)
+        for step in range(substeps):
+            for j, i in ti.ndrange(ny, nx):
+                self.x_prev[j, i] = self.x[j, i]
+                self.v[j, i][2] -= GRAVITY_M_S2 * h
+                if step == 0 and self.x[j, i][2] <= 1e-6:
+                    belt = self._belt_velocity(self.x[j, i], pitch, half_belt)
+                    shake = ti.min(1.0, vec2d(belt[0], belt[1]).norm() / _VIBRATION_REF_SPEED_M_S)
+                    self.v[j, i][2] += shake * ti.abs(self.kick[j, i])
+                self.x[j, i] += h * self.v[j, i]
+            # Gauss-Seidel sweeps alternate direction: a one-way sweep pushes the cloth sideways.
+            for it in range(stretch_iterations):
+                flip = (step * stretch_iterations + it) % 2
+                for jj, ii in ti.ndrange(ny, nx - 1):
+                    j, i = _swept(jj, ny, flip), _swept(ii, nx - 1, flip)
+                    self._distance(ti.Vector([j, i]), ti.Vector([j, i + 1]), dx, alpha_stretch)
+                for jj, ii in ti.ndrange(ny - 1, nx):
+                    j, i = _swept(jj, ny - 1, flip), _swept(ii, nx, flip)
+                    self._distance(ti.Vector([j, i]), ti.Vector([j + 1, i]), dy, alpha_stretch)
+            flip = step % 2
+            for jj, ii in ti.ndrange(ny - 1, nx - 1):
+                j, i = _swept(jj, ny - 1, flip), _swept(ii, nx - 1, flip)
+                self._distance(ti.Vector([j, i]), ti.Vector([j + 1, i + 1]), diag, alpha_shear)
+                self._distance(ti.Vector([j, i + 1]), ti.Vector([j + 1, i]), diag, alpha_shear)
+            for jj, ii in ti.ndrange(ny, nx - 2):
+                j, i = _swept(jj, ny, flip), _swept(ii, nx - 2, flip)
+                self._bend(ti.Vector([j, i]), ti.Vector([j, i + 1]), ti.Vector([j, i + 2]), alpha_bend)
+            for jj, ii in ti.ndrange(ny - 2, nx):
+                j, i = _swept(jj, ny - 2, flip), _swept(ii, nx, flip)
+                self._bend(ti.Vector([j, i]), ti.Vector([j + 1, i]), ti.Vector([j + 2, i]), alpha_bend)
+            for j, i in ti.ndrange(ny, nx):
+                if self.x[j, i][2] < 0.0:
+                    depth = -self.x[j, i][2]  # the normal correction; its impulse is m·depth/h
+                    self.x[j, i][2] = 0.0
+                    belt = self._belt_velocity(self.x[j, i], pitch, half_belt)
+                    if belt[2] > 0.0:
+                        # Positional Coulomb friction (Macklin et al.) against the belt: the slip d of this
+                        # substep shrinks by at most μ·depth (kinetic). In the regularised stick zone the
+                        # force is μN·|v|/stick_speed, solved implicitly: d /= 1 + μ·depth/(stick_speed·h).
+                        slip = vec2d(
+                            self.x[j, i][0] - self.x_prev[j, i][0] - belt[0] * h,
+                            self.x[j, i][1] - self.x_prev[j, i][1] - belt[1] * h,
+                        )
+                        budget = mu * depth
+                        keep_kinetic = 1.0 - budget / ti.max(slip.norm(), 1e-15)
+                        keep = ti.max(keep_kinetic, 1.0 / (1.0 + budget / (stick_speed * h)))
+                        self.x[j, i][0] -= (1.0 - keep) * slip[0]
+                        self.x[j, i][1] -= (1.0 - keep) * slip[1]
+                self.v[j, i] = (self.x[j, i] - self.x_prev[j, i]) / h * damping

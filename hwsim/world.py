@@ -1,0 +1,90 @@
+"""The simulated cell: table, ground-truth cloth and the scenario's operator, stepped frame by frame.
+
+Frame k shows the world at t_k = k / fps. `step()` issues the commands due at t_k and advances the world
+to t_{k+1}; the module dynamics run at `MODULE_STEPS_PER_FRAME` times the frame rate so the steppers'
+acceleration ramps reach the cloth smoothly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hwsim.cloth import ClothSim
+from hwsim.scenario import Scenario
+from hwsim.scene import SceneState, arms_at
+from hwsim.table import Table
+from hwsim.taichi_runtime import ensure_taichi
+from hwsim.timeline import Operator
+
+MODULE_STEPS_PER_FRAME = 5
+
+
+@dataclass(frozen=True)
+class CommandRow:
+    """One line of commands.csv: what the stepper controller was told, from t_s on."""
+
+    t_s: float
+    module: int
+    speed_m_s: float
+    heading_rad: float
+
+
+class World:
+    def __init__(self, scenario: Scenario, arch: str = "cpu") -> None:
+        ensure_taichi(arch)
+        self.scenario = scenario
+        self.dt_s = 1.0 / scenario.fps
+        self.table = Table(scenario.table)
+        self.cloth = ClothSim(
+            scenario.cloth, scenario.table, scenario.initial_pose, scenario.cloth.substep_s, scenario.seed
+        )
+        self.operator = Operator(scenario, self.table)
+        self.frame_index = 0
+        self.command_log: list[CommandRow] = []
+        self._told_speed = np.full(self.table.n_modules, np.nan)
+        self._told_heading = np.full(self.table.n_modules, np.nan)
+        for _ in range(round(scenario.settle_s * scenario.fps)):
+            self._advance()
+
+    @property
+    def t_s(self) -> float:
+        return self.frame_index * self.dt_s
+
+    def cloth_centre_m(self) -> np.ndarray:
+        """Mean x, y of the truth nodes, (2,)."""
+        return np.asarray(self.cloth.positions_m()[..., :2].reshape(-1, 2).mean(axis=0))
+
+    def scene_state(self, before_s: float = 0.0) -> SceneState:
+        """What the camera sees `before_s` before now; motion blur looks a few ms back, extrapolating the
+        cloth and belts at their current velocities."""
+        return SceneState(
+            self.cloth.positions_m() - before_s * self.cloth.velocities_m_s(),
+            self.table.heading_rad.copy(),
+            self.table.travel_m - before_s * self.table.speed_m_s,
+            arms_at(self.scenario.occluders, self.t_s - before_s),
+        )
+
+    def step(self) -> None:
+        """Issue the commands due at t_k, then advance to t_{k+1}."""
+        self.operator.apply(self.t_s, self.dt_s, self.cloth_centre_m())
+        self._log_commands()
+        self._advance()
+        self.frame_index += 1
+
+    def _advance(self) -> None:
+        dt = self.dt_s / MODULE_STEPS_PER_FRAME
+        for _ in range(MODULE_STEPS_PER_FRAME):
+            self.table.step(dt)
+            self.cloth.advance(dt, self.table.speed_m_s, self.table.heading_rad)
+
+    def _log_commands(self) -> None:
+        t = self.table
+        changed = (t.cmd_speed_m_s != self._told_speed) | (t.cmd_heading_rad != self._told_heading)
+        for m in np.flatnonzero(changed):
+            self.command_log.append(
+                CommandRow(self.t_s, int(m), float(t.cmd_speed_m_s[m]), float(t.cmd_heading_rad[m]))
+            )
+        self._told_speed = t.cmd_speed_m_s.copy()
+        self._told_heading = t.cmd_heading_rad.copy()
