@@ -1,0 +1,95 @@
+"""The `hwsim` command: record, verify, preview and benchmark the simulated cell."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from hwsim import scenario as scenarios
+
+
+def _cmd_record(args: argparse.Namespace) -> int:
+    from hwsim.recording import record
+
+    sc = scenarios.load(args.scenario, duration_s=args.duration)
+    stats = record(sc, args.out, arch=args.arch)
+    print(
+        f"recorded {sc.name}: {stats.frames} frames to {args.out} in {stats.wall_s:.1f} s "
+        f"(physics {stats.physics_ms:.1f} ms/frame, render {stats.render_ms:.1f} ms/frame)"
+    )
+    return 0
+
+
+def _cmd_verify(args: argparse.Namespace) -> int:
+    from hwsim.verify import NCC_MIN, PASS_FRACTION, verify
+
+    result = verify(args.recording)
+    print(
+        f"{args.recording}: {result.points} points, {result.pairs} patch pairs, "
+        f"{result.pass_fraction:.1%} with NCC >= {NCC_MIN} (need {PASS_FRACTION:.0%}); "
+        f"NCC median {result.ncc_median:.3f}, 5th percentile {result.ncc_p05:.3f} -> "
+        f"{'PASS' if result.ok else 'FAIL'}"
+    )
+    if args.json:
+        args.json.write_text(json.dumps(result.to_json(), indent=2) + "\n")
+    return 0 if result.ok else 1
+
+
+def _cmd_preview(args: argparse.Namespace) -> int:
+    from hwsim.preview import write_preview
+
+    out = write_preview(args.recording, args.out)
+    print(f"preview written to {out}")
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from hwsim.bench import format_bench, run_bench
+
+    result = run_bench(args.scenario, record_s=args.record_seconds)
+    print(format_bench(result))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="hwsim", description="The simulated textile cell.")
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("record", help="run a scenario and write a recording")
+    r.add_argument(
+        "scenario", help=f"a scenario file, or a shipped name ({', '.join(scenarios.shipped_names())})"
+    )
+    r.add_argument("--out", type=Path, required=True, help="recording directory")
+    r.add_argument("--duration", type=float, help="override the scenario's duration_s")
+    r.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "vulkan"], help="Taichi backend")
+    r.set_defaults(func=_cmd_record)
+    v = sub.add_parser("verify", help="check that truth and pixels agree")
+    v.add_argument("recording", type=Path)
+    v.add_argument("--json", type=Path, help="also write the figures as JSON")
+    v.set_defaults(func=_cmd_verify)
+    pv = sub.add_parser("preview", help="write a video of a recording with the truth mesh")
+    pv.add_argument("recording", type=Path)
+    pv.add_argument("--out", type=Path, help="video file (default RECORDING/preview.mp4)")
+    pv.set_defaults(func=_cmd_preview)
+    b = sub.add_parser("bench", help="physics, render and record speed")
+    b.add_argument("--scenario", default="compress")
+    b.add_argument("--record-seconds", type=float, default=10.0)
+    b.add_argument("--json", type=Path)
+    b.set_defaults(func=_cmd_bench)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except scenarios.ScenarioError as err:
+        print(f"hwsim: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

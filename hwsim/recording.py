@@ -1,0 +1,144 @@
+"""`hwsim record`: run a scenario and write a recording (format: docs/recording-format.md).
+
+DIR/frames/NNNNNN.png   lossless frames, BGR
+DIR/camera.json         K, dist, width, height, T_cam_world
+DIR/table.json          the module layout (ids, centres), for replaying commands
+DIR/commands.csv        t_s, module, speed_m_s, heading_rad: what the stepper controller was told
+DIR/truth.npz           ground truth, for grading only
+DIR/scenario.yaml       the scenario as run
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from hwsim.camera import Camera
+from hwsim.paths import frame_path
+from hwsim.renderer import Renderer, to_sensor_bgr8
+from hwsim.scenario import Scenario
+from hwsim.world import World
+
+# PNG level 1: about 3x faster than the default with files ~15 % larger; still lossless.
+_PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+
+
+@dataclass(frozen=True)
+class RecordStats:
+    frames: int
+    wall_s: float
+    physics_ms: float  # mean per frame
+    render_ms: float  # mean per frame, including sensor noise
+
+
+class FrameSink:
+    """Writes frames on a background thread (PNG encoding releases the GIL) while the world steps."""
+
+    def __init__(self, out_dir: Path) -> None:
+        (out_dir / "frames").mkdir(parents=True, exist_ok=True)
+        self.out_dir = out_dir
+        self._pool = ThreadPoolExecutor(max_workers=1)
+        self._pending: list[Future[bool]] = []
+
+    def write(self, index: int, image: np.ndarray) -> None:
+        self._pending.append(
+            self._pool.submit(cv2.imwrite, str(frame_path(self.out_dir, index)), image, _PNG_PARAMS)
+        )
+        if len(self._pending) > 8:
+            self._check(self._pending.pop(0))
+
+    def close(self) -> None:
+        for fut in self._pending:
+            self._check(fut)
+        self._pool.shutdown()
+
+    @staticmethod
+    def _check(fut: Future[bool]) -> None:
+        if not fut.result():
+            raise OSError("could not write a frame (disk full or not writable?)")
+
+
+def render_frame(world: World, renderer: Renderer) -> tuple[np.ndarray, np.ndarray]:
+    """The frame at the world's current instant: image in [0, 1] and node visibility, with motion blur
+    spread over the exposure when the scenario asks for it."""
+    noise = world.scenario.noise
+    n = noise.motion_blur_samples
+    backs = [noise.exposure_s * (n - 1 - k) / max(n - 1, 1) for k in range(n)]
+    return renderer.render([world.scene_state(before_s=b) for b in backs])
+
+
+def record(scenario: Scenario, out_dir: Path, arch: str = "cpu") -> RecordStats:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    world = World(scenario, arch)
+    camera = Camera.from_spec(scenario.camera)
+    renderer = Renderer(scenario, camera, world.cloth.grid)
+    rng = np.random.default_rng(scenario.noise.seed)
+    sink = FrameSink(out_dir)
+    n = scenario.frame_count
+    nodes = np.empty((n, world.cloth.grid.ny, world.cloth.grid.nx, 3), np.float32)
+    visible = np.empty((n, world.cloth.grid.ny, world.cloth.grid.nx), bool)
+    speeds = np.empty((n, world.table.n_modules), np.float32)
+    headings = np.empty((n, world.table.n_modules), np.float32)
+    physics_s = render_s = 0.0
+    start = time.perf_counter()
+    try:
+        for k in range(n):
+            t0 = time.perf_counter()
+            image, visible[k] = render_frame(world, renderer)
+            sink.write(k, to_sensor_bgr8(image, scenario.noise.sigma, rng))
+            nodes[k] = world.cloth.positions_m()
+            speeds[k], headings[k] = world.table.speed_m_s, world.table.heading_rad
+            t1 = time.perf_counter()
+            if k < n - 1:
+                world.step()
+            physics_s += time.perf_counter() - t1
+            render_s += t1 - t0
+    finally:
+        sink.close()
+    camera.save(out_dir / "camera.json")
+    _write_table(world, out_dir / "table.json")
+    _write_commands(world, out_dir / "commands.csv")
+    (out_dir / "scenario.yaml").write_text(yaml.safe_dump(scenario.model_dump(mode="json"), sort_keys=False))
+    np.savez_compressed(
+        out_dir / "truth.npz",
+        t_s=np.arange(n) / scenario.fps,
+        nodes_m=nodes,
+        st_m=world.cloth.grid.st_m,
+        visible=visible,
+        module_speed_m_s=speeds,
+        module_heading_rad=headings,
+    )
+    return RecordStats(n, time.perf_counter() - start, physics_s / n * 1e3, render_s / n * 1e3)
+
+
+def _write_table(world: World, path: Path) -> None:
+    spec = world.table.spec
+    path.write_text(
+        json.dumps(
+            {
+                "modules_x": spec.modules_x,
+                "modules_y": spec.modules_y,
+                "pitch_m": spec.pitch_m,
+                "module_size_m": spec.module_size_m,
+                "centres_m": world.table.centres_m.tolist(),
+            },
+            indent=2,
+        )
+        + "\n"
+    )
+
+
+def _write_commands(world: World, path: Path) -> None:
+    with path.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["t_s", "module", "speed_m_s", "heading_rad"])
+        for row in world.command_log:
+            w.writerow([f"{row.t_s:.6f}", row.module, f"{row.speed_m_s:.6f}", f"{row.heading_rad:.6f}"])

@@ -1,0 +1,28 @@
+"""Shared fixtures: short recordings of the shipped scenarios, made once per test session."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from hwsim import scenario as scenarios
+from hwsim.recording import record
+
+# Long enough to hold at least three 10-frame verify gaps, and for occlude the arm's entry.
+SHORT_DURATION_S = {"translate": 1.0, "rotate": 1.0, "compress": 1.0, "occlude": 1.5, "random": 1.0}
+
+
+@pytest.fixture(scope="session")
+def short_recording(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str], Path]:
+    made: dict[str, Path] = {}
+
+    def get(name: str) -> Path:
+        if name not in made:
+            out = tmp_path_factory.mktemp(f"rec_{name}")
+            record(scenarios.load(name, duration_s=SHORT_DURATION_S[name]), out)
+            made[name] = out
+        return made[name]
+
+    return get
