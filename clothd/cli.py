@@ -1,0 +1,71 @@
+"""The `clothd` command."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from clothd.config import load_config
+from clothd.errors import ClothdError
+
+
+def _cmd_check_config(args: argparse.Namespace) -> int:
+    load_config(args.file)
+    print(f"{args.file}: OK")
+    return 0
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    from clothd.replay import replay
+    from clothd.taichi_runtime import start_taichi
+
+    cfg = load_config(args.config)
+    tracker_cfg = cfg.tracker.model_copy(
+        update={
+            "model": args.model or cfg.tracker.model,
+            "use_input": cfg.tracker.use_input and not args.no_input,
+        }
+    )
+    start_taichi(cfg.taichi.arch)
+    result = replay(
+        args.source, args.out, tracker_cfg, roi=args.roi, camera_json=args.camera, commands_csv=args.commands
+    )
+    source_input = "on" if tracker_cfg.use_input else "off"
+    print(
+        f"replayed {result.frames} frames ({tracker_cfg.model}, input {source_input}) "
+        f"in {result.wall_s:.1f} s, {result.realtime_factor:.1f}x real time -> {args.out}"
+    )
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="clothd", description="Real-time cloth tracking and control.")
+    sub = p.add_subparsers(dest="command", required=True)
+    c = sub.add_parser("check-config", help="validate a configuration file")
+    c.add_argument("file", type=Path)
+    c.set_defaults(func=_cmd_check_config)
+    r = sub.add_parser("replay", help="track recorded footage offline")
+    r.add_argument("source", type=Path, help="a video file, an image directory, or an hwsim recording")
+    r.add_argument("--out", type=Path, required=True)
+    r.add_argument("--model", choices=["none", "predict", "rigid", "mesh"])
+    r.add_argument("--no-input", action="store_true", help="ignore the conveyor commands")
+    r.add_argument("--roi", choices=["auto", "full"], default="auto")
+    r.add_argument("--camera", type=Path, help="camera.json (default: the recording's, else an ideal camera)")
+    r.add_argument("--commands", type=Path, help="commands.csv (default: the recording's)")
+    r.add_argument("--config", type=Path)
+    r.set_defaults(func=_cmd_replay)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except ClothdError as err:
+        print(f"clothd: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

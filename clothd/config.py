@@ -1,0 +1,121 @@
+"""The configuration tree (config.yaml): pydantic models, unknown keys refused, every number bounded.
+
+Each component receives only its own sub-model. `load_config` turns any problem into a ConfigError that
+names the key and the bound it broke.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from clothd.errors import ConfigError
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class IdealCameraConfig(_Strict):
+    """Used when footage comes without camera.json: principal point at the image centre, table parallel
+    to the image plane at `distance_m`."""
+
+    f_px: float = Field(900.0, gt=10, le=20000)
+    distance_m: float = Field(1.0, gt=0.05, le=20)
+
+
+class FeatureConfig(_Strict):
+    max_features: int = Field(1000, ge=10, le=5000)
+    quality_level: float = Field(0.01, gt=0, le=1, description="Shi-Tomasi, relative to the best corner")
+    min_distance_px: float = Field(5.0, ge=1, le=100)
+    block_size_px: int = Field(5, ge=3, le=31)
+    lk_window_px: int = Field(15, ge=5, le=63)
+    lk_levels: int = Field(3, ge=0, le=6, description="pyramid levels above the base")
+    lk_max_iterations: int = Field(20, ge=1, le=200)
+    lk_epsilon_px: float = Field(0.01, gt=0, le=1)
+    fb_max_error_px: float = Field(0.5, gt=0, le=20, description="forward-backward check threshold")
+    resample_below_fraction: float = Field(0.7, gt=0, le=1, description="of max_features")
+    resample_cell_px: int = Field(48, ge=8, le=640, description="a cell of the cloth with no feature")
+    edge_margin_px: float = Field(6.0, ge=0, le=100, description="keep new features this far inside")
+
+
+class MeshConfig(_Strict):
+    nodes_x: int = Field(12, ge=2, le=64)
+    nodes_y: int = Field(12, ge=2, le=64)
+
+
+class PhysicsConfig(_Strict):
+    """The tracker's own cloth model: a Provot mass-spring on the tracking mesh."""
+
+    areal_density_kg_m2: float = Field(0.40, gt=0.01, le=5)
+    stretch_k_n_m: float = Field(50.0, gt=0, le=1e5, description="structural spring; Provot: soft + limited")
+    shear_k_n_m: float = Field(10.0, gt=0, le=1e5)
+    flexion_k_n_m: float = Field(2.0, ge=0, le=1e5)
+    damping_1_s: float = Field(8.0, ge=0, le=1000, description="velocity damping relative to the belt")
+    friction_mu: float = Field(1.0, gt=0, le=3)
+    stick_speed_m_s: float = Field(0.002, gt=0, le=0.1)
+    strain_limit: float = Field(0.05, gt=0, le=1, description="Provot: springs never stretch past this")
+    substeps: int = Field(20, ge=1, le=500)
+
+
+class EkfConfig(_Strict):
+    meas_sigma_px: float = Field(0.7, gt=0, le=50)
+    process_pos_sigma_m: float = Field(0.0005, gt=0, le=1, description="per tick")
+    process_vel_sigma_m_s: float = Field(0.01, gt=0, le=10, description="per tick")
+    initial_pos_sigma_m: float = Field(0.002, gt=0, le=1)
+    initial_vel_sigma_m_s: float = Field(0.01, gt=0, le=10)
+    gate_chi2: float = Field(13.8, gt=0, le=1000, description="Mahalanobis gate, 2 dof (13.8 = 99.9 %)")
+    divergence_nis: float = Field(50.0, gt=0, le=1e6, description="mean NIS per measurement that means lost")
+
+
+class TaichiConfig(_Strict):
+    arch: Literal["cpu", "cuda", "vulkan"] = "cpu"
+
+
+class TrackerConfig(_Strict):
+    model: Literal["none", "predict", "rigid", "mesh"] = "mesh"
+    use_input: bool = True
+    camera: IdealCameraConfig = IdealCameraConfig()
+    features: FeatureConfig = FeatureConfig()
+    mesh: MeshConfig = MeshConfig()
+    physics: PhysicsConfig = PhysicsConfig()
+    ekf: EkfConfig = EkfConfig()
+
+
+class Config(_Strict):
+    taichi: TaichiConfig = TaichiConfig()
+    tracker: TrackerConfig = TrackerConfig()
+
+
+def _describe(err: ValidationError, source: str) -> str:
+    first = err.errors()[0]
+    key = ".".join(str(p) for p in first["loc"]) or "(top level)"
+    more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
+    return f"{source}: {key}: {first['msg']}{more}"
+
+
+def parse_config(data: object, source: str = "<config>") -> Config:
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{source}: the configuration is a mapping of keys, got {type(data).__name__}")
+    try:
+        return Config.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(_describe(err, source)) from None
+
+
+def load_config(path: Path | None) -> Config:
+    """The configuration in `path`, or every default when path is None."""
+    if path is None:
+        return Config()
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read: {err.strerror}") from None
+    except yaml.YAMLError as err:
+        raise ConfigError(f"{path}: not valid YAML: {err}") from None
+    return parse_config(data, str(path))

@@ -1,0 +1,96 @@
+"""The conveyor table as the tracker sees it: module layout and the belt velocity under any point.
+
+The module commands are the filter's control input u. A module (col, row) sits at
+((col - (mx-1)/2)·pitch, (row - (my-1)/2)·pitch) in the world (table plane, metres); its belt is a
+square of side `belt_size_m` turned to its heading, on a turntable of diameter `pitch_m`. Module
+id = row·mx + col. This mirrors docs/recording-format.md; it is the tracker's own reading of the
+layout, not the simulator's code.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from clothd.errors import InputError
+
+
+@dataclass(frozen=True)
+class ConveyorLayout:
+    modules_x: int
+    modules_y: int
+    pitch_m: float
+    belt_size_m: float
+
+    @classmethod
+    def load(cls, path: Path) -> ConveyorLayout:
+        """table.json of a recording."""
+        try:
+            d = json.loads(path.read_text())
+            return cls(
+                int(d["modules_x"]), int(d["modules_y"]), float(d["pitch_m"]), float(d["module_size_m"])
+            )
+        except (OSError, KeyError, ValueError, TypeError) as err:
+            raise InputError(f"{path}: not a usable table layout ({err})") from None
+
+    @property
+    def n_modules(self) -> int:
+        return self.modules_x * self.modules_y
+
+    @property
+    def centres_m(self) -> np.ndarray:
+        """(n_modules, 2) module centres, indexed by module id."""
+        cols, rows = np.meshgrid(np.arange(self.modules_x), np.arange(self.modules_y))
+        return np.stack(
+            [
+                (cols.ravel() - (self.modules_x - 1) / 2.0) * self.pitch_m,
+                (rows.ravel() - (self.modules_y - 1) / 2.0) * self.pitch_m,
+            ],
+            axis=1,
+        )
+
+    def belt_velocity(
+        self, points_m: np.ndarray, speed_m_s: np.ndarray, heading_rad: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Surface velocity (n, 2) under world points (n, 2 or 3), and whether a belt is there (n,) bool.
+
+        speed_m_s, heading_rad: (n_modules,) module commands. Points over the deck get zero velocity and
+        False: the belts stand proud of the deck, so there is no friction there.
+        """
+        xy = np.asarray(points_m)[:, :2]
+        col = np.rint(xy[:, 0] / self.pitch_m + (self.modules_x - 1) / 2.0).astype(int)
+        row = np.rint(xy[:, 1] / self.pitch_m + (self.modules_y - 1) / 2.0).astype(int)
+        on_table = (col >= 0) & (col < self.modules_x) & (row >= 0) & (row < self.modules_y)
+        m = np.where(on_table, row * self.modules_x + col, 0)
+        rel = xy - self.centres_m[m]
+        c, s = np.cos(heading_rad[m]), np.sin(heading_rad[m])
+        along = c * rel[:, 0] + s * rel[:, 1]
+        across = -s * rel[:, 0] + c * rel[:, 1]
+        half = self.belt_size_m / 2.0
+        on_belt = (
+            on_table
+            & (np.abs(along) <= half)
+            & (np.abs(across) <= half)
+            & (np.sum(rel * rel, axis=1) <= (self.pitch_m / 2.0) ** 2)
+        )
+        vel = np.where(on_belt[:, None], (speed_m_s[m])[:, None] * np.stack([c, s], axis=1), 0.0)
+        return vel, on_belt
+
+
+def rigid_velocity_fit(points_m: np.ndarray, velocity_m_s: np.ndarray, centre_m: np.ndarray) -> np.ndarray:
+    """Least-squares rigid motion [vx, vy, ω] about `centre_m` (2,) explaining velocities (n, 2) at points
+    (n, 2): v_i ≈ v + ω·ẑ×(p_i − c). Zeros when there are no points."""
+    if len(points_m) == 0:
+        return np.zeros(3)
+    r = points_m[:, :2] - centre_m
+    # Rows for x: [1, 0, -r_y]; rows for y: [0, 1, r_x].
+    A = np.zeros((2 * len(r), 3))
+    A[0::2, 0] = 1.0
+    A[0::2, 2] = -r[:, 1]
+    A[1::2, 1] = 1.0
+    A[1::2, 2] = r[:, 0]
+    sol, *_ = np.linalg.lstsq(A, velocity_m_s.reshape(-1), rcond=None)
+    return np.asarray(sol)

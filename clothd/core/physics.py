@@ -1,0 +1,171 @@
+"""The tracker's cloth model: a Provot mass–spring on the tracking mesh, driven by the conveyors (Taichi).
+
+Nodes carry mass from the cloth's areal density. Springs (Provot 1995): structural (grid edges), shear
+(cell diagonals) and flexion (every second node along rows and columns), with Provot's strain limiting:
+after each substep a structural or shear spring stretched past (1 + strain_limit) of its rest length is
+pulled back, half from each end. Gravity, the table (z >= 0) and friction against the belt under each
+node: the belt's surface velocity, from the module commands, is the control input u. Friction is
+Coulomb with a regularised stick zone, applied implicitly on the velocity so it is stable at any step.
+Symplectic Euler with at least `substeps` per tick, more when the springs need it for stability.
+
+`step` advances the state in place; `transition_blocks` gives the per-node linearisation the filter
+propagates its covariance with (see mesh_ekf.py for why the spring couplings are not linearised).
+"""
+
+import math
+
+import numpy as np
+import taichi as ti
+
+from clothd.config import PhysicsConfig
+
+GRAVITY_M_S2 = 9.81
+vec3d = ti.types.vector(3, ti.f64)
+
+
+def spring_pairs(nx: int, ny: int) -> dict[str, np.ndarray]:
+    """Flat node index pairs (k, 2) of each spring family on an nx x ny grid (node n = j·nx + i)."""
+    idx = np.arange(nx * ny).reshape(ny, nx)
+
+    def pairs(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return np.stack([a.ravel(), b.ravel()], axis=1)
+
+    return {
+        "structural": np.concatenate([pairs(idx[:, :-1], idx[:, 1:]), pairs(idx[:-1, :], idx[1:, :])]),
+        "shear": np.concatenate([pairs(idx[:-1, :-1], idx[1:, 1:]), pairs(idx[:-1, 1:], idx[1:, :-1])]),
+        "flexion": np.concatenate([pairs(idx[:, :-2], idx[:, 2:]), pairs(idx[:-2, :], idx[2:, :])]),
+    }
+
+
+@ti.data_oriented
+class MassSpring:
+    """Mass–spring cloth on a rest mesh. rest_xy_m (ny, nx, 2): node positions in cloth space."""
+
+    def __init__(self, cfg: PhysicsConfig, rest_xy_m: np.ndarray) -> None:
+        self.cfg = cfg
+        ny, nx = rest_xy_m.shape[:2]
+        self.n = nx * ny
+        rest = rest_xy_m.reshape(-1, 2)
+        families = spring_pairs(nx, ny)
+        pairs = np.concatenate(list(families.values()))
+        stiffness = np.concatenate(
+            [
+                np.full(len(families["structural"]), cfg.stretch_k_n_m),
+                np.full(len(families["shear"]), cfg.shear_k_n_m),
+                np.full(len(families["flexion"]), cfg.flexion_k_n_m),
+            ]
+        )
+        self.n_limited = len(families["structural"]) + len(families["shear"])  # Provot limits these
+        lengths = np.linalg.norm(rest[pairs[:, 0]] - rest[pairs[:, 1]], axis=1)
+        # Lumped mass: the cloth's area shared equally (the mesh covers the whole cloth).
+        area_m2 = _polygon_area(rest_xy_m)
+        self.mass_kg = cfg.areal_density_kg_m2 * area_m2 / self.n
+        self.x = ti.Vector.field(3, ti.f64, shape=self.n)
+        self.v = ti.Vector.field(3, ti.f64, shape=self.n)
+        self.belt = ti.Vector.field(3, ti.f64, shape=self.n)  # vx, vy, on_belt
+        self.pair = ti.Vector.field(2, ti.i32, shape=len(pairs))
+        self.rest = ti.field(ti.f64, shape=len(pairs))
+        self.k = ti.field(ti.f64, shape=len(pairs))
+        self.force = ti.Vector.field(3, ti.f64, shape=self.n)
+        # Symplectic Euler is stable for h < 2/ω; the stiffest node (all 12 springs) sets ω. Substeps are
+        # raised to keep h <= 1/ω, a factor 2 of margin.
+        per_node = np.bincount(pairs.ravel(), weights=np.repeat(stiffness, 2), minlength=self.n)
+        self.omega_max_rad_s = float(np.sqrt(per_node.max() / self.mass_kg))
+        self.pair.from_numpy(pairs.astype(np.int32))
+        self.rest.from_numpy(lengths)
+        self.k.from_numpy(stiffness)
+
+    def set_state(self, x_m: np.ndarray, v_m_s: np.ndarray) -> None:
+        """x_m, v_m_s: (n, 3)."""
+        self.x.from_numpy(np.ascontiguousarray(x_m, dtype=np.float64))
+        self.v.from_numpy(np.ascontiguousarray(v_m_s, dtype=np.float64))
+
+    def state(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.x.to_numpy(), self.v.to_numpy()
+
+    def step(self, dt_s: float, belt_velocity_m_s: np.ndarray, on_belt: np.ndarray) -> None:
+        """Advance one tick. belt_velocity_m_s (n, 2) and on_belt (n,) bool: the input u at each node."""
+        belt = np.column_stack([belt_velocity_m_s, on_belt.astype(np.float64)])
+        self.belt.from_numpy(np.ascontiguousarray(belt))
+        c = self.cfg
+        substeps = max(c.substeps, math.ceil(dt_s * self.omega_max_rad_s))
+        self._advance(
+            substeps, dt_s / substeps, c.friction_mu, c.stick_speed_m_s, c.damping_1_s, c.strain_limit
+        )
+
+    def transition_blocks(self, dt_s: float, in_contact: np.ndarray) -> np.ndarray:
+        """Per-node F_i (n, 6, 6) for [p_i, v_i]: v⁺ = α_i v + (1 − α_i)·(input), p⁺ = p + dt·v⁺.
+
+        α_i is how much of its own velocity a node keeps over a tick: on a belt, friction pulls it to the
+        belt speed within about stick_speed/(μ g) s; elsewhere only the damping acts."""
+        c = self.cfg
+        tau_stick_s = c.stick_speed_m_s / (c.friction_mu * GRAVITY_M_S2)
+        alpha = np.where(in_contact, math.exp(-dt_s / tau_stick_s), math.exp(-dt_s * c.damping_1_s))
+        F = np.tile(np.eye(6), (self.n, 1, 1))
+        F[:, 3:, 3:] *= alpha[:, None, None]
+        F[:, :3, 3:] = dt_s * alpha[:, None, None] * np.eye(3)
+        return F
+
+    @ti.kernel
+    def _advance(
+        self,
+        substeps: ti.i32,
+        h: ti.f64,
+        mu: ti.f64,
+        stick_speed: ti.f64,
+        damping: ti.f64,
+        strain_limit: ti.f64,
+    ):
+        # One serial kernel for all substeps: the mesh is small, and a launch per substep would cost more
+        # than the arithmetic.
+        ti.loop_config(serialize=True)
+        for _ in range(substeps):
+            self._substep(h, mu, stick_speed, damping, strain_limit)
+
+    @ti.func
+    def _substep(self, h: ti.f64, mu: ti.f64, stick_speed: ti.f64, damping: ti.f64, strain_limit: ti.f64):
+        for i in range(self.n):
+            self.force[i] = vec3d(0.0, 0.0, -GRAVITY_M_S2 * self.mass_kg)
+        for s in range(self.rest.shape[0]):
+            a, b = self.pair[s][0], self.pair[s][1]
+            d = self.x[b] - self.x[a]
+            length = d.norm()
+            if length > 1e-12:
+                f = self.k[s] * (length - self.rest[s]) * d / length
+                self.force[a] += f
+                self.force[b] -= f
+        for i in range(self.n):
+            v = self.v[i] + h * self.force[i] / self.mass_kg
+            v[0] *= 1.0 / (1.0 + h * damping)
+            v[1] *= 1.0 / (1.0 + h * damping)
+            # Resting on the table (at or below it, moving down): the table takes the normal impulse,
+            # m·g·h per substep when at rest, and friction may use μ times it.
+            if self.x[i][2] + h * v[2] <= 0.0:
+                budget = mu * ti.max(-v[2], 0.0)
+                v[2] = 0.0
+                if self.belt[i][2] > 0.0:
+                    slip = ti.Vector([v[0] - self.belt[i][0], v[1] - self.belt[i][1]])
+                    speed = slip.norm()
+                    keep = ti.max(1.0 - budget / ti.max(speed, 1e-15), 1.0 / (1.0 + budget / stick_speed))
+                    v[0] = self.belt[i][0] + keep * slip[0]
+                    v[1] = self.belt[i][1] + keep * slip[1]
+            self.v[i] = v
+            self.x[i] += h * v
+            self.x[i][2] = ti.max(self.x[i][2], 0.0)
+        # Provot's strain limiting on structural and shear springs (one Gauss-Seidel pass).
+        for s in range(self.n_limited):
+            a, b = self.pair[s][0], self.pair[s][1]
+            d = self.x[b] - self.x[a]
+            length = d.norm()
+            limit = (1.0 + strain_limit) * self.rest[s]
+            if length > limit:
+                fix = 0.5 * (length - limit) * d / length
+                self.x[a] += fix
+                self.x[b] -= fix
+
+
+def _polygon_area(grid_xy: np.ndarray) -> float:
+    """Area of the quad grid's outline (shoelace over its boundary)."""
+    b = np.concatenate([grid_xy[0, :], grid_xy[1:, -1], grid_xy[-1, -2::-1], grid_xy[-2:0:-1, 0]])
+    x, y = b[:, 0], b[:, 1]
+    return float(0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))

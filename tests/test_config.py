@@ -1,0 +1,46 @@
+from pathlib import Path
+
+import pytest
+
+from clothd.cli import main
+from clothd.config import Config, load_config
+from clothd.errors import ConfigError
+
+
+def test_defaults_are_valid() -> None:
+    cfg = load_config(None)
+    assert cfg == Config()
+    assert cfg.tracker.mesh.nodes_x == 12 and cfg.taichi.arch == "cpu"
+
+
+@pytest.mark.parametrize(
+    ("text", "names"),
+    [
+        (
+            "tracker: {features: {max_features: 3}}\n",
+            ["tracker.features.max_features", "greater than or equal to 10"],
+        ),
+        ("tracker: {ekf: {meas_sigma_px: -1}}\n", ["tracker.ekf.meas_sigma_px", "greater than 0"]),
+        ("tracker: {mesh: {nodes_z: 4}}\n", ["tracker.mesh.nodes_z", "Extra inputs"]),
+        ("taichi: {arch: tpu}\n", ["taichi.arch"]),
+        ("- a\n- list\n", ["a mapping"]),
+        ("tracker: [unclosed\n", ["not valid YAML"]),
+    ],
+)
+def test_bad_config_names_the_key_and_bound(tmp_path: Path, text: str, names: list[str]) -> None:
+    path = tmp_path / "c.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as err:
+        load_config(path)
+    for name in names:
+        assert name in str(err.value)
+
+
+def test_check_config_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    good, bad = tmp_path / "good.yaml", tmp_path / "bad.yaml"
+    good.write_text("tracker: {model: rigid}\n")
+    bad.write_text("tracker: {model: magic}\n")
+    assert main(["check-config", str(good)]) == 0
+    assert main(["check-config", str(bad)]) == 2
+    assert "tracker.model" in capsys.readouterr().err
+    assert main(["check-config", str(tmp_path / "missing.yaml")]) == 2

@@ -1,0 +1,130 @@
+"""The tracker's own models: conveyor input, mass-spring prediction, mesh EKF correction, rebinding."""
+
+import numpy as np
+import pytest
+
+from clothd.config import PhysicsConfig
+from clothd.core.binding import cloth_coordinates, invert_bilinear
+from clothd.core.camera_model import CameraModel
+from clothd.core.conveyor import ConveyorLayout, rigid_velocity_fit
+from clothd.core.mesh import QuadMesh, blend, measurement_jacobian, shape_functions
+from clothd.core.mesh_ekf import NodeBelief
+from clothd.core.physics import MassSpring, spring_pairs
+from clothd.taichi_runtime import start_taichi
+
+LAYOUT = ConveyorLayout(8, 6, 0.075, 0.065)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _taichi() -> None:
+    start_taichi("cpu")
+
+
+def _mesh() -> QuadMesh:
+    return QuadMesh.covering(np.array([[-0.125, -0.1], [0.125, -0.1], [0.125, 0.1], [-0.125, 0.1]]), 12, 12)
+
+
+def test_belt_velocity_lookup_and_rigid_fit() -> None:
+    speed, heading = np.zeros(48), np.zeros(48)
+    speed[LAYOUT.modules_x * 2 + 3] = 0.05  # module (col 3, row 2), centre (-0.0375, -0.0375)
+    heading[LAYOUT.modules_x * 2 + 3] = np.pi / 2
+    pts = np.array([[-0.0375, -0.0375], [-0.0375 + 0.034, -0.0375], [0.0, 0.0], [5.0, 5.0]])
+    vel, on = LAYOUT.belt_velocity(pts, speed, heading)
+    assert list(on) == [
+        True,
+        False,
+        False,
+        False,
+    ]  # the second is past the belt's edge, the last off the table
+    np.testing.assert_allclose(vel[0], [0.0, 0.05], atol=1e-12)
+    rng = np.random.default_rng(0)
+    p = rng.uniform(-0.1, 0.1, (30, 2))
+    twist = np.array([0.02, -0.01, 0.3])
+    v = twist[:2] + twist[2] * np.stack([-(p[:, 1] - 0.01), p[:, 0] - 0.02], axis=1)
+    np.testing.assert_allclose(rigid_velocity_fit(p, v, np.array([0.02, 0.01])), twist, atol=1e-12)
+
+
+def test_spring_families() -> None:
+    fam = spring_pairs(4, 3)
+    assert len(fam["structural"]) == 3 * 3 + 2 * 4
+    assert len(fam["shear"]) == 2 * 3 * 2
+    assert len(fam["flexion"]) == 3 * 2 + 1 * 4
+
+
+def test_mass_spring_rests_and_is_carried_by_belts() -> None:
+    mesh = _mesh()
+    sim = MassSpring(PhysicsConfig(), mesh.rest_nodes_m())
+    rest = np.column_stack([mesh.rest_nodes_m().reshape(-1, 2), np.zeros(mesh.n_nodes)])
+    sim.set_state(rest, np.zeros_like(rest))
+    still = np.zeros(48)
+    for _ in range(10):
+        vel, on = LAYOUT.belt_velocity(sim.state()[0], still, still)
+        sim.step(1 / 30, vel, on)
+    x, v = sim.state()
+    assert np.abs(x - rest).max() < 1e-6 and np.abs(v).max() < 1e-4
+    speed, heading = np.full(48, 0.03), np.full(48, np.pi / 2)
+    for _ in range(30):
+        vel, on = LAYOUT.belt_velocity(sim.state()[0], speed, heading)
+        sim.step(1 / 30, vel, on)
+    x, v = sim.state()
+    np.testing.assert_allclose(v[:, :2].mean(axis=0), [0.0, 0.03], atol=0.002)
+    assert x[:, 2].min() >= 0.0
+
+
+def test_strain_limiting_holds_a_stretched_mesh() -> None:
+    mesh = _mesh()
+    cfg = PhysicsConfig(strain_limit=0.05)
+    sim = MassSpring(cfg, mesh.rest_nodes_m())
+    rest = np.column_stack([mesh.rest_nodes_m().reshape(-1, 2), np.zeros(mesh.n_nodes)])
+    stretched = rest.copy()
+    stretched[:, 0] *= 1.3
+    sim.set_state(stretched, np.zeros_like(rest))
+    for _ in range(5):
+        sim.step(1 / 30, np.zeros((mesh.n_nodes, 2)), np.zeros(mesh.n_nodes, bool))
+    x = sim.state()[0].reshape(mesh.ny, mesh.nx, 3)
+    dx = np.linalg.norm(np.diff(x, axis=1), axis=-1) / mesh.spacing_m[0]
+    assert dx.max() < 1.0 + cfg.strain_limit + 0.01  # from 1.30: Provot's correction holds the limit
+
+
+def test_mesh_ekf_update_is_the_exact_information_form_update() -> None:
+    """For a block-diagonal prior, the sparse update equals the dense textbook EKF update."""
+    cam = CameraModel.ideal(640, 480, 900.0, 1.0)
+    mesh = QuadMesh.covering(np.array([[-0.05, -0.05], [0.05, -0.05], [0.05, 0.05], [-0.05, 0.05]]), 3, 3)
+    rng = np.random.default_rng(3)
+    n = mesh.n_nodes
+    pos = np.column_stack([mesh.rest_nodes_m().reshape(-1, 2), np.zeros(n)])
+    P_blocks = np.stack([np.diag(rng.uniform(1e-6, 4e-6, 6)) for _ in range(n)])
+    belief = NodeBelief(np.column_stack([pos, np.zeros_like(pos)]), P_blocks.copy())
+    binding = mesh.bind(rng.uniform(-0.045, 0.045, (12, 2)))
+    _, J = measurement_jacobian(cam, pos, binding)
+    nu = rng.normal(0, 0.5, (12, 2))
+    belief.correct(binding.nodes, J, nu, 0.25, gate_chi2=1e9)
+    H = np.zeros((24, 6 * n))
+    for i in range(12):
+        for c in range(4):
+            H[2 * i : 2 * i + 2, 6 * binding.nodes[i, c] : 6 * binding.nodes[i, c] + 3] = J[i, c]
+    P = np.zeros((6 * n, 6 * n))
+    for k in range(n):
+        P[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] = P_blocks[k]
+    K = P @ H.T @ np.linalg.inv(H @ P @ H.T + 0.25 * np.eye(24))
+    x_ref = np.column_stack([pos, np.zeros_like(pos)]).ravel() + K @ nu.ravel()
+    np.testing.assert_allclose(belief.x.ravel(), x_ref, atol=1e-12)
+    for k in range(n):  # the localised blocks are SPD and no larger than the prior
+        assert np.all(np.linalg.eigvalsh(belief.P[k]) > 0)
+        assert np.all(np.diag(belief.P[k]) <= np.diag(P_blocks[k]) + 1e-15)
+
+
+def test_rebinding_through_a_moved_mesh() -> None:
+    cam = CameraModel.ideal(640, 480, 900.0, 1.0)
+    mesh = _mesh()
+    rest = mesh.rest_nodes_m().reshape(-1, 2)
+    moved = np.column_stack([rest + np.array([0.02, -0.01]), np.zeros(len(rest))])
+    rng = np.random.default_rng(4)
+    st_true = rng.uniform([-0.1, -0.08], [0.1, 0.08], (20, 2))
+    px = cam.project(blend(moved, mesh.bind(st_true)))
+    st, found = cloth_coordinates(mesh, cam.project(moved), px)
+    assert found.all()
+    np.testing.assert_allclose(st, st_true, atol=1e-6)
+    corners = np.array([[[0.0, 0.0], [2.0, 0.2], [2.2, 2.0], [-0.1, 1.8]]])
+    xe = np.array([[0.3, -0.6]])
+    np.testing.assert_allclose(invert_bilinear(corners, shape_functions(xe) @ corners[0]), xe, atol=1e-9)
