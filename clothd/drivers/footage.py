@@ -1,0 +1,134 @@
+"""Recorded footage for offline replay: a video file, a directory of images, or an hwsim recording.
+
+Images in a directory are taken in natural numeric order (img_2 before img_10). A recording directory
+(one with frames/ and camera.json) also supplies its camera, module layout and commands; its
+truth.npz is never opened here.
+"""
+
+from __future__ import annotations
+
+import csv
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import yaml
+
+from clothd.core.messages import ModuleCommands
+from clothd.errors import InputError
+
+IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp"}
+DEFAULT_FPS = 30.0
+
+
+def natural_key(path: Path) -> list[object]:
+    """Sort key that orders embedded numbers by value: img_2 < img_10."""
+    return [int(tok) if tok.isdigit() else tok.lower() for tok in re.split(r"(\d+)", path.name)]
+
+
+@dataclass(frozen=True)
+class Footage:
+    source: Path
+    fps: float
+    camera_json: Path | None
+    table_json: Path | None
+    commands_csv: Path | None
+    _images: tuple[Path, ...] | None  # None for a video
+
+    def frames(self) -> Iterator[tuple[float, np.ndarray]]:
+        """(t_s, BGR image) in order; t_s = index / fps."""
+        if self._images is not None:
+            for k, path in enumerate(self._images):
+                img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+                if img is None:
+                    raise InputError(f"{path}: not a readable image")
+                yield k / self.fps, img
+            return
+        cap = cv2.VideoCapture(str(self.source))
+        try:
+            k = 0
+            while True:
+                ok, img = cap.read()
+                if not ok:
+                    return
+                yield k / self.fps, img
+                k += 1
+        finally:
+            cap.release()
+
+
+def open_footage(source: Path) -> Footage:
+    if source.is_dir():
+        frames_dir = source / "frames"
+        if frames_dir.is_dir():
+            return Footage(
+                source,
+                _recording_fps(source),
+                _existing(source / "camera.json"),
+                _existing(source / "table.json"),
+                _existing(source / "commands.csv"),
+                _images_in(frames_dir),
+            )
+        return Footage(source, DEFAULT_FPS, None, None, None, _images_in(source))
+    if not source.exists():
+        raise InputError(f"{source}: no such file or directory")
+    cap = cv2.VideoCapture(str(source))
+    opened, fps = cap.isOpened(), cap.get(cv2.CAP_PROP_FPS)
+    cap.release()
+    if not opened:
+        raise InputError(f"{source}: not a video OpenCV can read")
+    return Footage(source, fps if fps and fps > 0 else DEFAULT_FPS, None, None, None, None)
+
+
+def _existing(path: Path) -> Path | None:
+    return path if path.exists() else None
+
+
+def _images_in(directory: Path) -> tuple[Path, ...]:
+    images = sorted((p for p in directory.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=natural_key)
+    if not images:
+        raise InputError(f"{directory}: no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
+    return tuple(images)
+
+
+def _recording_fps(recording: Path) -> float:
+    scenario = recording / "scenario.yaml"
+    if scenario.exists():
+        data = yaml.safe_load(scenario.read_text())
+        if isinstance(data, dict) and isinstance(data.get("fps"), int | float):
+            return float(data["fps"])
+    return DEFAULT_FPS
+
+
+class CommandSchedule:
+    """commands.csv (t_s, module, speed_m_s, heading_rad) as a function of time: each module holds its
+    last command; modules never commanded stand still."""
+
+    def __init__(self, path: Path, n_modules: int) -> None:
+        rows: list[tuple[float, int, float, float]] = []
+        try:
+            with path.open(newline="") as f:
+                for r in csv.DictReader(f):
+                    rows.append(
+                        (float(r["t_s"]), int(r["module"]), float(r["speed_m_s"]), float(r["heading_rad"]))
+                    )
+        except (OSError, KeyError, ValueError) as err:
+            raise InputError(f"{path}: not a usable commands file ({err})") from None
+        bad = [m for _, m, _, _ in rows if not 0 <= m < n_modules]
+        if bad:
+            raise InputError(f"{path}: module ids {sorted(set(bad))[:5]} outside 0..{n_modules - 1}")
+        self._rows = sorted(rows)
+        self._next = 0
+        self._speed = np.zeros(n_modules)
+        self._heading = np.zeros(n_modules)
+
+    def at(self, t_s: float) -> ModuleCommands:
+        """Commands in force at t_s; call with non-decreasing times."""
+        while self._next < len(self._rows) and self._rows[self._next][0] <= t_s + 1e-9:
+            _, m, speed, heading = self._rows[self._next]
+            self._speed[m], self._heading[m] = speed, heading
+            self._next += 1
+        return ModuleCommands(self._speed.copy(), self._heading.copy())
