@@ -107,8 +107,13 @@ def test_ideal_camera() -> None:
 
 def test_load_reads_camera_json(tmp_path: Path) -> None:
     cam = _tilted_camera()
-    d = {"K": cam.K.tolist(), "dist": cam.dist.tolist(), "width": 640, "height": 480,
-         "T_cam_world": cam.T_cam_world.tolist()}
+    d = {
+        "K": cam.K.tolist(),
+        "dist": cam.dist.tolist(),
+        "width": 640,
+        "height": 480,
+        "T_cam_world": cam.T_cam_world.tolist(),
+    }
     (tmp_path / "camera.json").write_text(json.dumps(d))
     back = CameraModel.load(tmp_path / "camera.json")
     np.testing.assert_array_equal(back.K, cam.K)
@@ -120,8 +125,13 @@ def test_load_reads_camera_json(tmp_path: Path) -> None:
 @pytest.mark.parametrize("key", ["K", "dist", "T_cam_world", "width", "height"])
 def test_load_names_a_missing_key_and_the_file(tmp_path: Path, key: str) -> None:
     cam = CameraModel.ideal(64, 48, 90.0, 1.0)
-    d = {"K": cam.K.tolist(), "dist": cam.dist.tolist(), "width": 64, "height": 48,
-         "T_cam_world": cam.T_cam_world.tolist()}
+    d = {
+        "K": cam.K.tolist(),
+        "dist": cam.dist.tolist(),
+        "width": 64,
+        "height": 48,
+        "T_cam_world": cam.T_cam_world.tolist(),
+    }
     del d[key]
     path = tmp_path / "camera.json"
     path.write_text(json.dumps(d))
@@ -136,7 +146,16 @@ def test_load_refuses_unreadable_files(tmp_path: Path) -> None:
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(InputError, match="not valid JSON"):
         CameraModel.load(tmp_path / "bad.json")
-    (tmp_path / "shape.json").write_text(json.dumps(
-        {"K": [[1, 0], [0, 1]], "dist": [0] * 5, "width": 1, "height": 1, "T_cam_world": np.eye(4).tolist()}))
+    (tmp_path / "shape.json").write_text(
+        json.dumps(
+            {
+                "K": [[1, 0], [0, 1]],
+                "dist": [0] * 5,
+                "width": 1,
+                "height": 1,
+                "T_cam_world": np.eye(4).tolist(),
+            }
+        )
+    )
     with pytest.raises(InputError, match="K"):
         CameraModel.load(tmp_path / "shape.json")

@@ -30,6 +30,11 @@ def test_predict_and_update_match_filterpy() -> None:
     np.testing.assert_allclose(x_new, ref.x.ravel(), atol=1e-9)
     np.testing.assert_allclose(P_new, ref.P, atol=1e-9)
     assert np.all(np.linalg.eigvalsh(P_new) > 0)
+    # The information form gives the same answer for R = r·I.
+    x_inf, P_inf = ekf.update_information(x_pred, P_pred, meas - H @ x_pred, H, 0.7)
+    x_gain, P_gain = ekf.update(x_pred, P_pred, meas - H @ x_pred, H, 0.7 * np.eye(z))
+    np.testing.assert_allclose(x_inf, x_gain, atol=1e-9)
+    np.testing.assert_allclose(P_inf, P_gain, atol=1e-9)
 
 
 def test_gate_rejects_outliers_by_mahalanobis_distance() -> None:

@@ -82,10 +82,14 @@ def test_blend_of_rest_nodes_reproduces_the_points_and_edges_are_bound() -> None
     # Random points on the mesh, points on its edges, and points on the interior cell edges.
     fi, fj = rng.uniform(0, 1, 300), rng.uniform(0, 1, 300)
     st = mesh.origin_m + np.column_stack([fi * 0.42, fj * 0.28]) @ mesh.axes
-    edges = np.concatenate([nodes[0, :-1] + (nodes[0, 1:] - nodes[0, :-1]) * 0.3,
-                            nodes[-1, :-1] + (nodes[-1, 1:] - nodes[-1, :-1]) * 0.6,
-                            nodes[:-1, -1] + (nodes[1:, -1] - nodes[:-1, -1]) * 0.5,
-                            nodes[2, :-1] + (nodes[2, 1:] - nodes[2, :-1]) * 0.5])
+    edges = np.concatenate(
+        [
+            nodes[0, :-1] + (nodes[0, 1:] - nodes[0, :-1]) * 0.3,
+            nodes[-1, :-1] + (nodes[-1, 1:] - nodes[-1, :-1]) * 0.6,
+            nodes[:-1, -1] + (nodes[1:, -1] - nodes[:-1, -1]) * 0.5,
+            nodes[2, :-1] + (nodes[2, 1:] - nodes[2, :-1]) * 0.5,
+        ]
+    )
     pts = np.concatenate([st, edges])
     b = mesh.bind(pts)
     assert b.inside.all()

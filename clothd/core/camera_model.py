@@ -50,8 +50,9 @@ class CameraModel:
     def __post_init__(self) -> None:
         K, dist, T = _frozen(self.K), _frozen(self.dist).ravel(), _frozen(self.T_cam_world)
         if K.shape != (3, 3) or dist.shape != (5,) or T.shape != (4, 4):
-            raise ValueError(f"camera: K (3, 3), dist (5,), T_cam_world (4, 4); got {K.shape}, "
-                             f"{dist.shape}, {T.shape}")
+            raise ValueError(
+                f"camera: K (3, 3), dist (5,), T_cam_world (4, 4); got {K.shape}, {dist.shape}, {T.shape}"
+            )
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "dist", dist)
         object.__setattr__(self, "T_cam_world", T)
@@ -71,8 +72,13 @@ class CameraModel:
             if key not in d:
                 raise InputError(f"{path}: missing key '{key}'")
         try:
-            return cls(np.asarray(d["K"], dtype=float), np.asarray(d["dist"], dtype=float),
-                       np.asarray(d["T_cam_world"], dtype=float), int(d["width"]), int(d["height"]))
+            return cls(
+                np.asarray(d["K"], dtype=float),
+                np.asarray(d["dist"], dtype=float),
+                np.asarray(d["T_cam_world"], dtype=float),
+                int(d["width"]),
+                int(d["height"]),
+            )
         except (TypeError, ValueError) as err:
             raise InputError(f"{path}: {err}") from None
 

@@ -48,6 +48,19 @@ def update(
     return x_new, 0.5 * (P_new + P_new.T)
 
 
+def update_information(
+    x: np.ndarray, P: np.ndarray, residual: np.ndarray, H: np.ndarray, r_var: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The same correction in information form, for many measurements with R = r_var·I:
+    P⁺ = (P⁻¹ + Hᵀ H / r)⁻¹, x⁺ = x⁻ + P⁺ Hᵀ ν / r. Costs O(z m²) instead of O(z³): with 2000 pixel
+    measurements of 6 states, microseconds instead of seconds. P⁺ is the inverse of a symmetric positive
+    definite matrix, re-symmetrised."""
+    info = np.linalg.inv(P) + H.T @ H / r_var
+    P_new = np.linalg.inv(info)
+    P_new = 0.5 * (P_new + P_new.T)
+    return x + P_new @ (H.T @ residual) / r_var, P_new
+
+
 def gate(residual_px: np.ndarray, S_blocks: np.ndarray, chi2: float) -> tuple[np.ndarray, np.ndarray]:
     """Mahalanobis gating of pixel measurements: d²_i = ν_iᵀ S_i⁻¹ ν_i with each measurement's own 2x2
     innovation covariance S_i. residual_px (n, 2), S_blocks (n, 2, 2). Returns (accepted (n,), d² (n,))."""

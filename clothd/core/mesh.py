@@ -46,8 +46,9 @@ class Binding:
 
     def subset(self, keep: np.ndarray) -> Binding:
         """The binding of the points selected by `keep` (a boolean mask (n,) or an index array)."""
-        return Binding(self.quad[keep], self.xi_eta[keep], self.nodes[keep], self.weights[keep],
-                       self.inside[keep])
+        return Binding(
+            self.quad[keep], self.xi_eta[keep], self.nodes[keep], self.weights[keep], self.inside[keep]
+        )
 
 
 def shape_functions(xi_eta: np.ndarray) -> np.ndarray:
@@ -55,8 +56,9 @@ def shape_functions(xi_eta: np.ndarray) -> np.ndarray:
     N1 = ¼(1−ξ)(1−η), N2 = ¼(1+ξ)(1−η), N3 = ¼(1+ξ)(1+η), N4 = ¼(1−ξ)(1+η)."""
     xe = np.asarray(xi_eta, dtype=float)
     xi, eta = xe[..., 0], xe[..., 1]
-    return 0.25 * np.stack([(1 - xi) * (1 - eta), (1 + xi) * (1 - eta),
-                            (1 + xi) * (1 + eta), (1 - xi) * (1 + eta)], axis=-1)
+    return 0.25 * np.stack(
+        [(1 - xi) * (1 - eta), (1 + xi) * (1 - eta), (1 + xi) * (1 + eta), (1 - xi) * (1 + eta)], axis=-1
+    )
 
 
 @dataclass(frozen=True, eq=False)
@@ -164,8 +166,9 @@ def blend(nodes_m: np.ndarray, binding: Binding) -> np.ndarray:
     return np.asarray(np.einsum("nk,nkd->nd", binding.weights, x[binding.nodes]))
 
 
-def measurement_jacobian(camera: CameraModel, nodes_m: np.ndarray,
-                         binding: Binding) -> tuple[np.ndarray, np.ndarray]:
+def measurement_jacobian(
+    camera: CameraModel, nodes_m: np.ndarray, binding: Binding
+) -> tuple[np.ndarray, np.ndarray]:
     """Predicted pixels h (n, 2) of the bound points and the non-zero blocks of dh/dx, (n, 4, 2, 3).
 
     h_i = π(Σ_k N_k x_k) for node positions x (n_nodes, 3) (or (ny, nx, 3)), world metres, so
