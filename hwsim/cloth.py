@@ -99,6 +99,7 @@ class ClothSim:
     def __init__(self, spec: ClothSpec, table: TableSpec, pose: Pose, substep_s: float, seed: int) -> None:
         self.spec = spec
         self.substep_s = substep_s
+        self._substeps_done = 0
         self.table = table
         self.grid = ClothGrid.from_spec(spec)
         g = self.grid
@@ -139,8 +140,13 @@ class ClothSim:
         s, t = self.spec, self.table
         substeps = max(1, round(dt_s / self.substep_s))
         h = dt_s / substeps
+        # Sweep directions alternate across calls too, so no direction wins over a run.
+        parity = self._substeps_done % 2, (self._substeps_done * s.stretch_iterations) % 2
+        self._substeps_done += substeps
         self._advance(
             substeps,
+            parity[0],
+            parity[1],
             s.stretch_iterations,
             h,
             1.0 / s.stretch_stiffness_n_m / h**2,
@@ -190,6 +196,8 @@ class ClothSim:
     def _advance(
         self,
         substeps: ti.i32,
+        substeps_done: ti.i32,
+        sweeps_done: ti.i32,
         stretch_iterations: ti.i32,
         h: ti.f64,
         alpha_stretch: ti.f64,
@@ -216,14 +224,14 @@ class ClothSim:
                 self.x[j, i] += h * self.v[j, i]
             # Gauss-Seidel sweeps alternate direction: a one-way sweep pushes the cloth sideways.
             for it in range(stretch_iterations):
-                flip = (step * stretch_iterations + it) % 2
+                flip = (sweeps_done + step * stretch_iterations + it) % 2
                 for jj, ii in ti.ndrange(ny, nx - 1):
                     j, i = _swept(jj, ny, flip), _swept(ii, nx - 1, flip)
                     self._distance(ti.Vector([j, i]), ti.Vector([j, i + 1]), dx, alpha_stretch)
                 for jj, ii in ti.ndrange(ny - 1, nx):
                     j, i = _swept(jj, ny - 1, flip), _swept(ii, nx, flip)
                     self._distance(ti.Vector([j, i]), ti.Vector([j + 1, i]), dy, alpha_stretch)
-            flip = step % 2
+            flip = (substeps_done + step) % 2
             for jj, ii in ti.ndrange(ny - 1, nx - 1):
                 j, i = _swept(jj, ny - 1, flip), _swept(ii, nx - 1, flip)
                 self._distance(ti.Vector([j, i]), ti.Vector([j + 1, i + 1]), diag, alpha_shear)
