@@ -44,3 +44,8 @@ def test_check_config_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(["check-config", str(bad)]) == 2
     assert "tracker.model" in capsys.readouterr().err
     assert main(["check-config", str(tmp_path / "missing.yaml")]) == 2
+
+
+def test_shipped_config_yaml_is_the_complete_default() -> None:
+    path = Path(__file__).resolve().parent.parent / "config.yaml"
+    assert load_config(path) == Config()
