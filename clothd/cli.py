@@ -39,6 +39,32 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
+def _bench_recording(cache: Path, scenario: str) -> Path:
+    """An hwsim recording of a shipped scenario, recorded into the cache once and reused."""
+    out = cache / scenario
+    if not (out / "truth.npz").exists():
+        from hwsim import scenario as scenarios
+        from hwsim.recording import record
+
+        print(f"recording {scenario} into {out} ...", flush=True)
+        record(scenarios.load(scenario), out)
+    return out
+
+
+def _cmd_bench_speed(args: argparse.Namespace) -> int:
+    import json
+
+    from clothd.bench_speed import format_rows, rows_json, run_speed
+    from clothd.taichi_runtime import start_taichi
+
+    start_taichi("cpu")
+    rows = run_speed(_bench_recording(args.cache, "translate"), frames=args.frames)
+    print(format_rows(rows))
+    if args.json:
+        args.json.write_text(json.dumps(rows_json(rows), indent=1) + "\n")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="clothd", description="Real-time cloth tracking and control.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -55,6 +81,15 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--commands", type=Path, help="commands.csv (default: the recording's)")
     r.add_argument("--config", type=Path)
     r.set_defaults(func=_cmd_replay)
+    b = sub.add_parser("bench", help="benchmarks against hwsim")
+    bsub = b.add_subparsers(dest="bench", required=True)
+    bs = bsub.add_parser("speed", help="per-stage tick time by feature count and mesh size, beside filterpy")
+    bs.add_argument("--frames", type=int, default=60, help="ticks per configuration")
+    bs.add_argument(
+        "--cache", type=Path, default=Path("out/bench"), help="where shipped scenarios are recorded"
+    )
+    bs.add_argument("--json", type=Path)
+    bs.set_defaults(func=_cmd_bench_speed)
     return p
 
 

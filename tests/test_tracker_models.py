@@ -93,12 +93,14 @@ def test_mesh_ekf_update_is_the_exact_information_form_update() -> None:
     rng = np.random.default_rng(3)
     n = mesh.n_nodes
     pos = np.column_stack([mesh.rest_nodes_m().reshape(-1, 2), np.zeros(n)])
-    P_blocks = np.stack([np.diag(rng.uniform(1e-6, 4e-6, 6)) for _ in range(n)])
-    belief = NodeBelief(np.column_stack([pos, np.zeros_like(pos)]), P_blocks.copy())
+    # Node blocks with position-velocity correlation, so the velocity update is exercised too.
+    A = rng.normal(0, 1e-3, (n, 6, 6))
+    P_blocks = A @ A.transpose(0, 2, 1) + np.diag([1e-6] * 3 + [1e-5] * 3)
+    belief = NodeBelief(np.column_stack([pos, np.zeros_like(pos)]), P_blocks.copy(), mesh.quad_nodes())
     binding = mesh.bind(rng.uniform(-0.045, 0.045, (12, 2)))
     _, J = measurement_jacobian(cam, pos, binding)
     nu = rng.normal(0, 0.5, (12, 2))
-    belief.correct(binding.nodes, J, nu, 0.25, gate_chi2=1e9)
+    belief.correct(binding.quad, binding.nodes, J, nu, 0.25, gate_chi2=1e9)
     H = np.zeros((24, 6 * n))
     for i in range(12):
         for c in range(4):

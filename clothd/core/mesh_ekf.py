@@ -2,38 +2,74 @@
 
 State: for each of the n mesh nodes x_i = [p_i, v_i] (m, m/s), world frame; 6n states in all.
 
-Why this structure (the measured costs are in docs/benchmarks.md):
+Why this structure (the measured costs are in docs/architecture.md and docs/benchmarks.md):
 - A dense EKF costs O(m³) per tick: 864 states (12 x 12 nodes) is already ~30 ms, 20 x 20 seconds.
 - The spring couplings are far stiffer than a tick: linearising them across 33 ms (F ≈ I + A·dt) gives
   dt²·k/m ≫ 1, an unstable covariance propagator. The mean is predicted by the nonlinear Taichi model
   (springs, strain limiting, contact, friction), which holds the mesh together; the covariance is
   propagated per node with F_i from the node's own friction/damping dynamics (covariance localisation
   with radius zero, as a local EKF does).
-- The correction is exact for that block-diagonal prior, in information form: each feature touches the
-  positions of 4 nodes, so Λ = P⁻¹ + Hᵀ R⁻¹ H is sparse (nodes sharing a quad) and one sparse solve
-  gives the new mean. The posterior is localised back to 6x6 node blocks by inverting the diagonal
-  blocks of Λ (the node-decoupled EKF). Cost grows about linearly with the node count.
-- P stays symmetric positive definite: every block is an inverse of a symmetric positive definite
-  information block, re-symmetrised.
+- The correction is exact for that node-block prior, in information form. Features see positions
+  only, and a node's velocity is correlated with its own position only, so the velocities drop out:
+  (P_pp⁻¹ + Hᵀ R⁻¹ H) Δp = Hᵀ R⁻¹ ν, a sparse 3n system (nodes couple when they share a quad), then
+  Δv_i = P_vp,i P_pp,i⁻¹ Δp_i. Its sparsity pattern is fixed by the mesh, so it is built once, and it
+  is banded, so a banded Cholesky solves it.
+- The posterior is localised back to node blocks: node i's 6x6 information gains the diagonal 3x3
+  block of Hᵀ R⁻¹ H that falls on its position (the node-decoupled EKF). Every block stays symmetric
+  positive definite. The cost grows about linearly with the node count.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
+import scipy.linalg as sla
 
 from clothd.core.ekf import UpdateStats, gate
 
 
-@dataclass
-class NodeBelief:
-    """Mean x (n, 6) and covariance blocks P (n, 6, 6) of the nodes."""
+class InformationPattern:
+    """The fixed sparsity of Hᵀ R⁻¹ H over node positions (3n x 3n) for a mesh's quads (q, 4), and where
+    each quad's 12 x 12 block of corner-position entries lands in it."""
 
-    x: np.ndarray
-    P: np.ndarray
+    def __init__(self, quad_nodes: np.ndarray, n_nodes: int) -> None:
+        comp = np.arange(3)
+        # Global position index of each quad's 12 corner coordinates, (q, 12), corner-major.
+        dof = (3 * quad_nodes[:, :, None] + comp[None, None, :]).reshape(len(quad_nodes), 12)
+        rows = np.broadcast_to(dof[:, :, None], (len(dof), 12, 12)).ravel()
+        cols = np.broadcast_to(dof[:, None, :], (len(dof), 12, 12)).ravel()
+        diag_r = np.repeat(np.arange(3 * n_nodes), 3)
+        diag_c = (3 * (np.arange(3 * n_nodes) // 3))[:, None].repeat(3, 1).ravel() + np.tile(
+            comp, 3 * n_nodes
+        )
+        keys = np.concatenate([cols * (3 * n_nodes) + rows, diag_c * (3 * n_nodes) + diag_r])
+        unique, inverse = np.unique(keys, return_inverse=True)  # sorted by column, then row: CSC order
+        self.size = 3 * n_nodes
+        self.quad_slots = inverse[: len(rows)].reshape(len(dof), 144)
+        self.diag_slots = inverse[len(rows) :].reshape(n_nodes, 9)
+        self.nnz = len(unique)
+        # Nodes are numbered row by row, so a quad couples dofs at most 3·(nx + 2) apart: the matrix is
+        # banded, and a banded Cholesky (LAPACK pbsv) solves it in O(size · band²) with no fill-in search.
+        row, col = unique % self.size, unique // self.size
+        upper = row <= col
+        self.band = int((col - row)[upper].max())
+        self._upper_slots = np.flatnonzero(upper)
+        self._band_rows = self.band + row[upper] - col[upper]
+        self._band_cols = col[upper]
+
+    def solve(self, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+        """Solve A x = rhs for the symmetric positive definite A with these entries (nnz,)."""
+        ab = np.zeros((self.band + 1, self.size))
+        ab[self._band_rows, self._band_cols] = data[self._upper_slots]
+        return np.asarray(sla.solveh_banded(ab, rhs, check_finite=False))
+
+
+class NodeBelief:
+    """Mean x (n, 6) and covariance blocks P (n, 6, 6) of the nodes of a mesh with quads (q, 4)."""
+
+    def __init__(self, x: np.ndarray, P: np.ndarray, quad_nodes: np.ndarray) -> None:
+        self.x = x
+        self.P = P
+        self.pattern = InformationPattern(quad_nodes, len(x))
 
     @property
     def positions_m(self) -> np.ndarray:
@@ -48,56 +84,50 @@ class NodeBelief:
     def innovation_covariances(self, nodes: np.ndarray, J: np.ndarray, R_px2: float) -> np.ndarray:
         """S_i (k, 2, 2) = Σ_corners J_ic P_c,pp J_icᵀ + R for features with corner nodes (k, 4) and
         Jacobian blocks J (k, 4, 2, 3); corners are uncorrelated under the localised prior."""
-        Ppp = self.P[nodes][:, :, :3, :3]  # (k, 4, 3, 3)
-        S = np.einsum("kcij,kcjl,kcml->kim", J, Ppp, J)
+        JP = J @ self.P[nodes][:, :, :3, :3]  # (k, 4, 2, 3)
+        S = (JP @ J.transpose(0, 1, 3, 2)).sum(axis=1)
         return S + R_px2 * np.eye(2)
 
     def correct(
-        self, nodes: np.ndarray, J: np.ndarray, residual_px: np.ndarray, R_px2: float, gate_chi2: float
+        self,
+        quads: np.ndarray,
+        nodes: np.ndarray,
+        J: np.ndarray,
+        residual_px: np.ndarray,
+        R_px2: float,
+        gate_chi2: float,
     ) -> tuple[UpdateStats, np.ndarray]:
-        """Gate, then the information-form update with the accepted features. nodes (k, 4) corner node
-        indices, J (k, 4, 2, 3) ∂h/∂p blocks, residual ν = z − h(x⁻) (k, 2). Returns the statistics and
-        the accepted mask (k,)."""
+        """Gate, then correct with the accepted features. quads (k,) each feature's quad, nodes (k, 4) its
+        corner nodes, J (k, 4, 2, 3) ∂h/∂p blocks, residual ν = z − h(x⁻) (k, 2). Returns the statistics
+        and the accepted mask (k,)."""
         S = self.innovation_covariances(nodes, J, R_px2)
         accepted, d2 = gate(residual_px, S, gate_chi2)
-        n = len(self.x)
         if not accepted.any():
             return UpdateStats(0, len(accepted), 0.0), accepted
-        nodes_a, J_a, nu = nodes[accepted], J[accepted], residual_px[accepted]
-        info_prior = np.linalg.inv(self.P)  # (n, 6, 6)
-        # Hᵀ R⁻¹ H: for each feature, the 3x3 block J_cᵀ J_d / R between its corners c and d.
-        blocks = np.einsum("kcij,kdil->kcdjl", J_a, J_a) / R_px2  # (k, 4, 4, 3, 3)
-        rows = 6 * nodes_a[:, :, None, None, None] + np.arange(3)[None, None, None, :, None]
-        cols = 6 * nodes_a[:, None, :, None, None] + np.arange(3)[None, None, None, None, :]
-        rows, cols = np.broadcast_to(rows, blocks.shape), np.broadcast_to(cols, blocks.shape)
-        prior_r = 6 * np.arange(n)[:, None, None] + np.arange(6)[None, :, None]
-        prior_c = 6 * np.arange(n)[:, None, None] + np.arange(6)[None, None, :]
-        prior_r, prior_c = (
-            np.broadcast_to(prior_r, info_prior.shape),
-            np.broadcast_to(prior_c, info_prior.shape),
+        n, pat = len(self.x), self.pattern
+        Ja = J[accepted].transpose(0, 2, 1, 3).reshape(-1, 2, 12)  # (k, 2, 12): corner-major columns
+        # Hᵀ R⁻¹ H, summed per quad (features sorted by quad, then one reduceat).
+        outer = np.einsum("kia,kib->kab", Ja, Ja).reshape(-1, 144) / R_px2
+        q = quads[accepted]
+        order = np.argsort(q, kind="stable")
+        starts = np.flatnonzero(np.r_[True, np.diff(q[order]) != 0])
+        per_quad = np.add.reduceat(outer[order], starts, axis=0)
+        Ppp = self.P[:, :3, :3]
+        Ppp_inv = np.linalg.inv(Ppp)
+        data = np.bincount(pat.quad_slots[q[order][starts]].ravel(), per_quad.ravel(), minlength=pat.nnz)
+        gain_diag = data[pat.diag_slots].reshape(n, 3, 3)  # measurement information on each node alone
+        data += np.bincount(pat.diag_slots.ravel(), Ppp_inv.ravel(), minlength=pat.nnz)
+        # Hᵀ R⁻¹ ν on the corner positions.
+        g = np.bincount(
+            (3 * nodes[accepted][:, :, None] + np.arange(3)).ravel(),
+            np.einsum("kia,ki->ka", Ja, residual_px[accepted]).ravel() / R_px2,
+            minlength=3 * n,
         )
-        Lam = sp.csc_matrix(
-            (
-                np.concatenate([blocks.ravel(), info_prior.ravel()]),
-                (
-                    np.concatenate([rows.ravel(), prior_r.ravel()]),
-                    np.concatenate([cols.ravel(), prior_c.ravel()]),
-                ),
-            ),
-            shape=(6 * n, 6 * n),
-        )
-        # Hᵀ R⁻¹ ν, scattered onto the corner positions.
-        g = np.zeros((n, 6))
-        np.add.at(g[:, :3], nodes_a, np.einsum("kcij,ki->kcj", J_a, nu) / R_px2)
-        dx = spla.spsolve(Lam, g.ravel())
-        self.x = self.x + dx.reshape(n, 6)
-        # Localise the posterior: the inverse of each node's 6x6 diagonal block of Λ.
-        diag = np.zeros((n, 6, 6))
-        Lam_coo = Lam.tocoo()
-        same = (Lam_coo.row // 6) == (Lam_coo.col // 6)
-        np.add.at(
-            diag, (Lam_coo.row[same] // 6, Lam_coo.row[same] % 6, Lam_coo.col[same] % 6), Lam_coo.data[same]
-        )
-        P = np.linalg.inv(diag)
+        dp = pat.solve(data, g).reshape(n, 3)
+        dv = np.einsum("nij,njk,nk->ni", self.P[:, 3:, :3], Ppp_inv, dp)
+        self.x = self.x + np.concatenate([dp, dv], axis=1)
+        info = np.linalg.inv(self.P)
+        info[:, :3, :3] += gain_diag
+        P = np.linalg.inv(info)
         self.P = 0.5 * (P + P.transpose(0, 2, 1))
         return UpdateStats(int(accepted.sum()), int((~accepted).sum()), float(d2[accepted].sum())), accepted

@@ -137,7 +137,9 @@ class Tracker:
             e = self.cfg.ekf
             P0 = np.diag([e.initial_pos_sigma_m**2] * 3 + [e.initial_vel_sigma_m_s**2] * 3)
             self.belief = NodeBelief(
-                np.column_stack([nodes, np.zeros_like(nodes)]), np.tile(P0, (len(nodes), 1, 1))
+                np.column_stack([nodes, np.zeros_like(nodes)]),
+                np.tile(P0, (len(nodes), 1, 1)),
+                self.mesh.quad_nodes(),
             )
         self.initialised = True
         self.prev, self.prev_t_s = frame, t_s
@@ -210,7 +212,7 @@ class Tracker:
         assert self.belief is not None and self.binding is not None
         sub = self.binding.subset(idx)
         pred, J = measurement_jacobian(self.camera, self.belief.positions_m, sub)
-        stats, inside = self.belief.correct(sub.nodes, J, meas[idx] - pred, R_px2, e.gate_chi2)
+        stats, inside = self.belief.correct(sub.quad, sub.nodes, J, meas[idx] - pred, R_px2, e.gate_chi2)
         accepted[idx[~inside]] = False
         return stats, accepted
 

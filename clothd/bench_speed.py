@@ -1,0 +1,154 @@
+"""`clothd bench speed`: per-stage and whole-tick compute time of the mesh tracker at 640x480.
+
+For each feature budget and mesh size the real tracker ticks over an hwsim recording (translate), so
+KLT, prediction and correction run on real frames; the stage times are the tracker's own
+(time.perf_counter around each stage). Beside it, filterpy's dense EKF does the same correction
+(6 states per node, 2 measurements per feature, dense P, F, H) wherever it finishes within the budget.
+Figures are medians (p50) and 99th percentiles over the ticks after a warm-up.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from clothd.config import FeatureConfig, MeshConfig, TrackerConfig
+from clothd.core.camera_model import CameraModel
+from clothd.core.conveyor import ConveyorLayout
+from clothd.core.mesh import QuadMesh, measurement_jacobian
+from clothd.core.tracker import Tracker
+from clothd.drivers.footage import CommandSchedule, open_footage
+
+STAGES = ("klt", "predict", "update", "tick")
+WARMUP_TICKS = 3
+FILTERPY_BUDGET_S = 3.0  # one dense update slower than this is not worth repeating
+
+
+@dataclass(frozen=True)
+class Row:
+    features: int  # the budget asked for
+    mesh: str  # "12x12"
+    impl: str  # "clothd" | "filterpy"
+    stage: str
+    p50_ms: float
+    p99_ms: float
+    features_tracked: int  # median features actually tracked
+
+
+def _feature_config(budget: int) -> FeatureConfig:
+    # A 250 x 200 mm cloth spans ~225 x 180 px; a large budget needs a denser, weaker-corner detector.
+    if budget > 500:
+        return FeatureConfig(max_features=budget, quality_level=0.001, min_distance_px=3.0)
+    return FeatureConfig(max_features=budget)
+
+
+def clothd_rows(recording: Path, budget: int, mesh: tuple[int, int], frames: int) -> list[Row]:
+    cfg = TrackerConfig(
+        model="mesh", mesh=MeshConfig(nodes_x=mesh[0], nodes_y=mesh[1]), features=_feature_config(budget)
+    )
+    footage = open_footage(recording)
+    conveyor = ConveyorLayout.load(recording / "table.json")
+    schedule = CommandSchedule(recording / "commands.csv", conveyor.n_modules)
+    tracker = Tracker(cfg, CameraModel.load(recording / "camera.json"), conveyor, clock=time.perf_counter)
+    timings: dict[str, list[float]] = {s: [] for s in STAGES}
+    counts = []
+    for k, (t_s, image) in enumerate(footage.frames()):
+        if k >= frames:
+            break
+        est = tracker.step(image, t_s, schedule.at(t_s))
+        if k > WARMUP_TICKS:
+            counts.append(len(est.feature_id))
+            for s in STAGES:
+                timings[s].append(est.timing_s[s])
+    name = f"{mesh[0]}x{mesh[1]}"
+    tracked = int(np.median(counts))
+    return [
+        Row(budget, name, "clothd", s, float(np.median(v) * 1e3), float(np.percentile(v, 99) * 1e3), tracked)
+        for s, v in timings.items()
+    ]
+
+
+def filterpy_rows(budget: int, mesh: tuple[int, int], repeats: int = 3) -> list[Row]:
+    """filterpy's dense EKF predict and update on the same problem shape, or [] when it would not
+    finish within the budget."""
+    from filterpy.kalman import ExtendedKalmanFilter
+
+    nx, ny = mesh
+    m, z = 6 * nx * ny, 2 * budget
+    # Dense update cost ~ z³ + z² m + z m²; past ~1e10 flops a single update takes tens of seconds here.
+    if z**3 + z * z * m + z * m * m > 3e10:
+        return []
+    cam = CameraModel.ideal(640, 480, 900.0, 1.0)
+    qm = QuadMesh.covering(np.array([[-0.125, -0.1], [0.125, -0.1], [0.125, 0.1], [-0.125, 0.1]]), nx, ny)
+    rng = np.random.default_rng(0)
+    nodes = np.column_stack([qm.rest_nodes_m().reshape(-1, 2), np.zeros(qm.n_nodes)])
+    binding = qm.bind(rng.uniform([-0.12, -0.095], [0.12, 0.095], (budget, 2)))
+    pred, J = measurement_jacobian(cam, nodes, binding)
+    H = np.zeros((z, m))
+    for i in range(budget):
+        for c in range(4):
+            n = binding.nodes[i, c]
+            H[2 * i : 2 * i + 2, 6 * n : 6 * n + 3] = J[i, c]
+    ekf = ExtendedKalmanFilter(dim_x=m, dim_z=z)
+    ekf.x = np.column_stack([nodes, np.zeros_like(nodes)]).reshape(-1, 1)
+    ekf.P = np.eye(m) * 1e-5
+    ekf.F = np.eye(m) + np.diag(np.full(m - 3, 1 / 30), 3)
+    ekf.Q = np.eye(m) * 1e-8
+    ekf.R = np.eye(z) * 0.49
+    meas = (pred + rng.normal(0, 0.7, pred.shape)).reshape(-1, 1)
+    times: dict[str, list[float]] = {"predict": [], "update": []}
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        ekf.predict()
+        t1 = time.perf_counter()
+        ekf.update(meas, lambda _x: H, lambda x: H @ x)
+        t2 = time.perf_counter()
+        times["predict"].append(t1 - t0)
+        times["update"].append(t2 - t1)
+        if t2 - t1 > FILTERPY_BUDGET_S:
+            break
+    name = f"{nx}x{ny}"
+    return [
+        Row(budget, name, "filterpy", s, float(np.median(v) * 1e3), float(np.max(v) * 1e3), budget)
+        for s, v in times.items()
+    ]
+
+
+def run_speed(
+    recording: Path,
+    budgets: tuple[int, ...] = (100, 300, 1000),
+    meshes: tuple[tuple[int, int], ...] = ((6, 6), (9, 9), (12, 12), (16, 16), (20, 20)),
+    frames: int = 60,
+) -> list[Row]:
+    rows: list[Row] = []
+    for budget in budgets:
+        for mesh in meshes:
+            rows += clothd_rows(recording, budget, mesh, frames)
+            rows += filterpy_rows(budget, mesh)
+    return rows
+
+
+def format_rows(rows: list[Row]) -> str:
+    out = [
+        f"{'features':>8} {'mesh':>6} {'impl':>8} {'tracked':>7}  " + "  ".join(f"{s:>17}" for s in STAGES)
+    ]
+    keys = sorted(
+        {(r.features, r.mesh, r.impl) for r in rows}, key=lambda k: (k[0], int(k[1].split("x")[0]), k[2])
+    )
+    for f, mesh, impl in keys:
+        cells = []
+        tracked = 0
+        for s in STAGES:
+            r = next((r for r in rows if (r.features, r.mesh, r.impl, r.stage) == (f, mesh, impl, s)), None)
+            cells.append(f"{r.p50_ms:7.2f} /{r.p99_ms:8.2f}" if r else f"{'-':>17}")
+            tracked = r.features_tracked if r else tracked
+        out.append(f"{f:>8} {mesh:>6} {impl:>8} {tracked:>7}  " + "  ".join(cells))
+    out.append("(each cell: p50 / p99 ms)")
+    return "\n".join(out)
+
+
+def rows_json(rows: list[Row]) -> list[dict[str, object]]:
+    return [asdict(r) for r in rows]
