@@ -39,16 +39,43 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bench_recording(cache: Path, scenario: str) -> Path:
+def _bench_recording(cache: Path, scenario: str, duration_s: float | None = None) -> Path:
     """An hwsim recording of a shipped scenario, recorded into the cache once and reused."""
-    out = cache / scenario
+    out = cache / (scenario if duration_s is None else f"{scenario}-{duration_s:g}s")
     if not (out / "truth.npz").exists():
         from hwsim import scenario as scenarios
         from hwsim.recording import record
 
         print(f"recording {scenario} into {out} ...", flush=True)
-        record(scenarios.load(scenario), out)
+        record(scenarios.load(scenario, duration_s=duration_s), out)
     return out
+
+
+def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
+    import json
+
+    from clothd.bench_accuracy import MODES, format_table, grade, plot, rows_json
+    from clothd.taichi_runtime import start_taichi
+
+    cfg = load_config(args.config)
+    start_taichi(cfg.taichi.arch)
+    args.out.mkdir(parents=True, exist_ok=True)
+    rows = []
+    for scenario in args.scenarios:
+        rec = _bench_recording(args.cache, scenario, args.duration)
+        graded = {}
+        for label, model, use_input in MODES:
+            if args.modes and label not in args.modes:
+                continue
+            tracker_cfg = cfg.tracker.model_copy(update={"model": model, "use_input": use_input})
+            graded[label] = grade(rec, scenario, label, tracker_cfg)
+            rows.append(graded[label].row)
+        plot(scenario, graded, 30.0, args.out / f"{scenario}.png")
+    print(format_table(rows))
+    print(f"\nplots in {args.out}/")
+    if args.json:
+        args.json.write_text(json.dumps(rows_json(rows), indent=1) + "\n")
+    return 0
 
 
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
@@ -90,6 +117,19 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bs.add_argument("--json", type=Path)
     bs.set_defaults(func=_cmd_bench_speed)
+    ba = bsub.add_parser("accuracy", help="every mode on the shipped scenarios, against hwsim's truth")
+    ba.add_argument(
+        "--scenarios", nargs="+", default=["translate", "rotate", "compress", "occlude", "random"]
+    )
+    ba.add_argument("--modes", nargs="+", help="a subset of: none predict rigid 'rigid --no-input' mesh ...")
+    ba.add_argument("--duration", type=float, help="record shorter scenarios (a quick look, not the bar)")
+    ba.add_argument(
+        "--cache", type=Path, default=Path("out/bench"), help="where shipped scenarios are recorded"
+    )
+    ba.add_argument("--out", type=Path, default=Path("out/bench/accuracy"), help="where the plots go")
+    ba.add_argument("--config", type=Path)
+    ba.add_argument("--json", type=Path)
+    ba.set_defaults(func=_cmd_bench_accuracy)
     return p
 
 

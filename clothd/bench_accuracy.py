@@ -1,0 +1,196 @@
+"""`clothd bench accuracy`: every tracker mode on every shipped scenario, graded against hwsim's truth.
+
+- Feature error (px): a feature is the cloth patch it was detected on. Its material point is found
+  from the truth at its first frame (the truth surface point seen at its detection pixel); its true
+  pixel in every later frame is that point's projection. Error = |where the estimate places the
+  feature − its true pixel|, over the features alive in a frame; per frame the mean and the worst.
+  Over the sequence: the mean of the per-frame means and the largest per-frame worst; the original
+  report's cost is mean + 2 x worst.
+- Node error (mm): a mesh node is the material point under it at initialisation; error = 3-D distance
+  to that point's true position (for the rigid model, the nodes of its rigidly moved rest mesh).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from clothd.config import TrackerConfig
+from clothd.core.binding import cloth_coordinates
+from clothd.core.camera_model import CameraModel
+from clothd.core.conveyor import ConveyorLayout
+from clothd.core.mesh import QuadMesh
+from clothd.core.messages import Estimate
+from clothd.core.rigid import rotation
+from clothd.core.tracker import Tracker
+from clothd.drivers.footage import CommandSchedule, open_footage
+from clothd.grading import material_coordinates, true_positions
+from hwsim.truth import Truth
+
+MODES: tuple[tuple[str, str, bool], ...] = (
+    ("none", "none", True),
+    ("predict", "predict", True),
+    ("rigid", "rigid", True),
+    ("rigid --no-input", "rigid", False),
+    ("mesh", "mesh", True),
+    ("mesh --no-input", "mesh", False),
+)
+SCENARIOS = ("translate", "rotate", "compress", "occlude", "random")
+
+
+@dataclass(frozen=True)
+class AccuracyRow:
+    scenario: str
+    mode: str
+    feat_mean_px: float
+    feat_worst_px: float
+    cost_px: float  # mean + 2 x worst
+    node_rmse_mm: float | None
+    node_max_mm: float | None
+    lost_frames: int
+    realtime_factor: float
+
+
+@dataclass(frozen=True)
+class Graded:
+    row: AccuracyRow
+    per_frame_mean_px: np.ndarray  # (F,)
+    per_frame_worst_px: np.ndarray  # (F,)
+
+
+def _truth_mesh(truth: Truth) -> QuadMesh:
+    ny, nx = truth.st_m.shape[:2]
+    w, h = truth.size_m
+    return QuadMesh(nx, ny, np.zeros(2), 0.0, w, h)
+
+
+def _feature_truth_pixels(truth: Truth, camera: CameraModel, ests: list[Estimate]) -> dict[int, np.ndarray]:
+    """True pixel (F, 2) of every feature id, from the material point under its detection pixel."""
+    mesh = _truth_mesh(truth)
+    born: dict[int, tuple[int, np.ndarray]] = {}
+    for k, e in enumerate(ests):
+        for fid, px in zip(e.feature_id.tolist(), e.meas_px, strict=True):
+            if fid not in born and not np.isnan(px[0]):
+                born[fid] = (k, px)
+    by_frame: dict[int, list[tuple[int, np.ndarray]]] = {}
+    for fid, (k, px) in born.items():
+        by_frame.setdefault(k, []).append((fid, px))
+    out: dict[int, np.ndarray] = {}
+    for k, items in by_frame.items():
+        nodes_px = camera.project(truth.nodes_m[k].reshape(-1, 3))
+        st, found = cloth_coordinates(mesh, nodes_px, np.array([px for _, px in items], dtype=np.float64))
+        ids = [fid for fid, _ in items]
+        pix = camera.project(true_positions(truth, np.nan_to_num(st)).reshape(-1, 3)).reshape(
+            len(truth.t_s), -1, 2
+        )
+        for j, fid in enumerate(ids):
+            if found[j]:
+                out[fid] = pix[:, j]
+    return out
+
+
+def _node_errors_mm(truth: Truth, tracker: Tracker, ests: list[Estimate]) -> np.ndarray | None:
+    """(F', n) node errors over the frames the tracker was tracking, or None in the model-free mode."""
+    mesh = tracker.mesh
+    if mesh is None or tracker.cfg.model == "none":
+        return None
+    rest = mesh.rest_nodes_m().reshape(-1, 2)
+    truth_pts = true_positions(truth, material_coordinates(truth, rest))  # (F, n, 3)
+    errs = []
+    for k, e in enumerate(ests):
+        if e.status != "tracking":
+            continue
+        if e.nodes_m is not None:
+            est = e.nodes_m.reshape(-1, 3)
+        else:  # rigid: the rest mesh moved by the pose change since initialisation
+            p0 = tracker.pose0
+            moved = (rest - p0[:2]) @ rotation(float(e.pose[2] - p0[2])).T + e.pose[:2]
+            est = np.column_stack([moved, np.zeros(len(moved))])
+        errs.append(np.linalg.norm(est - truth_pts[k], axis=1) * 1e3)
+    return np.asarray(errs)
+
+
+def grade(recording: Path, scenario: str, mode: str, cfg: TrackerConfig) -> Graded:
+    truth = Truth.load(recording)
+    camera = CameraModel.load(recording / "camera.json")
+    conveyor = ConveyorLayout.load(recording / "table.json")
+    schedule = CommandSchedule(recording / "commands.csv", conveyor.n_modules)
+    tracker = Tracker(cfg, camera, conveyor)
+    start = time.perf_counter()
+    ests = [tracker.step(img, t, schedule.at(t)) for t, img in open_footage(recording).frames()]
+    wall = time.perf_counter() - start
+    true_px = _feature_truth_pixels(truth, camera, ests)
+    means, worsts = np.full(len(ests), np.nan), np.full(len(ests), np.nan)
+    for k, e in enumerate(ests):
+        errs = [
+            np.linalg.norm(p - true_px[f][k])
+            for f, p in zip(e.feature_id.tolist(), e.pred_px, strict=True)
+            if f in true_px
+        ]
+        if errs:
+            means[k], worsts[k] = float(np.mean(errs)), float(np.max(errs))
+    nodes = _node_errors_mm(truth, tracker, ests)
+    feat_mean, feat_worst = float(np.nanmean(means)), float(np.nanmax(worsts))
+    row = AccuracyRow(
+        scenario,
+        mode,
+        feat_mean,
+        feat_worst,
+        feat_mean + 2 * feat_worst,
+        None if nodes is None else float(np.sqrt(np.mean(nodes**2))),
+        None if nodes is None else float(nodes.max()),
+        sum(e.status != "tracking" for e in ests),
+        (len(ests) / float(1.0 / (truth.t_s[1] - truth.t_s[0]))) / wall,
+    )
+    return Graded(row, means, worsts)
+
+
+def format_table(rows: list[AccuracyRow]) -> str:
+    out = []
+    for sc in dict.fromkeys(r.scenario for r in rows):
+        out.append(f"\n{sc}")
+        out.append(
+            f"  {'mode':<17} {'feat mean':>9} {'worst':>7} {'mean+2w':>8} {'node rmse':>9} {'max':>7} "
+            f"{'lost':>5} {'x rt':>5}"
+        )
+        for r in (r for r in rows if r.scenario == sc):
+            rmse = f"{r.node_rmse_mm:6.2f} mm" if r.node_rmse_mm is not None else f"{'-':>9}"
+            nmax = f"{r.node_max_mm:7.2f}" if r.node_max_mm is not None else f"{'-':>7}"
+            out.append(
+                f"  {r.mode:<17} {r.feat_mean_px:6.3f} px {r.feat_worst_px:7.2f} {r.cost_px:8.2f} {rmse} "
+                f"{nmax} {r.lost_frames:>5} {r.realtime_factor:5.1f}"
+            )
+    return "\n".join(out)
+
+
+def plot(scenario: str, graded: dict[str, Graded], fps: float, path: Path) -> None:
+    """Per-frame mean (solid) and worst (dashed) feature error of each mode, as the original's Figures
+    6/9/12 plot residuals against frames."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=110)
+    for i, (mode, g) in enumerate(graded.items()):
+        colour = f"C{i}"
+        frames = np.arange(len(g.per_frame_mean_px))
+        ax.plot(frames, g.per_frame_mean_px, color=colour, label=f"{mode} mean")
+        ax.plot(frames, g.per_frame_worst_px, color=colour, linestyle="--", linewidth=0.8)
+    ax.set_yscale("log")
+    ax.set_ylim(bottom=0.01)  # frame 0 is exact by construction; below 0.01 px is noise
+    ax.set_xlabel(f"frame ({fps:.0f} fps)")
+    ax.set_ylabel("feature error vs truth, px (dashed: worst)")
+    ax.set_title(f"{scenario}: feature error by mode")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def rows_json(rows: list[AccuracyRow]) -> list[dict[str, object]]:
+    return [asdict(r) for r in rows]
