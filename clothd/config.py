@@ -28,7 +28,7 @@ class IdealCameraConfig(_Strict):
 
 
 class FeatureConfig(_Strict):
-    max_features: int = Field(1000, ge=10, le=5000)
+    max_features: int = Field(600, ge=10, le=5000, description="about what the default cloth offers")
     quality_level: float = Field(0.01, gt=0, le=1, description="Shi-Tomasi, relative to the best corner")
     min_distance_px: float = Field(5.0, ge=1, le=100)
     block_size_px: int = Field(5, ge=3, le=31)
@@ -37,6 +37,7 @@ class FeatureConfig(_Strict):
     lk_max_iterations: int = Field(20, ge=1, le=200)
     lk_epsilon_px: float = Field(0.01, gt=0, le=1)
     fb_max_error_px: float = Field(0.5, gt=0, le=20, description="forward-backward check threshold")
+    lk_min_ncc: float = Field(0.6, ge=-1, le=1, description="the LK window must still correlate this well")
     resample_below_fraction: float = Field(0.7, gt=0, le=1, description="of max_features")
     resample_cell_px: int = Field(48, ge=8, le=640, description="a cell of the cloth with no feature")
     edge_margin_px: float = Field(6.0, ge=0, le=100, description="keep new features this far inside")

@@ -23,7 +23,7 @@ TextureKind = Literal["denim", "plain_twill"]
 # under a few degrees of rotation (hwsim verify on `rotate`: 3 mm gave a median NCC of 0.950, 5 mm 0.964).
 TWILL_PERIOD_M = 5.0e-3
 TWILL_ANGLE_DEG = 63.0  # wale direction from the weft (x) axis; right-hand twill rising to the right
-WARP_BGR = (0.50, 0.31, 0.18)  # indigo warp
+WARP_BGR = (0.46, 0.30, 0.19)  # indigo warp
 WEFT_BGR = (0.80, 0.83, 0.85)  # undyed ecru weft
 LIGHT_BGR = (0.86, 0.84, 0.82)  # worn spots, light flecks and loose white threads
 DARK_BGR = (0.24, 0.12, 0.06)  # dark flecks and stitch-like marks
@@ -114,7 +114,7 @@ def _denim_marks(rng: np.random.Generator, shape_px: tuple[int, int], px_per_mm:
     marks += cv2.GaussianBlur(worn, (0, 0), 0.8 * px_per_mm)
     # Short stitch-like or loose-thread marks, 3-12 mm, light or dark, slightly blurred.
     threads = np.zeros(shape_px, np.float32)
-    for _ in range(rng.poisson(0.004 * area_mm2)):
+    for _ in range(rng.poisson(0.003 * area_mm2)):
         x0, y0 = rng.uniform(0, w_px), rng.uniform(0, h_px)
         length_px, angle = rng.uniform(3.0, 12.0) * px_per_mm, rng.uniform(0, np.pi)
         x1, y1 = x0 + length_px * np.cos(angle), y0 + length_px * np.sin(angle)
@@ -148,11 +148,11 @@ def cloth_texture(
     if denim:
         # Noise fields (sigma in mm, x then y): wale waviness, slub streaks along the warp (narrow in x, long
         # in y), a finer slub component, 2-6 mm mottling that gives 2-D corners, and wash blotches.
-        sig_mm = [(3.0, 3.0), (0.35, 6.0), (0.8, 2.5), (1.2, 1.2), (14.0, 14.0)]
+        sig_mm = [(6.0, 6.0), (0.35, 6.0), (0.8, 2.5), (1.2, 1.2), (14.0, 14.0)]
         wobble, slub, slub2, mottle, blotch = _noise(
             rng, shape_px, [(a * px_per_mm, b * px_per_mm) for a, b in sig_mm]
         )
-        phase = phase + 0.18 * wobble
+        phase = phase + 0.12 * wobble
     # 3/1 twill: the weft shows on one band per period; a raised cosine keeps the profile band-limited.
     weft_w = 0.55 * ((1.0 + np.cos(2.0 * np.pi * phase)) / 2.0) ** 3
     warp: np.ndarray = np.broadcast_to(np.asarray(WARP_BGR, np.float32), (*shape_px, 3))
@@ -223,7 +223,7 @@ def deck_texture(seed: int, size_m: tuple[float, float], texels_per_m: float) ->
         length_px, angle = rng.uniform(10.0, 60.0) * px_per_mm, rng.uniform(0, np.pi)
         end = (round(x0 + length_px * np.cos(angle)), round(y0 + length_px * np.sin(angle)))
         thickness = max(1, round(rng.uniform(0.5, 2.0) * px_per_mm))
-        cv2.line(scuffs, (round(x0), round(y0)), end, float(rng.uniform(0.04, 0.10)), thickness, cv2.LINE_AA)
+        cv2.line(scuffs, (round(x0), round(y0)), end, float(rng.uniform(0.06, 0.14)), thickness, cv2.LINE_AA)
     grey = grey + cv2.GaussianBlur(scuffs, (0, 0), max(0.5 * px_per_mm, 0.5))
     return _finish(np.repeat(grey[..., None], 3, axis=2))
 

@@ -1,11 +1,22 @@
 """Shi–Tomasi detection and pyramidal Lucas–Kanade tracking with a forward–backward check.
 
-Each frame is converted to grey once and serves the forward pass (previous -> current) and, on the
-next tick, the backward pass of the next pair. (OpenCV's Python binding cannot take a prebuilt pyramid
-in calcOpticalFlowPyrLK, so each call rebuilds its pyramids: about 0.5 ms at 640x480, small next to
-tracking 1000 points.) The forward–backward check (Kalal et al. 2010) tracks each point back
-from where it landed; a point that does not come home within `fb_max_error_px` was mistracked
-(occlusion, a moving belt edge, a repeating pattern).
+Each frame is prepared once (`FeatureEngine.prepare`) and serves as the current frame of one tick's
+forward pass and as the previous frame of the next tick's. The forward–backward check (Kalal et al.
+2010) tracks each point back from where it landed: a point that does not come home within
+`fb_max_error_px` was mistracked (a belt edge sliding under the cloth's edge, a repeating twill).
+The check is blind to a point whose patch was replaced (an arm over it, a glint): the offset where
+the new patch best matches the old one is a local optimum both ways, so LK finds it forward and comes
+home backward. On hwsim frames with noise pasted over the patch, a quarter of such points passed.
+So a point must also still look like itself: the zero-mean normalised cross-correlation of its LK
+window in the two frames must reach `lk_min_ncc`.
+
+Why the prepared frame holds no pyramid levels: OpenCV's Python binding cannot pass prebuilt levels
+from cv2.buildOpticalFlowPyramid to cv2.calcOpticalFlowPyrLK (opencv/opencv#4777, still so in the
+installed OpenCV: "prevImg is not a numerical tuple"), so every LK call builds its own. That costs
+~0.4 ms per pass at 640x480 against ~6 ms to track 1000 points; levels nobody can use would only add
+to it. The grey conversion, the part that can be shared, is done once per frame.
+
+Pixel coordinates follow OpenCV: the centre of the top-left pixel is (0, 0).
 """
 
 from __future__ import annotations
@@ -17,121 +28,227 @@ import numpy as np
 
 from clothd.config import FeatureConfig
 
+# cornerSubPix may slide off the Shi–Tomasi maximum onto another saddle of the weave when its window
+# holds no single corner; a jump larger than this is not a sub-pixel correction, so the integer corner
+# is kept (it is as good a feature for LK).
+_MAX_SUBPIX_SHIFT_PX = 1.0
+# Ask Shi–Tomasi for this many more corners than wanted: spares for those the exact spacing check drops.
+_SPARE_FRACTION = 0.125
+# A patch that is still itself one frame later correlates >= 0.75 in hwsim footage, across the
+# compress fold's shading and the random scenario's motion blur (median ~0.96); a patch replaced by
+# noise correlates <= 0.5.
+# A grid cell counts as cloth when more than this fraction of its in-image pixels are in the mask.
+_CELL_INSIDE_FRACTION = 0.5
+
 
 @dataclass(frozen=True)
 class GrayFrame:
-    """One frame ready for detection and LK."""
+    """One frame as detection and LK use it: gray (h, w) uint8."""
 
     gray: np.ndarray
 
 
 @dataclass(frozen=True)
 class TrackResult:
-    px: np.ndarray  # (n, 2) float32 positions in the current frame (meaningless where not ok)
-    ok: np.ndarray  # (n,) bool
-    fb_error_px: np.ndarray  # (n,) forward-backward distance, inf where a pass failed
+    """px: (n, 2) float32 tracked positions in the current frame, pixels (meaningless where not ok).
+    ok: (n,) bool. fb_error_px: (n,) float64 forward–backward distance, pixels; inf where a pass failed.
+    ncc: (n,) float32 zero-mean normalised cross-correlation of the LK window at px in the previous
+    frame and at the tracked position in the current one, in [-1, 1]; nan where a pass failed."""
+
+    px: np.ndarray
+    ok: np.ndarray
+    fb_error_px: np.ndarray
+    ncc: np.ndarray
 
 
 class FeatureEngine:
+    """Detection and tracking with the parameters of one FeatureConfig."""
+
     def __init__(self, cfg: FeatureConfig) -> None:
         self.cfg = cfg
-        win = (cfg.lk_window_px, cfg.lk_window_px)
-        self._win = win
+        self._win = (cfg.lk_window_px, cfg.lk_window_px)
         self._criteria = (
             cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT,
             cfg.lk_max_iterations,
             cfg.lk_epsilon_px,
         )
+        # Sub-pixel refinement over the neighbourhood the corner response was measured on.
+        half = max(1, cfg.block_size_px // 2)
+        self._subpix_win = (half, half)
+        self._subpix_criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
+        # Rounding an avoided point to its pixel moves it up to 0.71 px: pad the exclusion disc by 1.
+        r = int(np.ceil(cfg.min_distance_px)) + 1
+        self._avoid_kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
 
     def prepare(self, image: np.ndarray) -> GrayFrame:
-        """BGR or grey uint8 (h, w[, 3]) -> the frame as the tracker uses it."""
-        return GrayFrame(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image)
+        """BGR (h, w, 3) or grey (h, w) uint8 -> the prepared frame."""
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+        return GrayFrame(np.ascontiguousarray(gray, dtype=np.uint8))
 
     def detect(
-        self, frame: GrayFrame, mask: np.ndarray, max_count: int, avoid_px: np.ndarray | None = None
+        self, pyr: GrayFrame, mask: np.ndarray, max_count: int, avoid_px: np.ndarray | None = None
     ) -> np.ndarray:
-        """Shi–Tomasi corners (m, 2) float32, m <= max_count, inside mask (uint8, 255 = allowed), at least
-        min_distance_px from each other and from every point of avoid_px (k, 2). Not refined to sub-pixel:
-        a feature is the patch LK follows, wherever its centre sits, and refinement can merge corners."""
+        """Shi–Tomasi corners (m, 2) float32 pixels, m <= max_count, strongest first, refined to sub-pixel,
+        inside `mask` (uint8 (h, w), 255 = allowed), at least min_distance_px from each other and from
+        every point of avoid_px (k, 2)."""
         c = self.cfg
+        empty = np.zeros((0, 2), np.float32)
         if max_count <= 0:
-            return np.zeros((0, 2), np.float32)
-        allowed = mask.copy()
+            return empty
+        allowed = mask
+        avoid = np.zeros((0, 2), np.float32)
         if avoid_px is not None and len(avoid_px):
-            radius = max(1, round(c.min_distance_px))
-            for x, y in np.round(avoid_px).astype(int):
-                cv2.circle(allowed, (int(x), int(y)), radius, 0, -1)
-        pts = cv2.goodFeaturesToTrack(
-            frame.gray,
-            maxCorners=max_count,
+            avoid = np.asarray(avoid_px, np.float32).reshape(-1, 2)
+            avoid = avoid[np.isfinite(avoid).all(axis=1)]
+            # Keep Shi–Tomasi from spending its budget next to the existing points (exact check below).
+            h, w = mask.shape
+            ij = np.round(avoid).astype(np.int64)
+            on = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+            seeds = np.zeros((h, w), np.uint8)
+            seeds[ij[on, 1], ij[on, 0]] = 255
+            allowed = cv2.bitwise_and(mask, cv2.bitwise_not(cv2.dilate(seeds, self._avoid_kernel)))
+        corners = cv2.goodFeaturesToTrack(
+            pyr.gray,
+            maxCorners=max_count + int(np.ceil(_SPARE_FRACTION * max_count)),
             qualityLevel=c.quality_level,
             minDistance=c.min_distance_px,
             mask=allowed,
             blockSize=c.block_size_px,
             useHarrisDetector=False,
         )
-        if pts is None:
-            return np.zeros((0, 2), np.float32)
-        return np.asarray(pts.reshape(-1, 2), dtype=np.float32)
+        if corners is None:
+            return empty
+        corners = np.asarray(corners, np.float32).reshape(-1, 1, 2)
+        refined = cv2.cornerSubPix(
+            pyr.gray, corners.copy(), self._subpix_win, (-1, -1), self._subpix_criteria
+        )
+        jumped = np.linalg.norm(refined - corners, axis=2) > _MAX_SUBPIX_SHIFT_PX
+        pts = np.where(jumped[:, :, None], corners, refined).reshape(-1, 2)
+        ij = np.round(pts).astype(np.int64)
+        h, w = mask.shape
+        inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        inside[inside] = mask[ij[inside, 1], ij[inside, 0]] > 0
+        pts = pts[inside]
+        keep = _spaced(np.concatenate([avoid, pts]), len(avoid), c.min_distance_px)
+        return np.ascontiguousarray(pts[keep][:max_count], dtype=np.float32)
 
     def track(
         self, prev: GrayFrame, cur: GrayFrame, px: np.ndarray, guess_px: np.ndarray | None = None
     ) -> TrackResult:
-        """LK prev -> cur from px (n, 2), starting from guess_px (the filter's prediction) when given,
-        then cur -> prev back to check. A point is ok when both passes converged, it came back within
-        fb_max_error_px, and it lies inside the image."""
+        """Pyramidal LK prev -> cur from px (n, 2) pixels, starting at guess_px (n, 2) (the filter's
+        predicted pixels) when given, then cur -> prev back. A point is ok when both passes converged,
+        it came back within fb_max_error_px of where it started, it landed inside the image, and its
+        window still looks the same (NCC >= lk_min_ncc)."""
         n = len(px)
         if n == 0:
-            empty = np.zeros((0, 2), np.float32)
-            return TrackResult(empty, np.zeros(0, bool), np.zeros(0))
-        p0 = np.ascontiguousarray(px, dtype=np.float32).reshape(-1, 1, 2)
-        # Start LK at the filter's prediction when there is one: a better start converges faster and
-        # is less likely to lock onto the next twill wale.
-        start = p0 if guess_px is None else np.ascontiguousarray(guess_px, dtype=np.float32).reshape(-1, 1, 2)
-        p1_init = start.copy()
-        flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-        p1, st1, _ = cv2.calcOpticalFlowPyrLK(
-            prev.gray,
-            cur.gray,
-            p0,
-            p1_init,
+            none = np.zeros(0, np.float32)
+            return TrackResult(np.zeros((0, 2), np.float32), np.zeros(0, bool), np.zeros(0), none)
+        p0 = np.ascontiguousarray(px, dtype=np.float32).reshape(-1, 2)
+        # A start near the answer (the filter's prediction) converges in fewer iterations and does not
+        # lock onto the neighbouring wale of a twill when the cloth moves by about a wale per frame.
+        guess = None if guess_px is None else np.asarray(guess_px, np.float32).reshape(-1, 2)
+        p1, ok1 = self._lk(prev.gray, cur.gray, p0, guess)
+        # The backward pass gets the same prior motion, reversed: from p1 - (guess - p0), not from p0.
+        # Started at the answer it is checking, LK could stay there and pass a mistracked point; with
+        # no prior at all it could not come back from a motion only the guess made reachable.
+        back, ok2 = self._lk(cur.gray, prev.gray, p1, None if guess is None else p1 - (guess - p0))
+        converged = ok1 & ok2 & np.isfinite(p1).all(axis=1) & np.isfinite(back).all(axis=1)
+        fb = np.full(n, np.inf)
+        fb[converged] = np.linalg.norm(back[converged] - p0[converged], axis=1)
+        h, w = cur.gray.shape
+        inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
+        ok = converged & (fb <= self.cfg.fb_max_error_px) & inside
+        ncc = np.full(n, np.nan, np.float32)
+        ncc[converged] = _patch_ncc(prev.gray, cur.gray, p0[converged], p1[converged], self.cfg.lk_window_px)
+        ok[converged] &= ncc[converged] >= self.cfg.lk_min_ncc
+        return TrackResult(p1, ok, fb, ncc)
+
+    def _lk(
+        self, a: np.ndarray, b: np.ndarray, pts: np.ndarray, start: np.ndarray | None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One LK pass a -> b from pts (n, 2), from start (n, 2) if given: positions (n, 2) float32 and
+        converged (n,) bool."""
+        flags = 0 if start is None else cv2.OPTFLOW_USE_INITIAL_FLOW
+        guess = pts.copy() if start is None else np.array(start, dtype=np.float32)
+        out, status, _ = cv2.calcOpticalFlowPyrLK(
+            a,
+            b,
+            pts.reshape(-1, 1, 2),
+            guess.reshape(-1, 1, 2),
             winSize=self._win,
             maxLevel=self.cfg.lk_levels,
             criteria=self._criteria,
             flags=flags,
         )
-        back, st2, _ = cv2.calcOpticalFlowPyrLK(
-            cur.gray,
-            prev.gray,
-            p1,
-            p0.copy(),
-            winSize=self._win,
-            maxLevel=self.cfg.lk_levels,
-            criteria=self._criteria,
-            flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
-        )
-        p1, back = p1.reshape(-1, 2), back.reshape(-1, 2)
-        converged = (st1.ravel() == 1) & (st2.ravel() == 1)
-        fb = np.where(converged, np.linalg.norm(back - p0.reshape(-1, 2), axis=1), np.inf)
-        h, w = cur.gray.shape
-        inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
-        ok = converged & (fb <= self.cfg.fb_max_error_px) & inside
-        return TrackResult(p1.astype(np.float32), ok, fb)
+        return np.asarray(out, np.float32).reshape(-1, 2), np.asarray(status).ravel() == 1
+
+
+def _spaced(px: np.ndarray, n_fixed: int, min_distance_px: float) -> np.ndarray:
+    """Which of px[n_fixed:] (in priority order) to keep so that every kept point is at least
+    min_distance_px from each fixed point px[:n_fixed] and from every kept point before it: (n - n_fixed,)
+    bool. Sweep over the points sorted by x: x[i + o] - x[i] only grows with the offset o, so the sweep
+    stops at the first offset where no pair is within min_distance_px in x."""
+    n = len(px)
+    order = np.argsort(px[:, 0], kind="stable")
+    s = px[order]
+    pairs: list[np.ndarray] = []
+    for o in range(1, n):
+        dx = s[o:, 0] - s[:-o, 0]
+        near = dx < min_distance_px
+        if not near.any():
+            break
+        close = near & (np.hypot(dx, s[o:, 1] - s[:-o, 1]) < min_distance_px)
+        a, b = order[:-o][close], order[o:][close]
+        pairs.append(np.stack([np.minimum(a, b), np.maximum(a, b)], axis=1))
+    keep = np.ones(n, bool)
+    if pairs:
+        conflicts = np.concatenate(pairs)
+        conflicts = conflicts[conflicts[:, 1] >= n_fixed]  # two fixed points may be close: not ours
+        # In priority order: by the time point i is reached, whether it is kept is final.
+        for i, j in conflicts[np.lexsort((conflicts[:, 1], conflicts[:, 0]))]:
+            if keep[i]:
+                keep[j] = False
+    return keep[n_fixed:]
+
+
+def _patch_ncc(a: np.ndarray, b: np.ndarray, pa: np.ndarray, pb: np.ndarray, size_px: int) -> np.ndarray:
+    """Zero-mean NCC (n,) float32 of the size_px x size_px patches of grey images a and b centred on
+    pa and pb (n, 2), pixels, sampled bilinearly: all patches with one remap per image."""
+    d = np.arange(size_px, dtype=np.float32) - (size_px - 1) / 2.0
+    dx, dy = (g.ravel() for g in np.meshgrid(d, d))
+
+    def patches(img: np.ndarray, p: np.ndarray) -> np.ndarray:
+        mx = np.ascontiguousarray(p[:, :1] + dx, dtype=np.float32)
+        my = np.ascontiguousarray(p[:, 1:] + dy, dtype=np.float32)
+        out = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
+        return np.asarray(out - out.mean(axis=1, keepdims=True))
+
+    if len(pa) == 0:
+        return np.zeros(0, np.float32)
+    pa_, pb_ = patches(a, pa), patches(b, pb)
+    denom = np.sqrt((pa_ * pa_).sum(axis=1) * (pb_ * pb_).sum(axis=1))
+    # A flat patch (no texture in either frame) correlates with nothing: 0, as in hwsim.verify.
+    return np.where(denom > 1e-6, (pa_ * pb_).sum(axis=1) / np.maximum(denom, 1e-6), 0.0).astype(np.float32)
 
 
 def coverage_holes(mask: np.ndarray, px: np.ndarray, cell_px: int) -> np.ndarray:
-    """uint8 mask (255) of the cell_px x cell_px grid cells that are mostly inside `mask` but hold no
-    point of px (n, 2): the parts of the cloth the tracker has lost sight of."""
+    """uint8 (h, w) mask, 255 where the tracker should resample: the cells of a cell_px x cell_px grid
+    from the top-left corner that are mostly (> 50 % of their in-image pixels) inside `mask` but hold
+    no point of px (n, 2) pixels, intersected with `mask` so that it can be passed to `detect` as is."""
     h, w = mask.shape
     gh, gw = -(-h // cell_px), -(-w // cell_px)
-    padded = np.zeros((gh * cell_px, gw * cell_px), np.uint8)
+    padded = np.zeros((gh * cell_px, gw * cell_px), np.float32)
     padded[:h, :w] = mask > 0
-    inside_frac = padded.reshape(gh, cell_px, gw, cell_px).mean(axis=(1, 3))
+    valid = np.zeros_like(padded)
+    valid[:h, :w] = 1.0
+    inside = padded.reshape(gh, cell_px, gw, cell_px).sum(axis=(1, 3))
+    area = valid.reshape(gh, cell_px, gw, cell_px).sum(axis=(1, 3))
     occupied = np.zeros((gh, gw), bool)
-    if len(px):
-        cells = np.floor(np.asarray(px) / cell_px).astype(int)
-        good = (cells[:, 0] >= 0) & (cells[:, 0] < gw) & (cells[:, 1] >= 0) & (cells[:, 1] < gh)
-        occupied[cells[good, 1], cells[good, 0]] = True
-    holes = (inside_frac > 0.75) & ~occupied
-    out = np.kron(holes.astype(np.uint8), np.ones((cell_px, cell_px), np.uint8))[:h, :w] * 255
-    return np.asarray(out & mask)
+    pts = np.asarray(px, np.float64).reshape(-1, 2)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    cells = np.floor(pts / cell_px).astype(np.int64)
+    on = (cells[:, 0] >= 0) & (cells[:, 0] < gw) & (cells[:, 1] >= 0) & (cells[:, 1] < gh)
+    occupied[cells[on, 1], cells[on, 0]] = True
+    holes = (inside > _CELL_INSIDE_FRACTION * area) & ~occupied
+    full = np.repeat(np.repeat(holes, cell_px, axis=0), cell_px, axis=1)[:h, :w]
+    return np.where(full & (mask > 0), np.uint8(255), np.uint8(0))

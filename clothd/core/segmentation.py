@@ -1,90 +1,183 @@
-"""Finding the cloth in a frame, against the conveyor background.
+"""Finding the cloth in a frame, and the masks where features may be detected.
 
-The conveyors (belts, deck) are grey: low colour saturation. Cloth is coloured and textured. The
-score of a pixel is its colour distance from the background's colour, measured in CIE Lab on the
-chroma plane (a*, b*) so that shading and the belts' light-dark ribs do not count; the background
-colour is the median over the image border, which the cloth does not fill. Otsu's threshold on the
-(blurred) score separates the two, morphology removes belt specks and closes the cloth's dark twill
-lines, and the largest component, holes filled, is the cloth.
+The background of the cell is grey: belts with ribs over a dark grey deck, all of low chroma. The cloth
+is coloured (usually blue denim) and textured. `find_cloth` keeps the textured pixels whose chroma
+(CIE Lab's (a, b) plane) is far from the frame's dominant, background colour; Otsu's method on those
+distances finds the cloth's core and the edge is placed half-way between the cloth's and the
+background's levels; then morphological cleanup, the largest connected component, holes filled.
+Lab's (a, b) separates colour from brightness, so the dark deck, the bright ribs and the cloth's
+shading do not move a pixel across the threshold; the texture test leaves out smooth coloured things
+such as an operator's arm.
+
+Pixel coordinates follow OpenCV: the centre of the top-left pixel is (0, 0).
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
-_MIN_AREA_FRACTION = 0.005  # smaller than this is not a cloth
-_MAX_AREA_FRACTION = 0.9  # larger: the "cloth" is the whole view; use the full-frame ROI instead
-_MIN_CHROMA_CONTRAST = 6.0  # Lab units between the two Otsu classes; below it nothing stands out
-_BORDER_PX = 8
+# 5x5 Gaussian before the colour conversion: averages the sensor noise down ~4x; a symmetric blur does
+# not move the half-way point of an edge.
+_BLUR_PX = 5
+# The dominant colour is the densest 5x5-unit patch of the (a, b) histogram.
+_MODE_WINDOW = 5
+# Chroma distances (Lab units) are scaled by this into 8 bits for Otsu and the medians: 0.25-unit
+# bins, and the cloth's distances (~10-40 units) stay well below the clip at 255.
+_CHROMA_SCALE = 4.0
+# Otsu always splits, even a frame of pure background. The smoothed background's chroma noise stays
+# under ~3 units (sensor noise sigma 1.5 grey levels); the faintest cloth pixels sit near 9. A split
+# below 5 units is noise, not cloth.
+_MIN_CHROMA = 5.0
+# Texture: the local standard deviation of grey over 9x9 windows. A smooth surface under sensor noise
+# (an arm, the shaded deck) stays under ~4 grey levels; woven cloth measures 14 and up (denim, twill).
+_TEXTURE_PX = 9
+_MIN_TEXTURE = 7.0
+# Opening removes specks up to ~2 px (noise, coloured grit on the belts).
+_OPEN_PX = 5
+# Closing fills notches up to ~30 px across in the cloth's edge: faded, nearly white patches of denim
+# have the background's chroma. It cannot round the cloth's (convex) corners.
+_CLOSE_PX = 31
+# A plausible cloth covers more than this fraction of the frame (smaller: specks, a stray object) ...
+_MIN_AREA_FRACTION = 0.005
+# ... and less than this: past it the background is hardly the dominant colour any more (footage of
+# cloth only: use full_frame_region).
+_MAX_AREA_FRACTION = 0.6
 
 
 @dataclass(frozen=True)
 class ClothRegion:
-    mask: np.ndarray  # uint8 (h, w), 255 on the cloth
-    corners_px: np.ndarray  # (4, 2) float32, minimum-area rectangle around the cloth
+    """Where the cloth is in one frame.
+
+    mask: uint8 (h, w), 255 on the cloth. corners_px: (4, 2) float32, the minimum-area rectangle around
+    the cloth in cv2.boxPoints order, pixels. area_px: the number of cloth pixels.
+    """
+
+    mask: np.ndarray
+    corners_px: np.ndarray
     area_px: int
 
 
-def _chroma_score(image_bgr: np.ndarray) -> np.ndarray:
-    lab = cv2.cvtColor(cv2.GaussianBlur(image_bgr, (5, 5), 0), cv2.COLOR_BGR2LAB).astype(np.float32)
-    border = np.concatenate(
-        [
-            lab[:_BORDER_PX].reshape(-1, 3),
-            lab[-_BORDER_PX:].reshape(-1, 3),
-            lab[:, :_BORDER_PX].reshape(-1, 3),
-            lab[:, -_BORDER_PX:].reshape(-1, 3),
-        ]
-    )
-    background_ab = np.median(border[:, 1:], axis=0)
-    return np.asarray(np.linalg.norm(lab[..., 1:] - background_ab, axis=-1))
+def _disk(diameter_px: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (diameter_px, diameter_px))
+
+
+def _region(mask: np.ndarray, points_px: np.ndarray) -> ClothRegion:
+    """A ClothRegion from its mask and the points (k, 2) whose minimum-area rectangle bounds it."""
+    box = cv2.boxPoints(cv2.minAreaRect(points_px.reshape(-1, 1, 2).astype(np.float32)))
+    return ClothRegion(mask, np.asarray(box, np.float32), int(cv2.countNonZero(mask)))
+
+
+def _median_u8(channel: np.ndarray, mask: np.ndarray) -> float:
+    """Median of a uint8 image (h, w) over a bool mask (h, w), from its histogram (fast, exact)."""
+    hist = cv2.calcHist([channel], [0], mask.view(np.uint8), [256], [0, 256]).ravel()
+    return float(np.searchsorted(np.cumsum(hist), 0.5 * hist.sum()))
+
+
+def _dominant_ab(lab: np.ndarray) -> tuple[float, float]:
+    """The frame's dominant colour (a, b) in 8-bit Lab: the peak of the (a, b) histogram, smoothed so
+    that the peak is the densest patch and not one lucky bin. It is the background's colour as long as
+    the background covers more of the frame than any one colour of the cloth."""
+    hist = cv2.calcHist([lab], [1, 2], None, [256, 256], [0, 256, 0, 256])
+    ia, ib = np.unravel_index(int(np.argmax(cv2.blur(hist, (_MODE_WINDOW, _MODE_WINDOW)))), hist.shape)
+    # The patch's centroid: below the 1-unit quantisation, which would otherwise bias every distance.
+    r = _MODE_WINDOW // 2
+    lo_a, lo_b = max(int(ia) - r, 0), max(int(ib) - r, 0)
+    patch = hist[lo_a : int(ia) + r + 1, lo_b : int(ib) + r + 1]
+    wa, wb, total = patch.sum(axis=1), patch.sum(axis=0), float(patch.sum())
+    return lo_a + float(wa @ np.arange(len(wa))) / total, lo_b + float(wb @ np.arange(len(wb))) / total
+
+
+def _texture(gray: np.ndarray) -> np.ndarray:
+    """Local standard deviation (h, w) float32 of a grey image over _TEXTURE_PX windows, grey levels."""
+    g = gray.astype(np.float32)
+    k = (_TEXTURE_PX, _TEXTURE_PX)
+    mean = cv2.blur(g, k)
+    return np.asarray(np.sqrt(np.maximum(cv2.blur(g * g, k) - mean * mean, 0.0)))
 
 
 def find_cloth(image_bgr: np.ndarray) -> ClothRegion | None:
-    """The cloth in a BGR frame, or None when no plausible cloth is in view."""
+    """The cloth in a BGR uint8 frame (h, w, 3), or None when no plausible cloth is visible.
+
+    None when nothing textured differs in colour from the background by more than noise, when the
+    largest coloured, textured component covers under 0.5 % or over 60 % of the frame, or when it is
+    greyer than the dominant colour (then the dominant colour was the cloth's, not the background's).
+    """
+    if image_bgr.ndim != 3 or image_bgr.shape[2] != 3:
+        raise ValueError(f"find_cloth needs a BGR image (h, w, 3), got shape {image_bgr.shape}")
     h, w = image_bgr.shape[:2]
-    score = _chroma_score(image_bgr)
-    score8 = np.clip(score * 4.0, 0, 255).astype(np.uint8)  # 1 Lab unit = 4 grey levels
-    _, mask = cv2.threshold(score8, 0, 255, cv2.THRESH_BINARY + cv2.THRESH_OTSU)
-    fg, bg = score8[mask > 0], score8[mask == 0]
-    if len(fg) == 0 or len(bg) == 0 or (float(fg.mean()) - float(bg.mean())) / 4.0 < _MIN_CHROMA_CONTRAST:
+    lab = cv2.cvtColor(cv2.GaussianBlur(image_bgr, (_BLUR_PX, _BLUR_PX), 0), cv2.COLOR_BGR2Lab)
+    a0, b0 = _dominant_ab(lab)
+    dist = np.hypot(lab[..., 1].astype(np.float32) - a0, lab[..., 2].astype(np.float32) - b0)
+    scaled = np.clip(dist * _CHROMA_SCALE, 0, 255).astype(np.uint8)
+    # Smooth coloured things (an arm, a painted part) are not cloth; leaving them out also keeps them
+    # from pulling Otsu's split away from background-versus-cloth.
+    textured = _texture(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)) > _MIN_TEXTURE
+    if not textured.any():
         return None
-    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (5, 5))
-    mask = cv2.morphologyEx(mask, cv2.MORPH_OPEN, kernel)
-    mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, kernel, iterations=2)
-    contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-    if not contours:
+    otsu, _ = cv2.threshold(scaled[textured].reshape(-1, 1), 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
+    core = textured & (scaled > max(otsu, _MIN_CHROMA * _CHROMA_SCALE))
+    if not core.any():
         return None
-    biggest = max(contours, key=cv2.contourArea)
-    area = cv2.contourArea(biggest)
-    if not _MIN_AREA_FRACTION * h * w <= area <= _MAX_AREA_FRACTION * h * w:
+    # Otsu's split finds the cloth's coloured core but sits above the middle of the edge's ramp when
+    # the cloth's chroma spreads wide (denim: ~10 to 40 units), which would lose the rim. The edge is
+    # where the chroma is half-way from the background's typical level to the cloth's.
+    rest = textured & ~core
+    bg_level = _median_u8(scaled, rest) if rest.any() else 0.0
+    level = max(0.5 * (_median_u8(scaled, core) + bg_level), _MIN_CHROMA * _CHROMA_SCALE)
+    above = np.where(textured & (scaled > level), np.uint8(255), np.uint8(0))
+    mask = cv2.morphologyEx(above, cv2.MORPH_OPEN, _disk(_OPEN_PX))
+    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    if n < 2:
         return None
+    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    if stats[best, cv2.CC_STAT_AREA] < _MIN_AREA_FRACTION * h * w:
+        return None
+    # Close the component alone (other coloured blobs must not merge into it), in its bounding box
+    # padded by the kernel, then fill its holes by filling its outer contour.
+    x, y, bw, bh = (int(v) for v in stats[best, :4])
+    x0, y0 = max(x - _CLOSE_PX, 0), max(y - _CLOSE_PX, 0)
+    x1, y1 = min(x + bw + _CLOSE_PX, w), min(y + bh + _CLOSE_PX, h)
+    component = np.where(labels[y0:y1, x0:x1] == best, np.uint8(255), np.uint8(0))
+    component = cv2.morphologyEx(component, cv2.MORPH_CLOSE, _disk(_CLOSE_PX))
+    contours, _ = cv2.findContours(component, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE, offset=(x0, y0))
+    outline = max(contours, key=cv2.contourArea)
     filled = np.zeros((h, w), np.uint8)
-    cv2.drawContours(filled, [biggest], -1, 255, thickness=cv2.FILLED)
-    corners = cv2.boxPoints(cv2.minAreaRect(biggest)).astype(np.float32)
-    return ClothRegion(filled, corners, int(area))
+    cv2.drawContours(filled, [outline], -1, 255, thickness=cv2.FILLED)
+    region = _region(filled, outline.reshape(-1, 2))
+    if region.area_px > _MAX_AREA_FRACTION * h * w:
+        return None
+    on = filled > 0
+    cloth_chroma = math.hypot(_median_u8(lab[..., 1], on) - 128.0, _median_u8(lab[..., 2], on) - 128.0)
+    if cloth_chroma <= math.hypot(a0 - 128.0, b0 - 128.0):
+        return None
+    return region
 
 
 def full_frame_region(width: int, height: int, margin_px: int = 8) -> ClothRegion:
-    """For footage where only cloth is in view: the whole frame less a margin."""
-    m = margin_px
-    corners = np.array(
-        [[m, m], [width - 1 - m, m], [width - 1 - m, height - 1 - m], [m, height - 1 - m]], np.float32
-    )
+    """The whole frame less a `margin_px` border, for footage that shows only cloth (--roi full)."""
+    if width <= 2 * margin_px or height <= 2 * margin_px:
+        raise ValueError(f"a {width}x{height} frame has nothing inside a {margin_px}-px margin")
     mask = np.zeros((height, width), np.uint8)
-    mask[m : height - m, m : width - m] = 255
-    return ClothRegion(mask, corners, int((width - 2 * m) * (height - 2 * m)))
+    lo_x, lo_y, hi_x, hi_y = margin_px, margin_px, width - 1 - margin_px, height - 1 - margin_px
+    mask[lo_y : hi_y + 1, lo_x : hi_x + 1] = 255
+    corners = np.array([[lo_x, lo_y], [hi_x, lo_y], [hi_x, hi_y], [lo_x, hi_y]], np.float32)
+    return _region(mask, corners)
 
 
-def cloth_mask_from_outline(outline_px: np.ndarray, width: int, height: int, erode_px: int) -> np.ndarray:
-    """uint8 mask of the polygon outline (k, 2), eroded by erode_px: where features may be detected
-    without their window reaching past the cloth's edge."""
+def cloth_mask_from_outline(outline_px: np.ndarray, width: int, height: int, erode_px: float) -> np.ndarray:
+    """uint8 (height, width) mask, 255 inside the polygon `outline_px` (k, 2) pixels, shrunk by
+    `erode_px` pixels: where new features may be detected (away from the edge, where a feature's
+    patch would straddle cloth and moving background)."""
+    shift = 4  # sub-pixel vertices: 1/16 px
+    pts = np.round(np.asarray(outline_px, np.float64).reshape(-1, 1, 2) * (1 << shift)).astype(np.int32)
     mask = np.zeros((height, width), np.uint8)
-    pts = np.round(np.asarray(outline_px) * 4).astype(np.int32)  # 2 fractional bits
-    cv2.fillPoly(mask, [pts], 255, lineType=cv2.LINE_8, shift=2)
-    if erode_px > 0:
-        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
-        return np.asarray(cv2.erode(mask, k))
-    return mask
+    cv2.fillPoly(mask, [pts], 255, lineType=cv2.LINE_8, shift=shift)
+    radius = math.ceil(erode_px)
+    if radius <= 0:
+        return mask
+    # Outside the frame counts as off the cloth: a patch cut by the frame's edge tracks no better.
+    return np.asarray(cv2.erode(mask, _disk(2 * radius + 1), borderType=cv2.BORDER_CONSTANT, borderValue=0))
