@@ -10,8 +10,8 @@ import pytest
 from hwsim import scenario as scenarios
 from hwsim.recording import record
 
-# Long enough to hold at least three 10-frame verify gaps, and for occlude the arm's entry.
-SHORT_DURATION_S = {"translate": 1.0, "rotate": 1.0, "compress": 1.0, "occlude": 1.5, "random": 1.0}
+# Long enough to hold at least three 10-frame verify gaps, and for occlude the arm coming and going.
+SHORT_DURATION_S = {"translate": 1.0, "rotate": 1.0, "compress": 1.0, "occlude": 2.4, "random": 1.0}
 
 
 @pytest.fixture(scope="session")
