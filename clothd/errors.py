@@ -1,4 +1,4 @@
-"""clothd's exceptions. The API maps them to HTTP codes; the CLI prints them without a traceback."""
+"""clothd's exceptions. The CLI prints them without a traceback (and the API will map them to HTTP codes)."""
 
 
 class ClothdError(Exception):
@@ -11,7 +11,3 @@ class ConfigError(ClothdError):
 
 class InputError(ClothdError):
     """Input footage or a recording that cannot be read, with what is wrong with it."""
-
-
-class TrackingLostError(ClothdError):
-    """The cloth cannot be found or the filter diverged; tracking must re-initialise."""
