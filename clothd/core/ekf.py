@@ -40,7 +40,8 @@ def update(
     """Gain-form correction with the Joseph covariance update, which keeps P symmetric positive
     semi-definite under round-off: K = P Hᵀ S⁻¹, S = H P Hᵀ + R, x⁺ = x⁻ + K ν,
     P⁺ = (I − K H) P (I − K H)ᵀ + K R Kᵀ. The textbook reference: with many pixel measurements the
-    tracker uses `update_information`, which the tests check against this. Shapes: x (m,), P (m, m), residual ν (z,), H (z, m), R (z, z)."""
+    tracker uses `update_information`, which the tests check against this.
+    Shapes: x (m,), P (m, m), residual ν (z,), H (z, m), R (z, z)."""
     S = H @ P @ H.T + R
     K = np.linalg.solve(S, H @ P).T  # P Hᵀ S⁻¹, with S and P symmetric
     x_new = x + K @ residual
