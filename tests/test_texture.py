@@ -179,8 +179,15 @@ def test_mip_pyramid_low_passes() -> None:
 
 @pytest.mark.parametrize(
     ("texels_per_m", "render_px_per_m", "level"),
-    [(4000.0, 1800.0, 1), (4000.0, 2000.0, 1), (4000.0, 2000.0001, 0), (4000.0, 999.0, 2),
-     (4000.0, 5000.0, 0), (4000.0, 250.0, 4), (4000.0, 0.9 * 2 * 1000.0 * 10 / 9, 1)],
+    [
+        (4000.0, 1800.0, 1),
+        (4000.0, 2000.0, 1),
+        (4000.0, 2000.0001, 0),
+        (4000.0, 999.0, 2),
+        (4000.0, 5000.0, 0),
+        (4000.0, 250.0, 4),
+        (4000.0, 0.9 * 2 * 1000.0 * 10 / 9, 1),
+    ],
 )
 def test_mip_level_for(texels_per_m: float, render_px_per_m: float, level: int) -> None:
     assert mip_level_for(texels_per_m, render_px_per_m) == level
