@@ -17,11 +17,17 @@ def _fixed(px: np.ndarray) -> np.ndarray:
     return np.round(np.asarray(px) * (1 << _SHIFT)).astype(np.int32)
 
 
+def _segments(img: np.ndarray, starts: np.ndarray, ends: np.ndarray, colour: tuple[int, int, int]) -> None:
+    """Draw n line segments (n, 2) -> (n, 2) in one call (OpenCV draws them without the GIL)."""
+    if len(starts):
+        segments = list(np.stack([_fixed(starts), _fixed(ends)], axis=1))
+        cv2.polylines(img, segments, False, colour, 1, cv2.LINE_AA, _SHIFT)
+
+
 def _crosses(img: np.ndarray, px: np.ndarray, colour: tuple[int, int, int]) -> None:
-    d = _CROSS_PX << _SHIFT
-    for x, y in _fixed(px):
-        cv2.line(img, (x - d, y - d), (x + d, y + d), colour, 1, cv2.LINE_AA, _SHIFT)
-        cv2.line(img, (x - d, y + d), (x + d, y - d), colour, 1, cv2.LINE_AA, _SHIFT)
+    p = px[~np.isnan(px[:, 0])] if len(px) else px
+    d = np.array([_CROSS_PX, _CROSS_PX], float)
+    _segments(img, np.concatenate([p - d, p + d * [-1, 1]]), np.concatenate([p + d, p + d * [1, -1]]), colour)
 
 
 def draw_estimate(
@@ -36,8 +42,7 @@ def draw_estimate(
         lines += [np.ascontiguousarray(g[:, i]) for i in range(g.shape[1])]
         cv2.polylines(img, lines, False, MESH_BGR, 1, cv2.LINE_AA, _SHIFT)
     ok = ~np.isnan(est.meas_px[:, 0]) if len(est.meas_px) else np.zeros(0, bool)
-    for (mx, my), (px, py) in zip(_fixed(est.meas_px[ok]), _fixed(est.pred_px[ok]), strict=True):
-        cv2.line(img, (mx, my), (px, py), YELLOW, 1, cv2.LINE_AA, _SHIFT)
+    _segments(img, est.meas_px[ok], est.pred_px[ok], YELLOW)
     _crosses(img, est.meas_px[ok], RED)
     _crosses(img, est.pred_px, GREEN)
     label = f"t {est.t_s:6.2f} s  {est.status}  features {len(est.feature_id)}"

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import json
 import time
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -76,6 +78,9 @@ def replay(
             str(out_dir / "overlay.mp4"), cv2.VideoWriter.fourcc(*"mp4v"), footage.fps, (w, h)
         )
     estimates: list[Estimate] = []
+    # The overlay is drawn and encoded on a second thread (OpenCV releases the GIL), in frame order.
+    drawer = ThreadPoolExecutor(max_workers=1)
+    pending: deque[Future[None]] = deque()
     start = time.perf_counter()
     t_s, image = t0_s, first
     try:
@@ -84,12 +89,17 @@ def replay(
             estimates.append(est)
             if video is not None:
                 nodes_px = camera.project(est.nodes_m.reshape(-1, 3)) if est.nodes_m is not None else None
-                video.write(draw_estimate(image, est, tracker.mesh_shape, nodes_px))
+                pending.append(drawer.submit(_write_overlay, video, image, est, tracker.mesh_shape, nodes_px))
+                while len(pending) > 4:
+                    pending.popleft().result()
             try:
                 t_s, image = next(frames)
             except StopIteration:
                 break
     finally:
+        for fut in pending:
+            fut.result()
+        drawer.shutdown()
         if video is not None:
             video.release()
     wall = time.perf_counter() - start
@@ -97,6 +107,16 @@ def replay(
     result = ReplayResult(len(estimates), wall, len(estimates) / footage.fps)
     _write_summary(out_dir / "summary.json", estimates, result, cfg)
     return result
+
+
+def _write_overlay(
+    video: cv2.VideoWriter,
+    image: np.ndarray,
+    est: Estimate,
+    mesh_shape: tuple[int, int] | None,
+    nodes_px: np.ndarray | None,
+) -> None:
+    video.write(draw_estimate(image, est, mesh_shape, nodes_px))
 
 
 def _write_estimates(path: Path, estimates: list[Estimate]) -> None:
