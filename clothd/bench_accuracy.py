@@ -120,7 +120,9 @@ def grade(recording: Path, scenario: str, mode: str, cfg: TrackerConfig) -> Grad
     schedule = CommandSchedule(recording / "commands.csv", conveyor.n_modules)
     tracker = Tracker(cfg, camera, conveyor)
     start = time.perf_counter()
-    ests = [tracker.step(img, t, schedule.at(t)) for t, img in open_footage(recording).frames()]
+    ests = [
+        tracker.step(img, t, schedule.at(t)) for t, img in open_footage(recording).frames(read_ahead=False)
+    ]
     wall = time.perf_counter() - start
     true_px = _feature_truth_pixels(truth, camera, ests)
     means, worsts = np.full(len(ests), np.nan), np.full(len(ests), np.nan)

@@ -55,7 +55,7 @@ def clothd_rows(recording: Path, budget: int, mesh: tuple[int, int], frames: int
     tracker = Tracker(cfg, CameraModel.load(recording / "camera.json"), conveyor, clock=time.perf_counter)
     timings: dict[str, list[float]] = {s: [] for s in STAGES}
     counts = []
-    for k, (t_s, image) in enumerate(footage.frames()):
+    for k, (t_s, image) in enumerate(footage.frames(read_ahead=False)):
         if k >= frames:
             break
         est = tracker.step(image, t_s, schedule.at(t_s))

@@ -59,3 +59,12 @@ def test_command_schedule_holds_each_modules_last_command(tmp_path: Path) -> Non
     bad.write_text("t_s,module,speed_m_s,heading_rad\n0.0,7,0.1,0.0\n")
     with pytest.raises(InputError, match="module ids"):
         CommandSchedule(bad, n_modules=3)
+
+
+def test_read_ahead_yields_the_same_frames(tmp_path: Path) -> None:
+    for k in range(9):
+        cv2.imwrite(str(tmp_path / f"f{k}.png"), np.full((4, 4, 3), 20 * k, np.uint8))
+    footage = open_footage(tmp_path)
+    ahead = [(t, int(img[0, 0, 0])) for t, img in footage.frames()]
+    plain = [(t, int(img[0, 0, 0])) for t, img in footage.frames(read_ahead=False)]
+    assert ahead == plain and [v for _, v in ahead] == [20 * k for k in range(9)]

@@ -41,8 +41,16 @@ class Footage:
     commands_csv: Path | None
     _images: tuple[Path, ...] | None  # None for a video
 
-    def frames(self) -> Iterator[tuple[float, np.ndarray]]:
-        """(t_s, BGR image) in order; t_s = index / fps."""
+    def frames(self, read_ahead: bool = True) -> Iterator[tuple[float, np.ndarray]]:
+        """(t_s, BGR image) in order; t_s = index / fps. Without read_ahead, image files are decoded on
+        the caller's thread (benchmarks that time the tracker's own stages want the core to themselves)."""
+        if self._images is not None and not read_ahead:
+            for k, path in enumerate(self._images):
+                img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+                if img is None:
+                    raise InputError(f"{path}: not a readable image")
+                yield k / self.fps, img
+            return
         if self._images is not None:
             # Decode a few frames ahead on a second thread (PNG decoding releases the GIL): at 640x480
             # it costs about as much as a tracker tick.
