@@ -72,6 +72,13 @@ class EkfConfig(_Strict):
     divergence_nis: float = Field(50.0, gt=0, le=1e6, description="mean NIS per measurement that means lost")
 
 
+class ModuleLimitsConfig(_Strict):
+    """The steppers' limits, so the model's input is what the modules do, not only what they were told."""
+
+    accel_limit_m_s2: float = Field(2.0, gt=0, le=50)
+    steer_rate_limit_rad_s: float = Field(3.0, gt=0, le=100)
+
+
 class TaichiConfig(_Strict):
     arch: Literal["cpu", "cuda", "vulkan"] = "cpu"
 
@@ -80,6 +87,7 @@ class TrackerConfig(_Strict):
     model: Literal["none", "predict", "rigid", "mesh"] = "mesh"
     use_input: bool = True
     camera: IdealCameraConfig = IdealCameraConfig()
+    modules: ModuleLimitsConfig = ModuleLimitsConfig()
     features: FeatureConfig = FeatureConfig()
     mesh: MeshConfig = MeshConfig()
     physics: PhysicsConfig = PhysicsConfig()

@@ -6,7 +6,7 @@ import pytest
 from clothd.config import PhysicsConfig
 from clothd.core.binding import cloth_coordinates, invert_bilinear
 from clothd.core.camera_model import CameraModel
-from clothd.core.conveyor import ConveyorLayout, rigid_velocity_fit
+from clothd.core.conveyor import ConveyorLayout, ModuleModel, rigid_velocity_fit
 from clothd.core.mesh import QuadMesh, blend, measurement_jacobian, shape_functions
 from clothd.core.mesh_ekf import NodeBelief
 from clothd.core.physics import MassSpring, spring_pairs
@@ -130,3 +130,20 @@ def test_rebinding_through_a_moved_mesh() -> None:
     corners = np.array([[[0.0, 0.0], [2.0, 0.2], [2.2, 2.0], [-0.1, 1.8]]])
     xe = np.array([[0.3, -0.6]])
     np.testing.assert_allclose(invert_bilinear(corners, shape_functions(xe) @ corners[0]), xe, atol=1e-9)
+
+
+def test_module_model_follows_the_stepper_limits() -> None:
+    modules = ModuleModel(2, accel_limit_m_s2=1.0, steer_rate_limit_rad_s=2.0)
+    speed, heading = np.array([0.3, 0.1]), np.array([1.0, 0.0])
+    mid_speed, mid_heading = modules.advance(speed, heading, 0.1)
+    np.testing.assert_allclose(mid_speed, [0.05, 0.05])  # mid-tick, 0.05 s at 1 m/s²
+    np.testing.assert_allclose(mid_heading, [0.1, 0.0])  # 0.05 s at 2 rad/s
+    for _ in range(20):
+        modules.advance(speed, heading, 0.1)
+    np.testing.assert_allclose(modules.speed_m_s, speed)
+    np.testing.assert_allclose(modules.heading_rad, heading)
+    # A half-turn command reverses the belt instead of steering round.
+    for _ in range(10):
+        modules.advance(np.array([0.3, 0.1]), np.array([1.0, np.pi]), 0.1)
+    np.testing.assert_allclose(modules.heading_rad[1], 0.0)
+    np.testing.assert_allclose(modules.speed_m_s[1], -0.1)

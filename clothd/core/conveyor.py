@@ -80,6 +80,44 @@ class ConveyorLayout:
         return vel, on_belt
 
 
+def _wrap(a: np.ndarray) -> np.ndarray:
+    return np.asarray(np.pi - np.mod(np.pi - a, 2 * np.pi))
+
+
+class ModuleModel:
+    """What the modules are really doing, from what they were told: the steppers reach a command under
+    an acceleration and a steering-rate limit, and a module reverses its belt rather than turning more
+    than a quarter round (the controller's documented behaviour, docs/recording-format.md). Arrays are
+    (n_modules,); speed is signed."""
+
+    def __init__(self, n_modules: int, accel_limit_m_s2: float, steer_rate_limit_rad_s: float) -> None:
+        self.accel_limit_m_s2 = accel_limit_m_s2
+        self.steer_rate_limit_rad_s = steer_rate_limit_rad_s
+        self.speed_m_s = np.zeros(n_modules)
+        self.heading_rad = np.zeros(n_modules)
+
+    def _step(self, cmd_speed: np.ndarray, cmd_heading: np.ndarray, dt_s: float) -> None:
+        turn_fwd = _wrap(cmd_heading - self.heading_rad)
+        turn_rev = _wrap(cmd_heading + np.pi - self.heading_rad)
+        reverse = np.abs(turn_rev) < np.abs(turn_fwd)
+        turn = np.where(cmd_speed > 0, np.where(reverse, turn_rev, turn_fwd), 0.0)
+        target = np.where(reverse, -cmd_speed, cmd_speed)
+        max_turn = self.steer_rate_limit_rad_s * dt_s
+        self.heading_rad = _wrap(self.heading_rad + np.clip(turn, -max_turn, max_turn))
+        max_dv = self.accel_limit_m_s2 * dt_s
+        self.speed_m_s = self.speed_m_s + np.clip(target - self.speed_m_s, -max_dv, max_dv)
+
+    def advance(
+        self, cmd_speed_m_s: np.ndarray, cmd_heading_rad: np.ndarray, dt_s: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Advance by dt_s under the commands; returns the modules' (signed speed, heading) at mid-tick,
+        the best single value for the tick's belt input."""
+        self._step(cmd_speed_m_s, cmd_heading_rad, dt_s / 2)
+        mid = (self.speed_m_s.copy(), self.heading_rad.copy())
+        self._step(cmd_speed_m_s, cmd_heading_rad, dt_s / 2)
+        return mid
+
+
 def rigid_velocity_fit(points_m: np.ndarray, velocity_m_s: np.ndarray, centre_m: np.ndarray) -> np.ndarray:
     """Least-squares rigid motion [vx, vy, ω] about `centre_m` (2,) explaining velocities (n, 2) at points
     (n, 2): v_i ≈ v + ω·ẑ×(p_i − c). Zeros when there are no points."""

@@ -25,7 +25,7 @@ from clothd.config import TrackerConfig
 from clothd.core import rigid
 from clothd.core.binding import cloth_coordinates
 from clothd.core.camera_model import CameraModel
-from clothd.core.conveyor import ConveyorLayout, rigid_velocity_fit
+from clothd.core.conveyor import ConveyorLayout, ModuleModel, rigid_velocity_fit
 from clothd.core.ekf import UpdateStats, gate, predict, update_information
 from clothd.core.features import FeatureEngine, GrayFrame, coverage_holes
 from clothd.core.mesh import Binding, QuadMesh, blend, measurement_jacobian
@@ -35,6 +35,7 @@ from clothd.core.physics import MassSpring
 from clothd.core.segmentation import ClothRegion, cloth_mask_from_outline, find_cloth, full_frame_region
 
 Clock = Callable[[], float]
+Belts = tuple[np.ndarray, np.ndarray]  # each module's signed belt speed (m/s) and heading (rad)
 
 
 class Tracker:
@@ -52,6 +53,15 @@ class Tracker:
         self.roi = roi
         self.clock = clock or (lambda: 0.0)
         self.engine = FeatureEngine(cfg.features)
+        # The modules keep moving whatever the tracker believes, so their model survives a reset.
+        self.modules = (
+            None
+            if conveyor is None
+            else ModuleModel(
+                conveyor.n_modules, cfg.modules.accel_limit_m_s2, cfg.modules.steer_rate_limit_rad_s
+            )
+        )
+        self._modules_t_s: float | None = None
         self._reset_state()
 
     def _reset_state(self) -> None:
@@ -85,11 +95,12 @@ class Tracker:
         timing: dict[str, float] = {}
         t0 = self.clock()
         frame = self.engine.prepare(image)
+        belts = self._advance_modules(t_s, commands)
         if not self.initialised or self.prev is None:
             return self._initialise(frame, image, t_s, timing, t0)
         dt = max(t_s - self.prev_t_s, 1e-3)
         t1 = self.clock()
-        guess = self._predict(dt, commands)
+        guess = self._predict(dt, belts)
         t2 = self.clock()
         result = self.engine.track(self.prev, frame, self.px, guess_px=guess)
         t3 = self.clock()
@@ -150,14 +161,21 @@ class Tracker:
 
     # -- model -----------------------------------------------------------------------------------
 
-    def _belt_input(
-        self, points_m: np.ndarray, commands: ModuleCommands | None
-    ) -> tuple[np.ndarray, np.ndarray]:
-        if self.conveyor is None or commands is None or not self.cfg.use_input:
+    def _belt_input(self, points_m: np.ndarray, belts: Belts | None) -> tuple[np.ndarray, np.ndarray]:
+        """Belt velocity (n, 2) under points, and whether a belt is there, for the modules' state."""
+        if self.conveyor is None or belts is None or not self.cfg.use_input:
             return np.zeros((len(points_m), 2)), np.zeros(len(points_m), bool)
-        return self.conveyor.belt_velocity(points_m, commands.speed_m_s, commands.heading_rad)
+        return self.conveyor.belt_velocity(points_m, *belts)
 
-    def _predict(self, dt: float, commands: ModuleCommands | None) -> np.ndarray | None:
+    def _advance_modules(self, t_s: float, commands: ModuleCommands | None) -> Belts | None:
+        """The modules' (signed speed, heading) over the tick ending at t_s, from their commands."""
+        if self.modules is None or commands is None:
+            return None
+        dt = max(t_s - self._modules_t_s, 0.0) if self._modules_t_s is not None else 0.0
+        self._modules_t_s = t_s
+        return self.modules.advance(commands.speed_m_s, commands.heading_rad, dt)
+
+    def _predict(self, dt: float, belts: Belts | None) -> np.ndarray | None:
         """Advance the model to this tick and return the predicted pixels of the features (LK's first
         guess), or None in the model-free mode."""
         cfg = self.cfg
@@ -166,13 +184,13 @@ class Tracker:
         if cfg.model == "rigid":
             tau = None
             twist = None
-            if self.conveyor is not None and commands is not None and cfg.use_input:
+            if self.conveyor is not None and belts is not None and cfg.use_input:
                 tau = (
                     cfg.physics.stick_speed_m_s / (cfg.physics.friction_mu * 9.81)
                     + 1.0 / cfg.physics.damping_1_s
                 )
                 probe = rigid.world_points(self.x, self._cloth_probe_body())
-                vel, on = self._belt_input(probe, commands)
+                vel, on = self._belt_input(probe, belts)
                 twist = rigid_velocity_fit(probe[on], vel[on], self.x[:2]) if on.any() else np.zeros(3)
             x_pred = rigid.predict_mean(self.x, dt, tau, twist)
             self.x, self.P = predict(
@@ -181,7 +199,7 @@ class Tracker:
             return rigid.measure(self.camera, self.x, self._body())[0].astype(np.float32)
         assert self.sim is not None and self.belief is not None
         pos, vel = self.belief.x[:, :3], self.belief.x[:, 3:]
-        belt_v, on_belt = self._belt_input(pos, commands)
+        belt_v, on_belt = self._belt_input(pos, belts)
         self.sim.set_state(pos, vel)
         self.sim.step(dt, belt_v, on_belt)
         x_new, v_new = self.sim.state()
