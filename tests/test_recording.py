@@ -99,7 +99,8 @@ def test_preview_writes_a_readable_video(short_recording: Recorder, tmp_path: Pa
 
 def test_cli_record_then_verify(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "rec"
-    assert main(["record", "rotate", "--out", str(out), "--duration", "0.4"]) == 0
+    record_args = ["record", "rotate", "--out", str(out), "--duration", "0.4"]
+    assert main(record_args) == 0
     assert main(["verify", str(out), "--json", str(tmp_path / "v.json")]) == 0
     printed = capsys.readouterr().out
     assert "PASS" in printed and "patch pairs" in printed
