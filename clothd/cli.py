@@ -34,7 +34,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     source_input = "on" if tracker_cfg.use_input else "off"
     print(
         f"replayed {result.frames} frames ({tracker_cfg.model}, input {source_input}) "
-        f"in {result.wall_s:.1f} s, {result.realtime_factor:.1f}x real time -> {args.out}"
+        f"in {result.wall_s:.1f} s, {result.realtime_factor:.1f}x real time "
+        f"({result.steady_realtime_factor:.1f}x after start-up) -> {args.out}"
     )
     return 0
 

@@ -30,6 +30,7 @@ def test_replay_writes_estimates_summary_and_overlay(
             assert "nodes_m" not in z
     summary = json.loads((out / "summary.json").read_text())
     assert summary["model"] == model and summary["use_input"] is (model == "mesh")
+    assert summary["steady_realtime_factor"] > 0
     assert len(summary["per_frame"]) == n_frames
     # NaN exactly where a feature is not alive: the counts match what the tracker reported per frame.
     assert list(alive_per_frame) == [f["features"] for f in summary["per_frame"]]
