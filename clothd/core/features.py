@@ -86,7 +86,7 @@ class FeatureEngine:
         return GrayFrame(np.ascontiguousarray(gray, dtype=np.uint8))
 
     def detect(
-        self, pyr: GrayFrame, mask: np.ndarray, max_count: int, avoid_px: np.ndarray | None = None
+        self, frame: GrayFrame, mask: np.ndarray, max_count: int, avoid_px: np.ndarray | None = None
     ) -> np.ndarray:
         """Shi–Tomasi corners (m, 2) float32 pixels, m <= max_count, strongest first, refined to sub-pixel,
         inside `mask` (uint8 (h, w), 255 = allowed), at least min_distance_px from each other and from
@@ -108,7 +108,7 @@ class FeatureEngine:
             seeds[ij[on, 1], ij[on, 0]] = 255
             allowed = cv2.bitwise_and(mask, cv2.bitwise_not(cv2.dilate(seeds, self._avoid_kernel)))
         corners = cv2.goodFeaturesToTrack(
-            pyr.gray,
+            frame.gray,
             maxCorners=max_count + int(np.ceil(_SPARE_FRACTION * max_count)),
             qualityLevel=c.quality_level,
             minDistance=c.min_distance_px,
@@ -120,7 +120,7 @@ class FeatureEngine:
             return empty
         corners = np.asarray(corners, np.float32).reshape(-1, 1, 2)
         refined = cv2.cornerSubPix(
-            pyr.gray, corners.copy(), self._subpix_win, (-1, -1), self._subpix_criteria
+            frame.gray, corners.copy(), self._subpix_win, (-1, -1), self._subpix_criteria
         )
         jumped = np.linalg.norm(refined - corners, axis=2) > _MAX_SUBPIX_SHIFT_PX
         pts = np.where(jumped[:, :, None], corners, refined).reshape(-1, 2)

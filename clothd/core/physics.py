@@ -23,6 +23,12 @@ GRAVITY_M_S2 = 9.81
 vec3d = ti.types.vector(3, ti.f64)
 
 
+def stick_time_s(cfg: PhysicsConfig) -> float:
+    """How fast friction brings cloth to the belt's speed: the stick zone's width over the largest
+    deceleration Coulomb friction can give, stick_speed / (μ g)."""
+    return cfg.stick_speed_m_s / (cfg.friction_mu * GRAVITY_M_S2)
+
+
 def spring_pairs(nx: int, ny: int) -> dict[str, np.ndarray]:
     """Flat node index pairs (k, 2) of each spring family on an nx x ny grid (node n = j·nx + i)."""
     idx = np.arange(nx * ny).reshape(ny, nx)
@@ -99,8 +105,7 @@ class MassSpring:
         α_i is how much of its own velocity a node keeps over a tick: on a belt, friction pulls it to the
         belt speed within about stick_speed/(μ g) s; elsewhere only the damping acts."""
         c = self.cfg
-        tau_stick_s = c.stick_speed_m_s / (c.friction_mu * GRAVITY_M_S2)
-        alpha = np.where(in_contact, math.exp(-dt_s / tau_stick_s), math.exp(-dt_s * c.damping_1_s))
+        alpha = np.where(in_contact, math.exp(-dt_s / stick_time_s(c)), math.exp(-dt_s * c.damping_1_s))
         F = np.tile(np.eye(6), (self.n, 1, 1))
         F[:, 3:, 3:] *= alpha[:, None, None]
         F[:, :3, 3:] = dt_s * alpha[:, None, None] * np.eye(3)

@@ -31,7 +31,7 @@ from clothd.core.features import FeatureEngine, GrayFrame, coverage_holes
 from clothd.core.mesh import Binding, QuadMesh, blend, measurement_jacobian
 from clothd.core.mesh_ekf import NodeBelief
 from clothd.core.messages import Estimate, ModuleCommands
-from clothd.core.physics import MassSpring
+from clothd.core.physics import MassSpring, stick_time_s
 from clothd.core.segmentation import ClothRegion, cloth_mask_from_outline, find_cloth, full_frame_region
 
 Clock = Callable[[], float]
@@ -185,10 +185,8 @@ class Tracker:
             tau = None
             twist = None
             if self.conveyor is not None and belts is not None and cfg.use_input:
-                tau = (
-                    cfg.physics.stick_speed_m_s / (cfg.physics.friction_mu * 9.81)
-                    + 1.0 / cfg.physics.damping_1_s
-                )
+                # The plate follows the belts as a node does: friction's stick time plus the damping's.
+                tau = stick_time_s(cfg.physics) + 1.0 / cfg.physics.damping_1_s
                 probe = rigid.world_points(self.x, self._cloth_probe_body())
                 vel, on = self._belt_input(probe, belts)
                 twist = rigid_velocity_fit(probe[on], vel[on], self.x[:2]) if on.any() else np.zeros(3)
