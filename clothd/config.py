@@ -94,9 +94,72 @@ class TrackerConfig(_Strict):
     ekf: EkfConfig = EkfConfig()
 
 
+class LoopConfig(_Strict):
+    tick_hz: float = Field(30.0, ge=15, le=30, description="the fixed control tick")
+
+
+class CameraSourceConfig(_Strict):
+    """Where frames come from: a device index ("0"), a device path, a video file, a stream URL or a
+    directory of images."""
+
+    source: str = Field("0", min_length=1, max_length=1024)
+    calibration: Path | None = Field(None, description="camera.json (K, dist, T_cam_world); else ideal")
+    reconnect_initial_s: float = Field(0.5, gt=0, le=60)
+    reconnect_max_s: float = Field(5.0, gt=0, le=600)
+    stale_after_s: float = Field(1.0, gt=0, le=60, description="no new frame for this long: camera lost")
+
+
+class StepperConfig(_Strict):
+    port: str = Field("/dev/ttyACM0", min_length=1, max_length=1024)
+    baud: int = Field(921600, ge=1200, le=12_000_000)
+    ack_timeout_s: float = Field(0.05, gt=0.001, le=1, description="retransmit an unacknowledged command")
+    max_retransmits: int = Field(3, ge=0, le=20, description="then the link is lost and reopened")
+    handshake_timeout_s: float = Field(0.5, gt=0.01, le=10)
+    reconnect_initial_s: float = Field(0.2, gt=0, le=60)
+    reconnect_max_s: float = Field(5.0, gt=0, le=600)
+
+
+class CellConfig(_Strict):
+    """The conveyor table: module id = row * modules_x + col, centred on the world origin."""
+
+    modules_x: int = Field(8, ge=1, le=64)
+    modules_y: int = Field(6, ge=1, le=64)
+    pitch_m: float = Field(0.075, gt=0.01, le=0.5)
+    module_size_m: float = Field(0.065, gt=0.005, le=0.5)
+    max_speed_m_s: float = Field(0.2, gt=0, le=2)
+
+
+class ControlConfig(_Strict):
+    """Moves to a setpoint: the cloth's planned velocity is limited in speed and acceleration, and
+    approaches the target as gain x error near it."""
+
+    max_speed_m_s: float = Field(0.08, gt=0, le=1)
+    max_accel_m_s2: float = Field(0.4, gt=0, le=10)
+    max_rate_rad_s: float = Field(0.6, gt=0, le=10)
+    max_ang_accel_rad_s2: float = Field(3.0, gt=0, le=100)
+    gain_1_s: float = Field(3.0, gt=0, le=50, description="proportional gain on the remaining error")
+    under_cloth_margin_m: float = Field(
+        0.02, ge=0, le=0.2, description="a module counts as under the cloth this far inside its outline"
+    )
+
+
+class ApiConfig(_Strict):
+    host: str = Field("127.0.0.1", min_length=1, max_length=255)
+    port: int = Field(8080, ge=1, le=65535)
+    token: str | None = Field(None, min_length=16, max_length=256, description="required off loopback")
+    view_fps: float = Field(10.0, gt=0, le=30, description="the annotated MJPEG view's rate")
+    stream_hz: float = Field(30.0, gt=0, le=30, description="the WebSocket status rate by default")
+
+
 class Config(_Strict):
     taichi: TaichiConfig = TaichiConfig()
     tracker: TrackerConfig = TrackerConfig()
+    loop: LoopConfig = LoopConfig()
+    camera: CameraSourceConfig = CameraSourceConfig()
+    stepper: StepperConfig = StepperConfig()
+    cell: CellConfig = CellConfig()
+    control: ControlConfig = ControlConfig()
+    api: ApiConfig = ApiConfig()
 
 
 def _describe(err: ValidationError, source: str) -> str:

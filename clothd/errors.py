@@ -11,3 +11,11 @@ class ConfigError(ClothdError):
 
 class InputError(ClothdError):
     """Input footage or a recording that cannot be read, with what is wrong with it."""
+
+
+class HardwareError(ClothdError):
+    """The camera or the stepper controller is missing, silent or answering nonsense."""
+
+
+class RequestError(ClothdError):
+    """An API request that cannot be carried out in the daemon's current state (HTTP 409)."""

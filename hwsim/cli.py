@@ -55,6 +55,24 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_serve(args: argparse.Namespace) -> int:
+    import contextlib
+    import signal
+    import tempfile
+
+    from hwsim.serve import serve
+
+    def _terminate(signum: int, frame: object) -> None:
+        raise SystemExit(0)
+
+    signal.signal(signal.SIGTERM, _terminate)
+    sc = scenarios.load(args.scenario)
+    state_dir = args.state_dir or Path(tempfile.mkdtemp(prefix="hwsim-"))
+    with contextlib.suppress(KeyboardInterrupt):
+        serve(sc, state_dir, args.port, args.camera_fps, arch=args.arch)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="hwsim", description="The simulated textile cell.")
     sub = p.add_subparsers(dest="command", required=True)
@@ -79,6 +97,13 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--record-seconds", type=float, default=10.0)
     b.add_argument("--json", type=Path)
     b.set_defaults(func=_cmd_bench)
+    s = sub.add_parser("serve", help="run the cell in real time: firmware on a pty, camera over HTTP")
+    s.add_argument("--scenario", default="cell", help="a scenario file or shipped name (default: cell)")
+    s.add_argument("--port", type=int, default=0, help="HTTP port on 127.0.0.1 (default: any free one)")
+    s.add_argument("--state-dir", type=Path, help="for the pty link and camera.json (default: temp)")
+    s.add_argument("--camera-fps", type=float, default=15.0, help="frames served per second")
+    s.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "vulkan"], help="Taichi backend")
+    s.set_defaults(func=_cmd_serve)
     return p
 
 

@@ -104,7 +104,7 @@ def record(scenario: Scenario, out_dir: Path, arch: str = "cpu") -> RecordStats:
     finally:
         sink.close()
     camera.save(out_dir / "camera.json")
-    _write_table(world, out_dir / "table.json")
+    write_table(world, out_dir / "table.json")
     _write_commands(world, out_dir / "commands.csv")
     (out_dir / "scenario.yaml").write_text(yaml.safe_dump(scenario.model_dump(mode="json"), sort_keys=False))
     np.savez_compressed(
@@ -119,7 +119,7 @@ def record(scenario: Scenario, out_dir: Path, arch: str = "cpu") -> RecordStats:
     return RecordStats(n, time.perf_counter() - start, physics_s / n * 1e3, render_s / n * 1e3)
 
 
-def _write_table(world: World, path: Path) -> None:
+def write_table(world: World, path: Path) -> None:
     spec = world.table.spec
     path.write_text(
         json.dumps(

@@ -7,6 +7,7 @@ acceleration ramps reach the cloth smoothly.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,7 +33,7 @@ class CommandRow:
 
 
 class World:
-    def __init__(self, scenario: Scenario, arch: str = "cpu") -> None:
+    def __init__(self, scenario: Scenario, arch: str = "cpu", log_commands: bool = True) -> None:
         ensure_taichi(arch)
         self.scenario = scenario
         self.dt_s = 1.0 / scenario.fps
@@ -42,6 +43,7 @@ class World:
         )
         self.operator = Operator(scenario, self.table)
         self.frame_index = 0
+        self.log_commands = log_commands  # a live cell runs for hours: it keeps no log
         self.command_log: list[CommandRow] = []
         self._told_speed = np.full(self.table.n_modules, np.nan)
         self._told_heading = np.full(self.table.n_modules, np.nan)
@@ -56,6 +58,15 @@ class World:
         """Mean x, y of the truth nodes, (2,)."""
         return np.asarray(self.cloth.positions_m()[..., :2].reshape(-1, 2).mean(axis=0))
 
+    def cloth_pose(self) -> np.ndarray:
+        """[X_m, Y_m, theta_rad]: the centre of the truth nodes and the rotation that best maps the cloth's
+        material axes onto them (2-D Kabsch)."""
+        xy = self.cloth.positions_m()[..., :2].reshape(-1, 2)
+        st = self.cloth.grid.st_m.reshape(-1, 2)
+        c = xy.mean(axis=0)
+        M = (st - st.mean(axis=0)).T @ (xy - c)
+        return np.array([c[0], c[1], math.atan2(M[0, 1] - M[1, 0], M[0, 0] + M[1, 1])])
+
     def scene_state(self, before_s: float = 0.0) -> SceneState:
         """What the camera sees `before_s` before now; motion blur looks a few ms back, extrapolating the
         cloth and belts at their current velocities."""
@@ -69,7 +80,8 @@ class World:
     def step(self) -> None:
         """Issue the commands due at t_k, then advance to t_{k+1}."""
         self.operator.apply(self.t_s, self.dt_s, self.cloth_centre_m())
-        self._log_commands()
+        if self.log_commands:
+            self._log_commands()
         self._advance()
         self.frame_index += 1
 

@@ -1,0 +1,318 @@
+"""The host end of the stepper link (protocol: docs/serial-protocol.md), on asyncio.
+
+Commands are latest-value: every tick sends a fresh COMMAND; only the newest unacknowledged one is worth
+retransmitting, at most `max_retransmits` times, after which the link is declared lost, closed and
+reopened with backoff. The controller's own watchdog stops the modules while the host is away.
+The emergency stop is written straight to the transport, ahead of anything queued, and repeated until
+the controller acknowledges it with its e-stop flag set.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import serial_asyncio_fast
+
+from clothd.config import StepperConfig
+from clothd.drivers import wire
+from clothd.errors import HardwareError
+
+log = logging.getLogger(__name__)
+
+ESTOP_REPEAT_S = 0.02
+
+
+@dataclass
+class LinkCounters:
+    sent: int = 0
+    retransmitted: int = 0
+    acked: int = 0
+    invalid: int = 0
+    nacked: int = 0
+    faults: int = 0
+    reconnects: int = 0
+    rtt_ms: deque[float] = field(default_factory=lambda: deque(maxlen=256))
+
+    def snapshot(self) -> dict[str, float | int | None]:
+        rtt = np.asarray(self.rtt_ms) if self.rtt_ms else None
+        return {
+            "sent": self.sent,
+            "retransmitted": self.retransmitted,
+            "acked": self.acked,
+            "invalid": self.invalid,
+            "nacked": self.nacked,
+            "faults": self.faults,
+            "reconnects": self.reconnects,
+            "rtt_p50_ms": None if rtt is None else float(np.median(rtt)),
+            "rtt_p99_ms": None if rtt is None else float(np.percentile(rtt, 99)),
+        }
+
+
+@dataclass
+class _Pending:
+    seq: int
+    packet: bytes
+    sent_t_s: float
+    first_sent_t_s: float
+    retries: int = 0
+
+
+class StepperLink:
+    """Owns the serial port. `run()` is the connection task; the other methods never block."""
+
+    def __init__(
+        self,
+        cfg: StepperConfig,
+        n_modules: int,
+        on_fault: Callable[[wire.Fault], None] | None = None,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.cfg = cfg
+        self.n_modules = n_modules
+        self.on_fault = on_fault
+        self.clock = clock
+        self.counters = LinkCounters()
+        self.state = "disconnected"  # disconnected | connecting | connected
+        self.last_error: str | None = None
+        self.firmware: str | None = None
+        self.controller_flags = 0
+        self.estop_requested = False
+        self._writer: asyncio.StreamWriter | None = None
+        self._seq = 0
+        self._pending: _Pending | None = None  # the newest unacknowledged COMMAND
+        self._waiters: dict[int, asyncio.Future[wire.Frame]] = {}
+        self._lost = asyncio.Event()
+        self._stopping = False
+
+    # -- public -----------------------------------------------------------------------------------
+
+    @property
+    def connected(self) -> bool:
+        return self.state == "connected"
+
+    @property
+    def controller_estopped(self) -> bool:
+        return bool(self.controller_flags & wire.FLAG_ESTOP)
+
+    def send_commands(self, speed_m_s: np.ndarray, heading_rad: np.ndarray) -> bool:
+        """Send this tick's module commands; False when the link is down (the controller's watchdog then
+        stops the modules)."""
+        if not self.connected or self.estop_requested:
+            return False
+        seq = self._next_seq()
+        packet = wire.encode(wire.MsgType.COMMAND, seq, wire.command_payload(speed_m_s, heading_rad))
+        now = self.clock()
+        self._pending = _Pending(seq, packet, now, now)
+        self._write(packet)
+        return True
+
+    def estop(self) -> None:
+        """Stop every module now: written ahead of anything else, repeated until acknowledged."""
+        self.estop_requested = True
+        self._pending = None
+        self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()))
+
+    def estop_clear(self) -> None:
+        self.estop_requested = False
+        if self.connected:
+            self._write(wire.encode(wire.MsgType.ESTOP_CLEAR, self._next_seq()))
+
+    async def stop(self) -> None:
+        """Stop the modules, then close the port."""
+        self._stopping = True
+        if self.connected:
+            self._write(wire.encode(wire.MsgType.COMMAND, self._next_seq(), self._zero_payload()))
+            with contextlib.suppress(Exception):
+                assert self._writer is not None
+                await asyncio.wait_for(self._writer.drain(), 0.2)
+        self._close()
+
+    async def run(self) -> None:
+        """Connect, serve, and reconnect with backoff until cancelled."""
+        delay = self.cfg.reconnect_initial_s
+        while not self._stopping:
+            try:
+                await self._session()
+                delay = self.cfg.reconnect_initial_s
+            except (TimeoutError, OSError, HardwareError) as err:
+                self._set_error(str(err) or type(err).__name__)
+            finally:
+                self._close()
+            if self._stopping:
+                return
+            await asyncio.sleep(delay)
+            delay = min(delay * 2, self.cfg.reconnect_max_s)
+            self.counters.reconnects += 1
+
+    # -- the connection ---------------------------------------------------------------------------
+
+    async def _session(self) -> None:
+        self.state = "connecting"
+        reader, writer = await asyncio.wait_for(
+            serial_asyncio_fast.open_serial_connection(url=self.cfg.port, baudrate=self.cfg.baud), 2.0
+        )
+        self._writer = writer
+        self._lost.clear()
+        reading = asyncio.create_task(self._read(reader))
+        try:
+            await self._handshake()
+            self.state = "connected"
+            self.last_error = None
+            log.info("stepper link up on %s (%s)", self.cfg.port, self.firmware)
+            supervising = asyncio.create_task(self._supervise())
+            try:
+                await self._lost.wait()
+            finally:
+                supervising.cancel()
+        finally:
+            reading.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await reading
+        if not self._stopping:
+            raise HardwareError(self.last_error or f"stepper link on {self.cfg.port} lost")
+
+    async def _handshake(self) -> None:
+        for _ in range(3):
+            seq = self._next_seq()
+            waiter: asyncio.Future[wire.Frame] = asyncio.get_running_loop().create_future()
+            self._waiters[seq] = waiter
+            self._write(wire.encode(wire.MsgType.HELLO, seq, wire.hello_payload()))
+            try:
+                reply = await asyncio.wait_for(asyncio.shield(waiter), self.cfg.handshake_timeout_s)
+            except TimeoutError:
+                continue
+            finally:
+                self._waiters.pop(seq, None)
+            if reply.type == wire.MsgType.NACK:
+                raise HardwareError(
+                    f"controller on {self.cfg.port} refused protocol v{wire.PROTOCOL_VERSION}"
+                )
+            hello = wire.parse_hello_ack(reply.payload)
+            if hello.version != wire.PROTOCOL_VERSION:
+                raise HardwareError(
+                    f"controller on {self.cfg.port} speaks protocol v{hello.version}, "
+                    f"clothd speaks v{wire.PROTOCOL_VERSION}"
+                )
+            if hello.n_modules != self.n_modules:
+                raise HardwareError(
+                    f"controller on {self.cfg.port} drives {hello.n_modules} modules, "
+                    f"the configured cell has {self.n_modules} (cell.modules_x x cell.modules_y)"
+                )
+            self.firmware = hello.firmware
+            if self.estop_requested:
+                self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()))
+            return
+        if self.counters.invalid:
+            raise HardwareError(
+                f"the device on {self.cfg.port} answers, but not in the clothd stepper protocol "
+                f"({self.counters.invalid} invalid frames); is it the right port?"
+            )
+        raise HardwareError(f"no answer to HELLO from {self.cfg.port}")
+
+    async def _read(self, reader: asyncio.StreamReader) -> None:
+        splitter = wire.FrameSplitter()
+        try:
+            while True:
+                data = await reader.read(4096)
+                if not data:
+                    self._lose("the serial port closed")
+                    return
+                for packet in splitter.feed(data):
+                    try:
+                        self._dispatch(wire.decode(packet))
+                    except wire.WireError as err:
+                        self.counters.invalid += 1
+                        log.debug("invalid frame: %s", err)
+        except OSError as err:
+            self._lose(f"serial read failed: {err.strerror or err}")
+
+    def _dispatch(self, frame: wire.Frame) -> None:
+        waiter = self._waiters.get(frame.seq)
+        if waiter is not None and not waiter.done():
+            waiter.set_result(frame)
+        if frame.type == wire.MsgType.ACK:
+            self.controller_flags = wire.parse_ack(frame.payload)
+            self.counters.acked += 1
+            p = self._pending
+            if p is not None and p.seq == frame.seq:
+                self.counters.rtt_ms.append((self.clock() - p.sent_t_s) * 1e3)
+                self._pending = None
+        elif frame.type == wire.MsgType.NACK:
+            self.counters.nacked += 1
+            if self._pending is not None and self._pending.seq == frame.seq:
+                self._pending = None
+        elif frame.type == wire.MsgType.FAULT:
+            fault = wire.parse_fault(frame.payload)
+            self.counters.faults += 1
+            log.warning("controller fault %d on module %d: %s", fault.code, fault.module, fault.text)
+            if self.on_fault is not None:
+                self.on_fault(fault)
+
+    async def _supervise(self) -> None:
+        """Retransmit the newest unacknowledged command; repeat an unacknowledged e-stop."""
+        period = self.cfg.ack_timeout_s / 2
+        while True:
+            await asyncio.sleep(min(period, ESTOP_REPEAT_S))
+            now = self.clock()
+            if self.estop_requested and not self.controller_estopped:
+                self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()))
+            p = self._pending
+            if p is None or now - p.sent_t_s < self.cfg.ack_timeout_s:
+                continue
+            if p.retries >= self.cfg.max_retransmits:
+                self._lose(
+                    f"no acknowledgement from the controller on {self.cfg.port} after {p.retries} retransmits"
+                )
+                return
+            p.retries += 1
+            p.sent_t_s = now
+            self.counters.retransmitted += 1
+            self._write(p.packet, count=False)
+
+    # -- helpers ----------------------------------------------------------------------------------
+
+    def _write(self, packet: bytes, count: bool = True) -> None:
+        if self._writer is None:
+            return
+        try:
+            self._writer.write(packet)
+        except (OSError, RuntimeError) as err:
+            self._lose(f"serial write failed: {err}")
+            return
+        if count:
+            self.counters.sent += 1
+
+    def _next_seq(self) -> int:
+        self._seq = (self._seq + 1) & 0xFFFF
+        return self._seq
+
+    def _zero_payload(self) -> bytes:
+        zeros = np.zeros(self.n_modules)
+        return wire.command_payload(zeros, zeros)
+
+    def _lose(self, reason: str) -> None:
+        if self.state == "connected":
+            log.warning("stepper link lost: %s", reason)
+        self.last_error = reason
+        self._lost.set()
+
+    def _set_error(self, reason: str) -> None:
+        if reason != self.last_error:
+            log.warning("stepper link: %s", reason)
+        self.last_error = reason
+
+    def _close(self) -> None:
+        self.state = "disconnected"
+        self._pending = None
+        self.controller_flags = 0
+        if self._writer is not None:
+            with contextlib.suppress(Exception):
+                self._writer.close()
+            self._writer = None

@@ -1,0 +1,249 @@
+"""`hwsim serve`: the simulated cell as hardware, in real time.
+
+- The stepper controller's firmware on a pty, behind the symlink STATE_DIR/ttyCELL.
+- The camera as MJPEG over HTTP on 127.0.0.1 (GET /video.mjpg), which OpenCV's FFmpeg backend reads.
+- Ground truth and module states at GET /truth (JSON), for tests and the truth overlay.
+- Test hooks: POST /unplug?seconds=S (serial cable), POST /camera/drop?seconds=S (video stream),
+  POST /fault?code=C&module=M (a controller fault report).
+
+The world steps at the scenario's rate with absolute deadlines; the camera renders every
+`camera_every` steps. It moves only by what the firmware receives: the loop is closed through the real
+protocol and the real video. On start it prints one JSON line with the pty, the URLs and the paths of
+camera.json and table.json (and writes it to STATE_DIR/ready.json).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass
+from http import HTTPStatus
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+from typing import Any
+from urllib.parse import parse_qs, urlparse
+
+import cv2
+import numpy as np
+
+from hwsim.camera import Camera
+from hwsim.firmware import Firmware
+from hwsim.recording import render_frame, write_table
+from hwsim.renderer import Renderer
+from hwsim.scenario import Scenario
+from hwsim.world import World
+
+_NOISE_BANK = 8  # sensor-noise frames drawn once and cycled: per-frame draws cost more than rendering
+_JPEG_QUALITY = 90
+
+
+@dataclass
+class VideoFrame:
+    index: int
+    jpeg: bytes
+    t_s: float
+
+
+class Cell:
+    """The world, its camera and its firmware, advanced in real time on a thread."""
+
+    def __init__(self, scenario: Scenario, state_dir: Path, camera_fps: float, arch: str = "cpu") -> None:
+        self.scenario = scenario
+        self.state_dir = state_dir
+        state_dir.mkdir(parents=True, exist_ok=True)
+        self.world = World(scenario, arch, log_commands=False)
+        self.camera = Camera.from_spec(scenario.camera)
+        self.renderer = Renderer(scenario, self.camera, self.world.cloth.grid)
+        self.camera_every = max(1, round(scenario.fps / camera_fps))
+        self.lock = threading.Lock()  # the table, between the firmware and the world
+        self.firmware = Firmware(self.world.table, self.lock, state_dir / "ttyCELL")
+        self.camera.save(state_dir / "camera.json")
+        write_table(self.world, state_dir / "table.json")
+        rng = np.random.default_rng(scenario.noise.seed)
+        shape = (self.camera.height, self.camera.width, 3)
+        self._noise = rng.standard_normal((_NOISE_BANK, *shape), dtype=np.float32) * scenario.noise.sigma
+        self.frame_cond = threading.Condition()
+        self.frame: VideoFrame | None = None
+        self.video_dropped_until = 0.0
+        self.video_generation = 0  # bumped by a drop: streaming clients hang up
+        self.late_steps = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="world", daemon=True)
+        self._truth_cache: dict[str, Any] = {}
+
+    def start(self) -> None:
+        self._publish_frame()
+        self.firmware.start()
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.firmware.stop()
+
+    def drop_video(self, seconds: float) -> None:
+        with self.frame_cond:
+            self.video_dropped_until = time.monotonic() + seconds
+            self.video_generation += 1
+            self.frame_cond.notify_all()
+
+    @property
+    def video_up(self) -> bool:
+        return time.monotonic() >= self.video_dropped_until
+
+    def truth(self, with_nodes: bool) -> dict[str, Any]:
+        with self.lock:
+            out = dict(self._truth_cache)
+            if with_nodes:
+                out["nodes_m"] = self.world.cloth.positions_m()[::2, ::2].round(5).tolist()
+        return out
+
+    def _run(self) -> None:
+        dt = self.world.dt_s
+        next_t = time.monotonic()
+        while not self._stop.is_set():
+            next_t += dt
+            with self.lock:
+                self.world.step()
+                self._update_truth()
+            if self.world.frame_index % self.camera_every == 0:
+                self._publish_frame()
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            elif delay < -dt:  # too slow for real time: count it and carry on from now
+                self.late_steps += 1
+                next_t = time.monotonic()
+
+    def _update_truth(self) -> None:
+        t = self.world.table
+        self._truth_cache = {
+            "t_s": self.world.t_s,
+            "pose": self.world.cloth_pose().tolist(),
+            "module_speed_m_s": t.speed_m_s.tolist(),
+            "module_heading_rad": t.heading_rad.tolist(),
+            "module_cmd_speed_m_s": t.cmd_speed_m_s.tolist(),
+            "estopped": self.firmware.estopped,
+            "watchdog_tripped": self.firmware.watchdog_tripped,
+            "frames_ok": self.firmware.frames_ok,
+            "frames_bad": self.firmware.frames_bad,
+            "late_steps": self.late_steps,
+        }
+
+    def _publish_frame(self) -> None:
+        image, _ = render_frame(self.world, self.renderer)
+        k = self.world.frame_index // self.camera_every
+        level = image * 255.0 + self._noise[k % _NOISE_BANK]
+        bgr = np.clip(level + 0.5, 0, 255).astype(np.uint8)
+        ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, _JPEG_QUALITY])
+        if not ok:
+            return
+        with self.frame_cond:
+            self.frame = VideoFrame(k, jpeg.tobytes(), self.world.t_s)
+            self.frame_cond.notify_all()
+
+
+class _Handler(BaseHTTPRequestHandler):
+    cell: Cell  # set on the subclass made by serve()
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, format: str, *args: Any) -> None:
+        pass  # the daemon under test logs; hwsim stays quiet
+
+    def do_GET(self) -> None:
+        url = urlparse(self.path)
+        if url.path == "/video.mjpg":
+            self._stream()
+        elif url.path == "/truth":
+            self._json(self.cell.truth(with_nodes="nodes" in parse_qs(url.query)))
+        elif url.path in ("/camera.json", "/table.json"):
+            self._bytes((self.cell.state_dir / url.path[1:]).read_bytes(), "application/json")
+        elif url.path == "/healthz":
+            self._json({"ok": True})
+        else:
+            self.send_error(HTTPStatus.NOT_FOUND)
+
+    def do_POST(self) -> None:
+        url = urlparse(self.path)
+        q = {k: v[0] for k, v in parse_qs(url.query).items()}
+        try:
+            if url.path == "/unplug":
+                self.cell.firmware.unplug(float(q.get("seconds", "1")))
+            elif url.path == "/camera/drop":
+                self.cell.drop_video(float(q.get("seconds", "1")))
+            elif url.path == "/fault":
+                module = int(q.get("module", "65535"))
+                self.cell.firmware.report_fault(int(q["code"]), module, q.get("text", ""))
+            else:
+                self.send_error(HTTPStatus.NOT_FOUND)
+                return
+        except (KeyError, ValueError) as err:
+            self.send_error(HTTPStatus.BAD_REQUEST, f"bad query: {err}")
+            return
+        self._json({"ok": True})
+
+    def _json(self, obj: object) -> None:
+        self._bytes(json.dumps(obj).encode(), "application/json")
+
+    def _bytes(self, body: bytes, content_type: str) -> None:
+        self.send_response(HTTPStatus.OK)
+        self.send_header("Content-Type", content_type)
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def _stream(self) -> None:
+        cell = self.cell
+        if not cell.video_up:
+            self.send_error(HTTPStatus.SERVICE_UNAVAILABLE, "camera unplugged")
+            return
+        self.send_response(HTTPStatus.OK)
+        self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+        self.send_header("Cache-Control", "no-cache")
+        self.send_header("Connection", "close")
+        self.end_headers()
+        generation, last = cell.video_generation, -1
+        try:
+            while True:
+                with cell.frame_cond:
+                    cell.frame_cond.wait(timeout=2.0)
+                    if cell.video_generation != generation:
+                        return
+                    frame = cell.frame
+                if frame is None or frame.index == last:
+                    continue
+                last = frame.index
+                head = f"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: {len(frame.jpeg)}\r\n\r\n"
+                self.wfile.write(head.encode() + frame.jpeg + b"\r\n")
+                self.wfile.flush()
+        except (BrokenPipeError, ConnectionResetError):
+            return
+        finally:
+            self.close_connection = True
+
+
+def serve(scenario: Scenario, state_dir: Path, port: int, camera_fps: float, arch: str = "cpu") -> None:
+    """Run the cell until interrupted."""
+    cell = Cell(scenario, state_dir, camera_fps, arch)
+    handler = type("Handler", (_Handler,), {"cell": cell})
+    server = ThreadingHTTPServer(("127.0.0.1", port), handler)
+    server.daemon_threads = True
+    base = f"http://127.0.0.1:{server.server_address[1]}"
+    ready = {
+        "serial": str(state_dir / "ttyCELL"),
+        "video_url": f"{base}/video.mjpg",
+        "truth_url": f"{base}/truth",
+        "http": base,
+        "camera_json": str(state_dir / "camera.json"),
+        "table_json": str(state_dir / "table.json"),
+        "camera_fps": scenario.fps / cell.camera_every,
+    }
+    cell.start()
+    (state_dir / "ready.json").write_text(json.dumps(ready, indent=2) + "\n")
+    print(json.dumps(ready), flush=True)
+    try:
+        server.serve_forever(poll_interval=0.2)
+    finally:
+        server.server_close()
+        cell.stop()
