@@ -16,6 +16,29 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run(args: argparse.Namespace) -> int:
+    import logging
+
+    from clothd.run import run
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    cfg = load_config(args.config)
+    api = cfg.api.model_copy(
+        update={k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
+    )
+    return run(cfg.model_copy(update={"api": api}), args.sim)
+
+
+def _cmd_bench_loop(args: argparse.Namespace) -> int:
+    from clothd.bench_loop import format_result, run_bench, write_json
+
+    result = run_bench(args.config, run_s=args.run_seconds, load_s=args.load_seconds)
+    print(format_result(result))
+    if args.json:
+        write_json(result, args.json)
+    return 0
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from clothd.replay import replay
     from clothd.taichi_runtime import start_taichi
@@ -99,6 +122,18 @@ def build_parser() -> argparse.ArgumentParser:
     c = sub.add_parser("check-config", help="validate a configuration file")
     c.add_argument("file", type=Path)
     c.set_defaults(func=_cmd_check_config)
+    rn = sub.add_parser("run", help="run the daemon: camera, tracker, control, steppers, API")
+    rn.add_argument("--config", type=Path, help="configuration file (default: every default)")
+    rn.add_argument("--host", help="API address (overrides api.host)")
+    rn.add_argument("--port", type=int, help="API port (overrides api.port)")
+    rn.add_argument(
+        "--sim",
+        nargs="?",
+        const="cell",
+        metavar="SCENARIO",
+        help="start hwsim serve (default scenario: cell) and run against it",
+    )
+    rn.set_defaults(func=_cmd_run)
     r = sub.add_parser("replay", help="track recorded footage offline")
     r.add_argument("source", type=Path, help="a video file, an image directory, or an hwsim recording")
     r.add_argument("--out", type=Path, required=True)
@@ -131,6 +166,12 @@ def build_parser() -> argparse.ArgumentParser:
     ba.add_argument("--config", type=Path)
     ba.add_argument("--json", type=Path)
     ba.set_defaults(func=_cmd_bench_accuracy)
+    bl = bsub.add_parser("loop", help="the closed loop against hwsim serve: settling, missed ticks, load")
+    bl.add_argument("--config", type=Path, help="configuration for the daemon (default: every default)")
+    bl.add_argument("--run-seconds", type=float, default=60.0, help="how long to count missed ticks")
+    bl.add_argument("--load-seconds", type=float, default=30.0, help="how long to load the API")
+    bl.add_argument("--json", type=Path, help="also write the figures as JSON")
+    bl.set_defaults(func=_cmd_bench_loop)
     return p
 
 

@@ -25,6 +25,8 @@ class IdealCameraConfig(_Strict):
 
     f_px: float = Field(900.0, gt=10, le=20000)
     distance_m: float = Field(1.0, gt=0.05, le=20)
+    width_px: int = Field(640, ge=64, le=8192, description="the live camera's image size")
+    height_px: int = Field(480, ge=64, le=8192)
 
 
 class FeatureConfig(_Strict):
@@ -139,7 +141,7 @@ class ControlConfig(_Strict):
     max_ang_accel_rad_s2: float = Field(3.0, gt=0, le=100)
     gain_1_s: float = Field(3.0, gt=0, le=50, description="proportional gain on the remaining error")
     under_cloth_margin_m: float = Field(
-        0.02, ge=0, le=0.2, description="a module counts as under the cloth this far inside its outline"
+        0.0, ge=-0.1, le=0.2, description="a module is under the cloth when its centre is this far inside"
     )
 
 
@@ -148,7 +150,6 @@ class ApiConfig(_Strict):
     port: int = Field(8080, ge=1, le=65535)
     token: str | None = Field(None, min_length=16, max_length=256, description="required off loopback")
     view_fps: float = Field(10.0, gt=0, le=30, description="the annotated MJPEG view's rate")
-    stream_hz: float = Field(30.0, gt=0, le=30, description="the WebSocket status rate by default")
 
 
 class Config(_Strict):

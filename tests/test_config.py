@@ -1,6 +1,7 @@
 from pathlib import Path
 
 import pytest
+import yaml
 
 from clothd.cli import main
 from clothd.config import Config, load_config
@@ -49,3 +50,5 @@ def test_check_config_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
 def test_shipped_config_yaml_is_the_complete_default() -> None:
     path = Path(__file__).resolve().parent.parent / "config.yaml"
     assert load_config(path) == Config()
+    # Complete: every key is written out, not left to its default.
+    assert yaml.safe_load(path.read_text()) == Config().model_dump(mode="json")

@@ -63,6 +63,13 @@ class InformationPattern:
         return np.asarray(sla.solveh_banded(ab, rhs, check_finite=False))
 
 
+def _quad_mean(quads: np.ndarray, residual_px: np.ndarray) -> np.ndarray:
+    """Each feature's quad's mean residual (k, 2)."""
+    count = np.maximum(np.bincount(quads), 1)
+    mean = np.stack([np.bincount(quads, residual_px[:, i]) / count for i in range(2)], axis=1)
+    return np.asarray(mean[quads])
+
+
 class NodeBelief:
     """Mean x (n, 6) and covariance blocks P (n, 6, 6) of the nodes of a mesh with quads (q, 4)."""
 
@@ -99,9 +106,15 @@ class NodeBelief:
     ) -> tuple[UpdateStats, np.ndarray]:
         """Gate, then correct with the accepted features. quads (k,) each feature's quad, nodes (k, 4) its
         corner nodes, J (k, 4, 2, 3) ∂h/∂p blocks, residual ν = z − h(x⁻) (k, 2). Returns the statistics
-        and the accepted mask (k,)."""
+        and the accepted mask (k,).
+
+        The gate (and the NIS it reports) judges each feature against its quad's mean innovation: an
+        outlier (an arm, a glint) disagrees with its neighbours, while a model error (the cloth slipping
+        on the belts, turning faster than predicted) moves all of them alike and must be corrected, not
+        rejected. Gating the raw innovation rejected whole regions in fast moves, and features re-bound
+        through the lagging estimate locked its error in (docs/architecture.md)."""
         S = self.innovation_covariances(nodes, J, R_px2)
-        accepted, d2 = gate(residual_px, S, gate_chi2)
+        accepted, d2 = gate(residual_px - _quad_mean(quads, residual_px), S, gate_chi2)
         if not accepted.any():
             return UpdateStats(0, len(accepted), 0.0), accepted
         n, pat = len(self.x), self.pattern

@@ -293,16 +293,25 @@ class Tracker:
         if self.binding is not None:
             self.binding = self.binding.subset(np.flatnonzero(keep))
 
+    def outline_m(self) -> np.ndarray | None:
+        """The cloth's current outline on the table, world (k, 2) metres; None before initialisation or
+        in the model-free mode."""
+        if self.mesh is None or self.cfg.model == "none":
+            return None
+        if self.belief is not None:
+            g = self.belief.positions_m[:, :2].reshape(self.mesh.ny, self.mesh.nx, 2)
+            return _boundary(g)
+        w, h = self.mesh.width_m / 2, self.mesh.height_m / 2
+        return rigid.world_points(self.x, np.array([[-w, -h], [w, -h], [w, h], [-w, h]]))[:, :2]
+
     def _outline_px(self) -> np.ndarray:
         """The cloth's current outline in the image, (k, 2)."""
         assert self.mesh is not None
         if self.belief is not None:
-            g = self._node_pixels().reshape(self.mesh.ny, self.mesh.nx, 2)
-            return np.concatenate([g[0, :], g[1:, -1], g[-1, -2::-1], g[-2:0:-1, 0]])
-        w, h = self.mesh.width_m / 2, self.mesh.height_m / 2
-        corners_body = np.array([[-w, -h], [w, -h], [w, h], [-w, h]])
-        if self.cfg.model == "rigid":
-            return self.camera.project(rigid.world_points(self.x, corners_body))
+            return _boundary(self._node_pixels().reshape(self.mesh.ny, self.mesh.nx, 2))
+        outline = self.outline_m()
+        if outline is not None:
+            return self.camera.project(np.column_stack([outline, np.zeros(len(outline))]))
         return cv2.convexHull(self.px.astype(np.float32)).reshape(-1, 2).astype(np.float64)
 
     def _resample(self, frame: GrayFrame, shape: tuple[int, int]) -> None:
@@ -326,7 +335,8 @@ class Tracker:
         if self.cfg.model == "rigid":
             return self.x[:3].copy(), self.P[:3, :3].copy()
         if self.belief is not None:
-            return _best_fit_pose(self.mesh, self.belief.positions_m), np.full((3, 3), np.nan)
+            b = self.belief
+            return _best_fit_pose(self.mesh, b.positions_m), _best_fit_pose_cov(b.positions_m, b.P)
         return self.pose0.copy(), np.full((3, 3), np.nan)
 
     def _estimate(
@@ -355,6 +365,23 @@ class Tracker:
             UpdateStats(0, 0, 0.0),
             timing,
         )
+
+
+def _best_fit_pose_cov(nodes_m: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Covariance (3, 3) of the best-fit pose under the filter's independent node blocks P (n, 6, 6):
+    the centre is the mean of the nodes, and a small rotation moves node i by θ ẑ × r_i, so to first
+    order θ = Σ (r_i × Δp_i) / Σ |r_i|²."""
+    r = nodes_m[:, :2] - nodes_m[:, :2].mean(axis=0)
+    n = len(r)
+    J = np.zeros((n, 3, 2))  # d pose / d p_i,xy
+    J[:, 0, 0] = J[:, 1, 1] = 1.0 / n
+    J[:, 2, :] = np.stack([-r[:, 1], r[:, 0]], axis=1) / float((r**2).sum())
+    return np.asarray(np.einsum("nij,njk,nlk->il", J, P[:, :2, :2], J))
+
+
+def _boundary(grid: np.ndarray) -> np.ndarray:
+    """The outer ring of a (ny, nx, d) grid, in order around it, (k, d)."""
+    return np.concatenate([grid[0, :], grid[1:, -1], grid[-1, -2::-1], grid[-2:0:-1, 0]])
 
 
 def _best_fit_pose(mesh: QuadMesh | None, nodes_m: np.ndarray) -> np.ndarray:

@@ -1,0 +1,156 @@
+"""The HTTP API (FastAPI), versioned under /api/v1; the reference is docs/api.md and /docs (OpenAPI).
+
+Reads are open. When a token is configured, every PUT and POST needs `Authorization: Bearer <token>`.
+Handlers only read the state the loop published or flip a request flag: none of them waits on the loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import hmac
+import time
+from collections.abc import AsyncIterator
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Depends, FastAPI, Header, HTTPException, Query, Request, WebSocket
+from fastapi.responses import JSONResponse, Response, StreamingResponse
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from starlette.websockets import WebSocketDisconnect
+
+from clothd.api.metrics import registry_for
+from clothd.api.schemas import Ok, SetpointRequest, StatusResponse
+from clothd.api.view import ViewPublisher
+from clothd.daemon import Daemon
+from clothd.errors import ClothdError, RequestError
+
+STATUS_DOC: dict[int | str, dict[str, Any]] = {
+    200: {"model": StatusResponse, "description": "the state published by the last tick"}
+}
+
+
+def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
+    registry = registry_for(daemon)
+    view = ViewPublisher(daemon, daemon.cfg.api.view_fps)
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        view.start()
+        yield
+        view.stop()
+
+    app = FastAPI(
+        title="clothd", version="1", description="Real-time cloth tracking and control", lifespan=lifespan
+    )
+
+    @app.exception_handler(RequestError)
+    async def _conflict(request: Request, err: RequestError) -> JSONResponse:
+        return JSONResponse({"detail": str(err)}, status_code=409)
+
+    @app.exception_handler(ClothdError)
+    async def _unavailable(request: Request, err: ClothdError) -> JSONResponse:
+        return JSONResponse({"detail": str(err)}, status_code=503)
+
+    def authorised(authorization: Annotated[str | None, Header()] = None) -> None:
+        if token is None:
+            return
+        scheme, _, given = (authorization or "").partition(" ")
+        if scheme.lower() != "bearer" or not hmac.compare_digest(given.encode(), token.encode()):
+            raise HTTPException(
+                401, "this daemon needs Authorization: Bearer <token>", {"WWW-Authenticate": "Bearer"}
+            )
+
+    api = APIRouter(prefix="/api/v1")
+    guarded = [Depends(authorised)]
+
+    @api.get("/status", responses=STATUS_DOC, response_model=None)
+    async def status() -> Response:
+        """Mode and setpoint, pose with covariance and mesh, features and residuals, tick timing,
+        camera and link state."""
+        return Response(daemon.status_json, media_type="application/json")
+
+    @api.put("/setpoint", dependencies=guarded, responses={409: {"model": Ok}})
+    async def setpoint(body: SetpointRequest) -> Ok:
+        pose = None if body.mode != "move" else np.array([body.x_m, body.y_m, body.theta_rad], dtype=float)
+        daemon.set_setpoint(body.mode, pose)
+        return Ok(detail=f"mode {body.mode}")
+
+    @api.post("/estop", dependencies=guarded)
+    async def estop() -> Ok:
+        """Stop every module now; latched until /estop/clear."""
+        daemon.estop()
+        return Ok(detail="emergency stop latched")
+
+    @api.post("/estop/clear", dependencies=guarded)
+    async def estop_clear() -> Ok:
+        daemon.estop_clear()
+        return Ok(detail="emergency stop cleared; mode is idle")
+
+    @api.post("/reset", dependencies=guarded)
+    async def reset() -> Ok:
+        """Re-initialise tracking from the next frame; the mode becomes idle."""
+        daemon.reset()
+        return Ok(detail="tracking re-initialises on the next frame")
+
+    @api.get("/view.mjpg", response_class=StreamingResponse)
+    async def view_mjpg() -> StreamingResponse:
+        """The annotated camera view as MJPEG (multipart/x-mixed-replace)."""
+        return StreamingResponse(_mjpeg(view), media_type="multipart/x-mixed-replace; boundary=frame")
+
+    @api.websocket("/stream")
+    async def stream(ws: WebSocket, hz: Annotated[float | None, Query(gt=0, le=30)] = None) -> None:
+        """The status every tick, or at most `hz` times a second. A slow client misses messages."""
+        await ws.accept()
+        sub = daemon.hub.subscribe(1.0 / hz if hz else 0.0)
+        try:
+            await ws.send_text(daemon.status_json.decode())
+            next_s = time.monotonic()
+            while True:
+                if sub.min_interval_s:
+                    await asyncio.sleep(max(0.0, next_s - time.monotonic()))
+                    next_s = time.monotonic() + sub.min_interval_s
+                data = await sub.take()
+                await ws.send_text(data.decode())
+                sub.sent += 1
+        except (WebSocketDisconnect, RuntimeError):
+            pass
+        finally:
+            daemon.hub.unsubscribe(sub)
+
+    app.include_router(api)
+
+    @app.get("/healthz")
+    async def healthz() -> JSONResponse:
+        """200 while the loop ticks with camera and link up, else 503 with the reasons."""
+        problems = []
+        if not daemon.camera.healthy:
+            problems.append("camera")
+        if not daemon.link.connected:
+            problems.append("stepper link")
+        if daemon.state == "fault":
+            problems.append("loop fault")
+        body = {"ok": not problems, "state": daemon.state, "problems": problems}
+        return JSONResponse(body, status_code=503 if problems else 200)
+
+    @app.get("/metrics")
+    async def metrics() -> Response:
+        return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+
+    return app
+
+
+async def _mjpeg(view: ViewPublisher) -> AsyncIterator[bytes]:
+    view.viewers += 1
+    last = -1
+    try:
+        while True:
+            jpeg, index = view.jpeg, view.index
+            if jpeg is None or index == last:
+                await asyncio.sleep(view.period_s / 2)
+                continue
+            last = index
+            head = f"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n"
+            yield head.encode() + jpeg + b"\r\n"
+    finally:
+        view.viewers -= 1

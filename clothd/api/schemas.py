@@ -1,0 +1,122 @@
+"""Request and response bodies of the API (pydantic): validation at the edge and the OpenAPI schema."""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class SetpointRequest(_Strict):
+    """`idle` stops the modules; `hold` keeps the current pose; `move` needs the target pose."""
+
+    mode: Literal["idle", "hold", "move"]
+    x_m: float | None = Field(None, ge=-5, le=5)
+    y_m: float | None = Field(None, ge=-5, le=5)
+    theta_rad: float | None = Field(None, ge=-math.pi, le=math.pi)
+
+    @model_validator(mode="after")
+    def _move_has_pose(self) -> SetpointRequest:
+        if self.mode == "move" and None in (self.x_m, self.y_m, self.theta_rad):
+            raise ValueError("mode 'move' needs x_m, y_m and theta_rad")
+        return self
+
+
+class Pose(BaseModel):
+    x_m: float | None
+    y_m: float | None
+    theta_rad: float | None
+
+
+class PoseWithCovariance(Pose):
+    cov: list[list[float | None]] = Field(description="3 x 3 over (x_m, y_m, theta_rad)")
+
+
+class Mesh(BaseModel):
+    nx: int
+    ny: int
+    nodes_m: list[list[float]] = Field(description="ny*nx rows of [x, y, z], row by row, world frame")
+
+
+class Residual(BaseModel):
+    mean_px: float | None
+    worst_px: float | None
+
+
+class Window(BaseModel):
+    mean_ms: float | None
+    p50_ms: float | None
+    p99_ms: float | None
+    max_ms: float | None
+
+
+class Timing(BaseModel):
+    ticks: int
+    missed_ticks: int
+    missed_pct: float
+    stages: dict[str, Window]
+    jitter: Window
+    frame_to_command: Window
+
+
+class CameraState(BaseModel):
+    state: str
+    healthy: bool
+    source: str
+    last_error: str | None
+    reconnects: int
+
+
+class LinkCounters(BaseModel):
+    sent: int
+    retransmitted: int
+    acked: int
+    invalid: int
+    nacked: int
+    faults: int
+    reconnects: int
+    rtt_p50_ms: float | None
+    rtt_p99_ms: float | None
+
+
+class LinkState(BaseModel):
+    state: str
+    port: str
+    firmware: str | None
+    last_error: str | None
+    controller_estop: bool
+    counters: LinkCounters
+
+
+class FaultReport(BaseModel):
+    t_unix_s: float
+    code: int
+    module: int
+    text: str
+
+
+class StatusResponse(BaseModel):
+    t_unix_s: float
+    state: str = Field(description="starting | tracking | tracking_lost | camera_lost | fault")
+    mode: Literal["idle", "hold", "move"]
+    setpoint: Pose | None
+    estop: bool
+    pose: PoseWithCovariance | None
+    mesh: Mesh | None
+    features: int = Field(description="features measured and accepted in the last frame")
+    rejected_features: int = Field(description="rejected by the filter's gate in the last frame")
+    residual: Residual
+    timing: Timing
+    camera: CameraState
+    link: LinkState
+    faults: list[FaultReport]
+
+
+class Ok(BaseModel):
+    ok: bool = True
+    detail: str = ""

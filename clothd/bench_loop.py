@@ -1,0 +1,235 @@
+"""`clothd bench loop`: the closed loop against hwsim, measured from outside.
+
+It starts `clothd run --sim` (the daemon, which starts `hwsim serve`) as a separate process and talks to
+both over HTTP, as supervisory software would; the true cloth pose comes from hwsim's /truth.
+
+- settle: from the cloth at rest, `move` to an offset of 100 mm and 30°. settle_s is the time after
+  which the true pose stays within 5 mm and 1° of the setpoint through a hold window; the final errors
+  are at the end of that window.
+- missed ticks over a run of `run_s` seconds at the configured tick, and frame-to-command latency.
+- load: 50 requests/s to GET /status and 4 WebSocket clients, one of them stalled (it never reads),
+  for `load_s` seconds: /status p99 and the missed ticks meanwhile.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import math
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+import websockets
+
+POS_TOL_M = 0.005
+ANGLE_TOL_RAD = math.radians(1.0)
+OFFSET = (0.10, 0.0, math.radians(30.0))
+STATUS_RATE_HZ = 50.0
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class DaemonProcess:
+    """`clothd run --sim` in its own process group; its first lines name the URLs."""
+
+    def __init__(self, config: Path | None, port: int) -> None:
+        cmd = [sys.executable, "-m", "clothd.cli", "run", "--sim", "--port", str(port)]
+        if config is not None:
+            cmd += ["--config", str(config)]
+        self.base = f"http://127.0.0.1:{port}"
+        self.proc = subprocess.Popen(
+            cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, start_new_session=True, text=True
+        )
+        self.truth_url = ""
+
+    def wait_ready(self, timeout_s: float = 180.0) -> None:
+        assert self.proc.stdout is not None
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and not self.truth_url:
+            line = self.proc.stdout.readline()
+            if not line and self.proc.poll() is not None:
+                raise RuntimeError(f"clothd run exited with {self.proc.returncode}")
+            if "truth" in line:
+                self.truth_url = line.split()[-1]
+        if not self.truth_url:
+            raise RuntimeError("clothd run --sim did not report its URLs in time")
+
+    def stop(self) -> None:
+        if self.proc.poll() is None:
+            os.killpg(self.proc.pid, signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(self.proc.pid, signal.SIGKILL)
+                self.proc.wait()
+
+
+def pose_error(truth: list[float], target: tuple[float, float, float]) -> tuple[float, float]:
+    """(position error m, |angle error| rad)."""
+    d = math.hypot(truth[0] - target[0], truth[1] - target[1])
+    return d, abs(math.remainder(truth[2] - target[2], 2 * math.pi))
+
+
+async def _wait_tracking(client: httpx.AsyncClient, base: str, timeout_s: float = 60.0) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        status = (await client.get(f"{base}/api/v1/status")).json()
+        if status["state"] == "tracking" and status["link"]["state"] == "connected":
+            return dict(status)
+        await asyncio.sleep(0.2)
+    raise RuntimeError("the daemon did not start tracking")
+
+
+async def measure_settle(
+    client: httpx.AsyncClient, d: DaemonProcess, hold_s: float, timeout_s: float
+) -> dict[str, float | None]:
+    start = (await client.get(d.truth_url)).json()["pose"]
+    target = (start[0] + OFFSET[0], start[1] + OFFSET[1], start[2] + OFFSET[2])
+    body = {"mode": "move", "x_m": target[0], "y_m": target[1], "theta_rad": target[2]}
+    (await client.put(f"{d.base}/api/v1/setpoint", json=body)).raise_for_status()
+    t0 = time.monotonic()
+    entered: float | None = None
+    err = (math.inf, math.inf)
+    while time.monotonic() - t0 < timeout_s:
+        err = pose_error((await client.get(d.truth_url)).json()["pose"], target)
+        now = time.monotonic() - t0
+        inside = err[0] <= POS_TOL_M and err[1] <= ANGLE_TOL_RAD
+        if inside and entered is None:
+            entered = now
+        elif not inside:
+            entered = None
+        if entered is not None and now - entered >= hold_s:
+            break
+        await asyncio.sleep(0.05)
+    held = entered is not None and time.monotonic() - t0 - entered >= hold_s
+    return {
+        "settle_s": entered if held else None,
+        "final_err_mm": err[0] * 1e3,
+        "final_err_deg": math.degrees(err[1]),
+    }
+
+
+async def _timing(client: httpx.AsyncClient, base: str) -> dict[str, Any]:
+    return dict((await client.get(f"{base}/api/v1/status")).json()["timing"])
+
+
+def _missed_pct(before: dict[str, Any], after: dict[str, Any]) -> float:
+    ticks = after["ticks"] - before["ticks"]
+    missed = after["missed_ticks"] - before["missed_ticks"]
+    return 100.0 * missed / max(ticks + missed, 1)
+
+
+async def measure_run(client: httpx.AsyncClient, base: str, run_s: float) -> dict[str, float | None]:
+    before = await _timing(client, base)
+    await asyncio.sleep(run_s)
+    after = await _timing(client, base)
+    latency = after["frame_to_command"]
+    return {
+        "missed_tick_pct": _missed_pct(before, after),
+        "latency_p50_ms": latency["p50_ms"],
+        "latency_p99_ms": latency["p99_ms"],
+    }
+
+
+async def _reader(url: str, stop: asyncio.Event, counts: list[int]) -> None:
+    async with websockets.connect(url, max_size=2**22) as ws:
+        while not stop.is_set():
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(ws.recv(), 0.5)
+                counts.append(1)
+
+
+async def _stalled(url: str, stop: asyncio.Event) -> None:
+    """Connects and never reads: the server's send buffer fills and stays full."""
+    async with websockets.connect(url, max_size=2**22, max_queue=1) as ws:
+        ws.transport.pause_reading()
+        await stop.wait()
+
+
+async def measure_load(client: httpx.AsyncClient, base: str, load_s: float) -> dict[str, float]:
+    ws_url = base.replace("http://", "ws://") + "/api/v1/stream"
+    stop = asyncio.Event()
+    counts: list[int] = []
+    clients = [asyncio.create_task(_reader(ws_url, stop, counts)) for _ in range(3)]
+    clients.append(asyncio.create_task(_stalled(ws_url, stop)))
+    await asyncio.sleep(1.0)
+    before = await _timing(client, base)
+    latencies: list[float] = []
+    period = 1.0 / STATUS_RATE_HZ
+    t_next = time.monotonic()
+    end = t_next + load_s
+    while time.monotonic() < end:
+        t0 = time.perf_counter()
+        (await client.get(f"{base}/api/v1/status")).raise_for_status()
+        latencies.append(time.perf_counter() - t0)
+        t_next += period
+        await asyncio.sleep(max(0.0, t_next - time.monotonic()))
+    after = await _timing(client, base)
+    stop.set()
+    await asyncio.gather(*clients, return_exceptions=True)
+    lat = np.asarray(latencies) * 1e3
+    return {
+        "loaded_status_p50_ms": float(np.median(lat)),
+        "loaded_status_p99_ms": float(np.percentile(lat, 99)),
+        "loaded_missed_tick_pct": _missed_pct(before, after),
+        "loaded_requests": float(len(lat)),
+        "loaded_ws_messages": float(len(counts)),
+    }
+
+
+async def _bench(config: Path | None, run_s: float, load_s: float, hold_s: float) -> dict[str, Any]:
+    d = DaemonProcess(config, _free_port())
+    try:
+        await asyncio.get_running_loop().run_in_executor(None, d.wait_ready)
+        async with httpx.AsyncClient(timeout=10.0) as client:
+            await _wait_tracking(client, d.base)
+            await asyncio.sleep(2.0)  # let the first ticks' start-up pass
+            result: dict[str, Any] = {}
+            result.update(await measure_settle(client, d, hold_s, timeout_s=20.0))
+            result.update(await measure_run(client, d.base, run_s))
+            result.update(await measure_load(client, d.base, load_s))
+            return result
+    finally:
+        d.stop()
+
+
+def run_bench(
+    config: Path | None, run_s: float = 60.0, load_s: float = 30.0, hold_s: float = 3.0
+) -> dict[str, Any]:
+    return asyncio.run(_bench(config, run_s, load_s, hold_s))
+
+
+def format_result(r: dict[str, Any]) -> str:
+    def f(key: str, unit: str, fmt: str = ".2f") -> str:
+        v = r.get(key)
+        return "n/a" if v is None else f"{v:{fmt}} {unit}"
+
+    return "\n".join(
+        [
+            "clothd bench loop (closed loop against hwsim serve)",
+            f"  move 100 mm + 30 deg: settled in {f('settle_s', 's')} "
+            f"(final error {f('final_err_mm', 'mm')}, {f('final_err_deg', 'deg')}; bar 5 mm, 1 deg, 6 s)",
+            f"  missed ticks {f('missed_tick_pct', '%', '.3f')} (bar 0.5 %); frame-to-command latency "
+            f"p50 {f('latency_p50_ms', 'ms', '.1f')}, p99 {f('latency_p99_ms', 'ms', '.1f')}",
+            f"  under load (50 req/s /status, 4 WebSocket clients, 1 stalled): /status p50 "
+            f"{f('loaded_status_p50_ms', 'ms')}, p99 {f('loaded_status_p99_ms', 'ms')} (bar 10 ms); "
+            f"missed ticks {f('loaded_missed_tick_pct', '%', '.3f')}",
+        ]
+    )
+
+
+def write_json(result: dict[str, Any], path: Path) -> None:
+    path.write_text(json.dumps(result, indent=2) + "\n")

@@ -1,0 +1,151 @@
+"""Live frame sources for the daemon: any OpenCV VideoCapture source or a directory of images.
+
+A capture thread reads continuously and keeps only the newest frame, stamped with the host's monotonic
+clock when it arrived (`t_mono_s`), so a tick always gets the freshest image and never a backlog. A
+source that fails or goes quiet is reopened with exponential backoff; `state` says which.
+Files and image directories are played at their frame rate, looping, as a camera would deliver them.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from clothd.config import CameraSourceConfig
+from clothd.drivers.footage import DEFAULT_FPS, IMAGE_SUFFIXES, natural_key
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Frame:
+    index: int  # counts frames since the daemon started, across reconnects
+    t_mono_s: float  # host monotonic time of capture
+    image: np.ndarray  # BGR
+
+
+class CameraSource:
+    """`latest()` never blocks; the capture runs on its own thread."""
+
+    def __init__(self, cfg: CameraSourceConfig) -> None:
+        self.cfg = cfg
+        self.state = "connecting"  # connecting | streaming | lost
+        self.last_error: str | None = None
+        self.reconnects = 0
+        self._frame: Frame | None = None
+        self._count = 0
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=3)
+
+    def latest(self) -> Frame | None:
+        """The newest frame, or None when there is none or it is older than `stale_after_s`."""
+        with self._lock:
+            frame = self._frame
+        if frame is None or time.monotonic() - frame.t_mono_s > self.cfg.stale_after_s:
+            return None
+        return frame
+
+    @property
+    def healthy(self) -> bool:
+        return self.latest() is not None
+
+    # -- capture ----------------------------------------------------------------------------------
+
+    def _run(self) -> None:
+        delay = self.cfg.reconnect_initial_s
+        while not self._stop.is_set():
+            try:
+                if self._capture():
+                    delay = self.cfg.reconnect_initial_s
+            except (cv2.error, OSError) as err:
+                self._lost(str(err))
+            if self._stop.wait(delay):
+                return
+            delay = min(delay * 2, self.cfg.reconnect_max_s)
+            self.reconnects += 1
+
+    def _capture(self) -> bool:
+        """Stream until the source fails; True if it delivered any frame."""
+        source = self.cfg.source
+        path = Path(source)
+        if path.is_dir():
+            return self._play_images(path)
+        if "://" in source:  # a stream: bound FFmpeg's waits so a silent server counts as lost
+            timeout_ms = int(self.cfg.stale_after_s * 2000)
+            params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, timeout_ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, timeout_ms]
+            cap = cv2.VideoCapture(source, cv2.CAP_FFMPEG, params)
+        else:
+            cap = cv2.VideoCapture(int(source) if source.isdigit() else source)
+        try:
+            if not cap.isOpened():
+                self._lost(f"cannot open camera source {source!r}")
+                return False
+            # A file plays at its own rate; a live source delivers at its own pace.
+            pace_s = 1.0 / (cap.get(cv2.CAP_PROP_FPS) or DEFAULT_FPS) if path.is_file() else 0.0
+            delivered = False
+            while not self._stop.is_set():
+                t0 = time.monotonic()
+                ok, image = cap.read()
+                if not ok:
+                    if path.is_file() and delivered:
+                        cap.set(cv2.CAP_PROP_POS_FRAMES, 0)  # loop the file
+                        continue
+                    self._lost(f"camera source {source!r} stopped delivering frames")
+                    return delivered
+                self._publish(image)
+                delivered = True
+                if pace_s:
+                    self._stop.wait(max(0.0, pace_s - (time.monotonic() - t0)))
+            return delivered
+        finally:
+            cap.release()
+
+    def _play_images(self, directory: Path) -> bool:
+        images = sorted(
+            (p for p in directory.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=natural_key
+        )
+        if not images:
+            self._lost(f"{directory}: no images")
+            return False
+        pace_s = 1.0 / DEFAULT_FPS
+        while not self._stop.is_set():
+            for p in images:
+                t0 = time.monotonic()
+                image = cv2.imread(str(p), cv2.IMREAD_COLOR)
+                if image is None:
+                    self._lost(f"{p}: not a readable image")
+                    return False
+                self._publish(image)
+                if self._stop.wait(max(0.0, pace_s - (time.monotonic() - t0))):
+                    return True
+        return True
+
+    def _publish(self, image: np.ndarray) -> None:
+        now = time.monotonic()
+        with self._lock:
+            self._frame = Frame(self._count, now, image)
+            self._count += 1
+        if self.state != "streaming":
+            log.info("camera streaming from %s", self.cfg.source)
+        self.state = "streaming"
+        self.last_error = None
+
+    def _lost(self, reason: str) -> None:
+        if self.state != "lost" or reason != self.last_error:
+            log.warning("camera: %s; reconnecting", reason)
+        self.state = "lost"
+        self.last_error = reason

@@ -1,0 +1,59 @@
+"""Rolling timing statistics of the loop: per-stage compute time, tick jitter, frame-to-command latency."""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+WINDOW = 900  # 30 s at 30 Hz
+
+
+class Window:
+    """The last WINDOW samples of one quantity, in milliseconds."""
+
+    def __init__(self) -> None:
+        self._ms: deque[float] = deque(maxlen=WINDOW)
+
+    def add_s(self, seconds: float) -> None:
+        self._ms.append(seconds * 1e3)
+
+    def summary(self) -> dict[str, float | None]:
+        if not self._ms:
+            return {"mean_ms": None, "p50_ms": None, "p99_ms": None, "max_ms": None}
+        a = np.fromiter(self._ms, float, len(self._ms))
+        p50, p99 = np.percentile(a, [50, 99])
+        return {
+            "mean_ms": float(a.mean()),
+            "p50_ms": float(p50),
+            "p99_ms": float(p99),
+            "max_ms": float(a.max()),
+        }
+
+
+class LoopStats:
+    def __init__(self) -> None:
+        self.stages: dict[str, Window] = {}
+        self.jitter = Window()
+        self.latency = Window()
+        self.ticks = 0
+        self.missed_ticks = 0
+
+    def add_stages(self, timing_s: dict[str, float]) -> None:
+        for name, seconds in timing_s.items():
+            self.stages.setdefault(name, Window()).add_s(seconds)
+
+    @property
+    def missed_pct(self) -> float:
+        due = self.ticks + self.missed_ticks
+        return 100.0 * self.missed_ticks / due if due else 0.0
+
+    def summary(self) -> dict[str, object]:
+        return {
+            "ticks": self.ticks,
+            "missed_ticks": self.missed_ticks,
+            "missed_pct": self.missed_pct,
+            "stages": {name: w.summary() for name, w in self.stages.items()},
+            "jitter": self.jitter.summary(),
+            "frame_to_command": self.latency.summary(),
+        }

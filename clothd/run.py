@@ -1,0 +1,155 @@
+"""`clothd run`: the daemon with its API server, optionally against a simulated cell started as a child.
+
+Order on the way out, whatever the cause (signal, error, end): the modules stop first (the daemon's
+shutdown), then the API server, then the hwsim child.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import ipaddress
+import json
+import logging
+import select
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Generator
+from dataclasses import dataclass
+from pathlib import Path
+
+import uvicorn
+
+from clothd.api.app import create_app
+from clothd.config import Config
+from clothd.core.camera_model import CameraModel
+from clothd.daemon import Daemon
+from clothd.errors import ConfigError, HardwareError
+
+log = logging.getLogger("clothd")
+SIM_START_TIMEOUT_S = 120.0
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def check_exposure(cfg: Config) -> None:
+    """Off loopback, the API needs a token: refuse to start without one."""
+    if not is_loopback(cfg.api.host) and cfg.api.token is None:
+        raise ConfigError(
+            f"api.host: {cfg.api.host} is reachable from other machines; set api.token (16+ characters) "
+            "so that changes need Authorization: Bearer <token>, or bind to 127.0.0.1"
+        )
+
+
+@dataclass
+class SimCell:
+    process: subprocess.Popen[bytes]
+    ready: dict[str, object]
+
+    def stop(self) -> None:
+        if self.process.poll() is None:
+            self.process.terminate()
+            try:
+                self.process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+
+
+def start_sim(scenario: str) -> SimCell:
+    """Start `hwsim serve` and wait for the line that says where its hardware is."""
+    state_dir = Path(tempfile.mkdtemp(prefix="clothd-sim-"))
+    cmd = [sys.executable, "-m", "hwsim.cli", "serve", "--scenario", scenario, "--state-dir", str(state_dir)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE)
+    assert proc.stdout is not None
+    deadline = time.monotonic() + SIM_START_TIMEOUT_S
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise HardwareError(f"hwsim serve exited with code {proc.returncode} before it was ready")
+        ready, _, _ = select.select([proc.stdout], [], [], 0.5)
+        if ready:
+            line = proc.stdout.readline()
+            with contextlib.suppress(json.JSONDecodeError):
+                info = json.loads(line)
+                if isinstance(info, dict) and "serial" in info:
+                    return SimCell(proc, info)
+    proc.kill()
+    raise HardwareError(f"hwsim serve was not ready within {SIM_START_TIMEOUT_S:.0f} s")
+
+
+def sim_config(cfg: Config, ready: dict[str, object]) -> Config:
+    """Point the camera and the stepper link at the simulated cell."""
+    camera = cfg.camera.model_copy(
+        update={"source": str(ready["video_url"]), "calibration": Path(str(ready["camera_json"]))}
+    )
+    stepper = cfg.stepper.model_copy(update={"port": str(ready["serial"])})
+    return cfg.model_copy(update={"camera": camera, "stepper": stepper})
+
+
+def camera_model_for(cfg: Config) -> CameraModel:
+    if cfg.camera.calibration is not None:
+        return CameraModel.load(cfg.camera.calibration)
+    c = cfg.tracker.camera
+    return CameraModel.ideal(c.width_px, c.height_px, c.f_px, c.distance_m)
+
+
+class _Server(uvicorn.Server):
+    """uvicorn without its own signal handling: clothd's handler stops the modules first."""
+
+    @contextlib.contextmanager
+    def capture_signals(self) -> Generator[None, None, None]:
+        yield
+
+
+async def serve(cfg: Config, on_ready: str | None = None) -> None:
+    daemon = Daemon(cfg, camera_model_for(cfg))
+    app = create_app(daemon, cfg.api.token)
+    server = _Server(uvicorn.Config(app, host=cfg.api.host, port=cfg.api.port, log_level="warning"))
+    loop = asyncio.get_running_loop()
+
+    def _stop() -> None:
+        daemon.stop()
+        server.should_exit = True
+
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, _stop)
+    loop_task = asyncio.create_task(daemon.run())
+    server_task = asyncio.create_task(server.serve())
+    while not server.started and not server_task.done():
+        await asyncio.sleep(0.05)
+    if server.started and on_ready:
+        print(on_ready, flush=True)
+    done, _ = await asyncio.wait({loop_task, server_task}, return_when=asyncio.FIRST_COMPLETED)
+    daemon.stop()
+    server.should_exit = True
+    await asyncio.gather(loop_task, server_task, return_exceptions=True)
+    for task in done:
+        if task.exception() is not None:
+            raise task.exception()  # type: ignore[misc]
+
+
+def run(cfg: Config, sim_scenario: str | None) -> int:
+    check_exposure(cfg)
+    sim = start_sim(sim_scenario) if sim_scenario is not None else None
+    try:
+        if sim is not None:
+            cfg = sim_config(cfg, sim.ready)
+        base = f"http://{cfg.api.host}:{cfg.api.port}"
+        urls = f"clothd: dashboard {base}/  status {base}/api/v1/status  API docs {base}/docs"
+        if sim is not None:
+            urls += f"\nclothd: simulated cell truth {sim.ready['truth_url']}"
+        asyncio.run(serve(cfg, urls))
+    finally:
+        if sim is not None:
+            sim.stop()
+    return 0
