@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import time
 from collections import deque
 
 import numpy as np
@@ -32,7 +34,11 @@ class Window:
 
 
 class LoopStats:
+    SUMMARY_EVERY_S = 0.5  # percentiles over the windows are recomputed at most this often
+
     def __init__(self) -> None:
+        self._summary: dict[str, object] | None = None
+        self._summary_t_s = -math.inf
         self.stages: dict[str, Window] = {}
         self.jitter = Window()
         self.latency = Window()
@@ -47,6 +53,19 @@ class LoopStats:
     def missed_pct(self) -> float:
         due = self.ticks + self.missed_ticks
         return 100.0 * self.missed_ticks / due if due else 0.0
+
+    def cached_summary(self) -> dict[str, object]:
+        """summary() with the percentiles refreshed every SUMMARY_EVERY_S and the counters always fresh:
+        the status is built every tick, on the event loop."""
+        now = time.monotonic()
+        if self._summary is None or now - self._summary_t_s >= self.SUMMARY_EVERY_S:
+            self._summary, self._summary_t_s = self.summary(), now
+        return {
+            **self._summary,
+            "ticks": self.ticks,
+            "missed_ticks": self.missed_ticks,
+            "missed_pct": self.missed_pct,
+        }
 
     def summary(self) -> dict[str, object]:
         return {

@@ -55,7 +55,7 @@ def build_status(d: Daemon) -> dict[str, Any]:
         "features": features,
         "rejected_features": rejected,
         "residual": residual,
-        "timing": d.stats.summary(),
+        "timing": d.stats.cached_summary(),
         "camera": {
             "state": cam.state,
             "healthy": cam.healthy,

@@ -32,6 +32,7 @@ from hwsim.firmware import Firmware
 from hwsim.recording import render_frame, write_table
 from hwsim.renderer import Renderer
 from hwsim.scenario import Scenario
+from hwsim.taichi_runtime import ensure_taichi
 from hwsim.world import World
 
 _NOISE_BANK = 8  # sensor-noise frames drawn once and cycled: per-frame draws cost more than rendering
@@ -52,6 +53,9 @@ class Cell:
         self.scenario = scenario
         self.state_dir = state_dir
         state_dir.mkdir(parents=True, exist_ok=True)
+        # One render thread: beside the daemon on a small machine, a real-time world must not take
+        # every core for itself.
+        ensure_taichi(arch, cpu_threads=1)
         self.world = World(scenario, arch, log_commands=False)
         self.camera = Camera.from_spec(scenario.camera)
         self.renderer = Renderer(scenario, self.camera, self.world.cloth.grid)
