@@ -15,16 +15,21 @@ from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Header, HTTPException, Query, Request, WebSocket
-from fastapi.responses import JSONResponse, Response, StreamingResponse
+from fastapi.responses import JSONResponse, PlainTextResponse, Response, StreamingResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.websockets import WebSocketDisconnect
 
 from clothd.api.metrics import registry_for
-from clothd.api.schemas import Ok, SetpointRequest, StatusResponse
+from clothd.api.schemas import ErrorResponse, MoveSetpoint, Ok, SetpointRequest, StatusResponse
 from clothd.api.view import ViewPublisher
 from clothd.daemon import Daemon
 from clothd.errors import ClothdError, RequestError
 
+ERROR_DOC: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorResponse, "description": "a body that is not JSON"},
+    401: {"model": ErrorResponse, "description": "a token is configured and the request did not carry it"},
+    409: {"model": ErrorResponse, "description": "not possible in the daemon's current state"},
+}
 STATUS_DOC: dict[int | str, dict[str, Any]] = {
     200: {"model": StatusResponse, "description": "the state published by the last tick"}
 }
@@ -70,24 +75,28 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
         camera and link state."""
         return Response(daemon.status_json, media_type="application/json")
 
-    @api.put("/setpoint", dependencies=guarded, responses={409: {"model": Ok}})
+    @api.put("/setpoint", dependencies=guarded, responses=ERROR_DOC)
     async def setpoint(body: SetpointRequest) -> Ok:
-        pose = None if body.mode != "move" else np.array([body.x_m, body.y_m, body.theta_rad], dtype=float)
+        pose = (
+            np.array([body.x_m, body.y_m, body.theta_rad], dtype=float)
+            if isinstance(body, MoveSetpoint)
+            else None
+        )
         daemon.set_setpoint(body.mode, pose)
         return Ok(detail=f"mode {body.mode}")
 
-    @api.post("/estop", dependencies=guarded)
+    @api.post("/estop", dependencies=guarded, responses=ERROR_DOC)
     async def estop() -> Ok:
         """Stop every module now; latched until /estop/clear."""
         daemon.estop()
         return Ok(detail="emergency stop latched")
 
-    @api.post("/estop/clear", dependencies=guarded)
+    @api.post("/estop/clear", dependencies=guarded, responses=ERROR_DOC)
     async def estop_clear() -> Ok:
         daemon.estop_clear()
         return Ok(detail="emergency stop cleared; mode is idle")
 
-    @api.post("/reset", dependencies=guarded)
+    @api.post("/reset", dependencies=guarded, responses=ERROR_DOC)
     async def reset() -> Ok:
         """Re-initialise tracking from the next frame; the mode becomes idle."""
         daemon.reset()
@@ -120,7 +129,7 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
 
     app.include_router(api)
 
-    @app.get("/healthz")
+    @app.get("/healthz", responses={503: {"description": "unhealthy; `problems` names what"}})
     async def healthz() -> JSONResponse:
         """200 while the loop ticks with camera and link up, else 503 with the reasons."""
         problems = []
@@ -133,7 +142,7 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
         body = {"ok": not problems, "state": daemon.state, "problems": problems}
         return JSONResponse(body, status_code=503 if problems else 200)
 
-    @app.get("/metrics")
+    @app.get("/metrics", response_class=PlainTextResponse)
     async def metrics() -> Response:
         return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
 

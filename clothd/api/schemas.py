@@ -3,28 +3,38 @@
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    # Strict: `true` is not a number and "1" is not a float, whatever Python would make of them.
+    model_config = ConfigDict(extra="forbid", strict=True)
 
 
-class SetpointRequest(_Strict):
-    """`idle` stops the modules; `hold` keeps the current pose; `move` needs the target pose."""
+class IdleSetpoint(_Strict):
+    """Stop every module."""
 
-    mode: Literal["idle", "hold", "move"]
-    x_m: float | None = Field(None, ge=-5, le=5)
-    y_m: float | None = Field(None, ge=-5, le=5)
-    theta_rad: float | None = Field(None, ge=-math.pi, le=math.pi)
+    mode: Literal["idle"]
 
-    @model_validator(mode="after")
-    def _move_has_pose(self) -> SetpointRequest:
-        if self.mode == "move" and None in (self.x_m, self.y_m, self.theta_rad):
-            raise ValueError("mode 'move' needs x_m, y_m and theta_rad")
-        return self
+
+class HoldSetpoint(_Strict):
+    """Keep the pose the cloth has now."""
+
+    mode: Literal["hold"]
+
+
+class MoveSetpoint(_Strict):
+    """Move the cloth to this pose (world frame, the table plane) within the speed limits."""
+
+    mode: Literal["move"]
+    x_m: float = Field(ge=-5, le=5)
+    y_m: float = Field(ge=-5, le=5)
+    theta_rad: float = Field(ge=-math.pi, le=math.pi)
+
+
+SetpointRequest = Annotated[IdleSetpoint | HoldSetpoint | MoveSetpoint, Field(discriminator="mode")]
 
 
 class Pose(BaseModel):
@@ -115,6 +125,10 @@ class StatusResponse(BaseModel):
     camera: CameraState
     link: LinkState
     faults: list[FaultReport]
+
+
+class ErrorResponse(BaseModel):
+    detail: str = Field(description="what was wrong, in words")
 
 
 class Ok(BaseModel):

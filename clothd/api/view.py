@@ -32,14 +32,20 @@ class ViewPublisher:
         self.jpeg: bytes | None = None
         self.index = 0
         self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="view", daemon=True)
+        self._thread: threading.Thread | None = None
 
     def start(self) -> None:
+        """Start drawing; the app's lifespan may run more than once (tests), so this restarts cleanly."""
+        if self._thread is not None and self._thread.is_alive():
+            return
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, name="view", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
         self._stop.set()
-        self._thread.join(timeout=2)
+        if self._thread is not None:
+            self._thread.join(timeout=2)
 
     def _run(self) -> None:
         while not self._stop.wait(self.period_s):
