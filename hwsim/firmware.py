@@ -88,6 +88,7 @@ class Firmware:
         self.lock = lock
         self.link_path = link_path
         self.estopped = False
+        self.estop_t_mono_s: float | None = None  # when the drives were last cut, host monotonic clock
         self.watchdog_tripped = False
         self.frames_ok = 0
         self.frames_bad = 0
@@ -193,6 +194,7 @@ class Firmware:
                 self.estopped = True
                 self.table.stop_all()
                 self.table.speed_m_s[:] = 0.0  # drivers disabled: no ramp
+                self.estop_t_mono_s = time.monotonic()
             self._ack(seq)
         elif msg_type == ESTOP_CLEAR:
             self.estopped = False

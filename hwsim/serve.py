@@ -129,6 +129,7 @@ class Cell:
             "module_heading_rad": t.heading_rad.tolist(),
             "module_cmd_speed_m_s": t.cmd_speed_m_s.tolist(),
             "estopped": self.firmware.estopped,
+            "estop_t_mono_s": self.firmware.estop_t_mono_s,
             "watchdog_tripped": self.firmware.watchdog_tripped,
             "frames_ok": self.firmware.frames_ok,
             "frames_bad": self.firmware.frames_bad,

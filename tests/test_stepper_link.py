@@ -1,0 +1,210 @@
+"""The stepper link against hwsim's firmware on a real pty: handshake, commands, acknowledgements,
+e-stop, the controller watchdog, faults, unplugging, and controllers that answer nonsense."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import threading
+import time
+import tty
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from clothd.config import StepperConfig
+from clothd.drivers import wire
+from clothd.drivers.stepper_link import StepperLink
+from hwsim.firmware import FAULT_WATCHDOG, Firmware
+from hwsim.scenario import TableSpec
+from hwsim.table import Table
+
+N = 48
+
+
+def test_frames_round_trip_and_corruption_is_caught() -> None:
+    payload = wire.command_payload(np.array([0.1, -0.05]), np.array([0.5, -3.0]))
+    packet = wire.encode(wire.MsgType.COMMAND, 513, payload)
+    assert packet.count(0) == 1 and packet.endswith(b"\x00")  # COBS: the delimiter is the only zero
+    frame = wire.decode(packet[:-1])
+    assert (frame.type, frame.seq, frame.payload) == (wire.MsgType.COMMAND, 513, payload)
+    bad = bytearray(packet[:-1])
+    bad[3] ^= 0x10
+    with pytest.raises(wire.WireError):
+        wire.decode(bytes(bad))
+    splitter = wire.FrameSplitter()
+    assert splitter.feed(b"junk\x00" + packet[:5]) == [b"junk"]
+    assert splitter.feed(packet[5:]) == [packet[:-1]]
+
+
+def _firmware(tmp_path: Path) -> tuple[Firmware, Table]:
+    table = Table(TableSpec())
+    fw = Firmware(table, threading.Lock(), tmp_path / "ttyCELL")
+    fw.start()
+    return fw, table
+
+
+async def _until(check: Callable[[], bool], timeout_s: float = 3.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        await asyncio.sleep(0.01)
+
+
+def _run(coro: Callable[[], Awaitable[None]]) -> None:
+    asyncio.run(asyncio.wait_for(coro(), 20))
+
+
+def _link(port: Path, n: int = N, **kw: object) -> StepperLink:
+    cfg = StepperConfig(port=str(port), reconnect_initial_s=0.05, reconnect_max_s=0.2, **kw)
+    return StepperLink(cfg, n)
+
+
+def test_commands_reach_the_modules_and_are_acknowledged(tmp_path: Path) -> None:
+    fw, table = _firmware(tmp_path)
+
+    async def body() -> None:
+        link = _link(fw.link_path)
+        task = asyncio.create_task(link.run())
+        await _until(lambda: link.connected)
+        assert link.firmware and link.firmware.startswith("hwsim-fw")
+        heading = np.linspace(-3, 3, N)
+        for _ in range(5):
+            assert link.send_commands(np.full(N, 0.05), heading)
+            await asyncio.sleep(0.02)
+        await _until(lambda: link.counters.acked >= 5)
+        np.testing.assert_allclose(table.cmd_speed_m_s, 0.05, atol=1e-4)
+        np.testing.assert_allclose(table.cmd_heading_rad, heading, atol=2e-4)
+        assert link.counters.snapshot()["rtt_p50_ms"] is not None
+        # A negative speed is the same motion with the belt turned half round.
+        link.send_commands(np.full(N, -0.02), np.zeros(N))
+        await _until(lambda: abs(table.cmd_speed_m_s[0] - 0.02) < 1e-4)
+        assert abs(abs(table.cmd_heading_rad[0]) - np.pi) < 1e-3
+        await link.stop()
+        task.cancel()
+
+    try:
+        _run(body)
+    finally:
+        fw.stop()
+
+
+def test_estop_cuts_the_drives_and_refuses_commands_until_cleared(tmp_path: Path) -> None:
+    fw, table = _firmware(tmp_path)
+
+    async def body() -> None:
+        link = _link(fw.link_path)
+        task = asyncio.create_task(link.run())
+        await _until(lambda: link.connected)
+        link.send_commands(np.full(N, 0.1), np.zeros(N))
+        await _until(lambda: table.cmd_speed_m_s[0] > 0)
+        table.speed_m_s[:] = 0.1  # the modules are running
+        link.estop()
+        await _until(lambda: link.controller_estopped)
+        assert fw.estopped and not table.speed_m_s.any() and not table.cmd_speed_m_s.any()
+        assert not link.send_commands(np.full(N, 0.1), np.zeros(N))  # the host holds back too
+        link.estop_clear()
+        await _until(lambda: not fw.estopped)
+        await _until(lambda: link.send_commands(np.full(N, 0.03), np.zeros(N)) and table.cmd_speed_m_s[0] > 0)
+        await link.stop()
+        task.cancel()
+
+    try:
+        _run(body)
+    finally:
+        fw.stop()
+
+
+def test_watchdog_stops_the_modules_when_the_host_goes_silent(tmp_path: Path) -> None:
+    fw, table = _firmware(tmp_path)
+    faults: list[wire.Fault] = []
+
+    async def body() -> None:
+        link = _link(fw.link_path)
+        link.on_fault = faults.append
+        task = asyncio.create_task(link.run())
+        await _until(lambda: link.connected)
+        link.send_commands(np.full(N, 0.1), np.zeros(N))
+        await _until(lambda: table.cmd_speed_m_s[0] > 0)
+        # The host stops talking (a hung or killed daemon): within the watchdog the modules stop.
+        await _until(lambda: fw.watchdog_tripped, timeout_s=1.0)
+        assert not table.cmd_speed_m_s.any()
+        await _until(lambda: bool(faults))
+        assert faults[0].code == FAULT_WATCHDOG
+        task.cancel()
+
+    try:
+        _run(body)
+    finally:
+        fw.stop()
+
+
+def test_link_comes_back_after_an_unplug(tmp_path: Path) -> None:
+    fw, _ = _firmware(tmp_path)
+
+    async def body() -> None:
+        link = _link(fw.link_path)
+        task = asyncio.create_task(link.run())
+        await _until(lambda: link.connected)
+        fw.unplug(0.3)
+        await _until(lambda: not link.connected)
+        assert link.last_error
+        await _until(lambda: link.connected, timeout_s=5.0)
+        assert link.counters.reconnects >= 1
+        task.cancel()
+
+    try:
+        _run(body)
+    finally:
+        fw.stop()
+
+
+def test_wrong_module_count_is_a_clear_error(tmp_path: Path) -> None:
+    fw, _ = _firmware(tmp_path)
+
+    async def body() -> None:
+        link = _link(fw.link_path, n=12)
+        task = asyncio.create_task(link.run())
+        await _until(lambda: link.last_error is not None)
+        assert "drives 48 modules" in (link.last_error or "") and not link.connected
+        task.cancel()
+
+    try:
+        _run(body)
+    finally:
+        fw.stop()
+
+
+def test_a_controller_that_answers_garbage_gets_a_clear_error(tmp_path: Path) -> None:
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    port = tmp_path / "ttyGARBAGE"
+    port.symlink_to(os.ttyname(slave))
+    stop = threading.Event()
+    rng = np.random.default_rng(3)
+
+    def babble() -> None:  # answers every read with noise, zeros included (frame delimiters)
+        while not stop.is_set():
+            try:
+                os.read(master, 4096)
+                os.write(master, rng.integers(0, 256, 64, dtype=np.uint8).tobytes())
+            except OSError:
+                return
+
+    threading.Thread(target=babble, daemon=True).start()
+
+    async def body() -> None:
+        link = _link(port, handshake_timeout_s=0.1)
+        task = asyncio.create_task(link.run())
+        await _until(lambda: "not in the clothd stepper protocol" in (link.last_error or ""))
+        assert not link.connected
+        task.cancel()
+
+    try:
+        _run(body)
+    finally:
+        stop.set()
+        os.close(master)
+        os.close(slave)
