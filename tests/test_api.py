@@ -83,7 +83,7 @@ def test_token_guards_changes_but_not_reads() -> None:
 
 
 def test_binding_off_loopback_needs_a_token() -> None:
-    with pytest.raises(ConfigError, match="api.token"):
+    with pytest.raises(ConfigError, match=r"api\.token"):
         check_exposure(Config(api=ApiConfig(host="0.0.0.0")))
     check_exposure(Config(api=ApiConfig(host="0.0.0.0", token=TOKEN)))
     check_exposure(Config(api=ApiConfig(host="::1")))

@@ -225,9 +225,8 @@ def test_unplugged_serial_and_video_are_survived(cell: Cell, daemon: Daemon) -> 
 
     took = _wait(recovered, 30, "tracking again with the link up", every_s=0.2)
     s = daemon.status()
-    print(
-        f"recovered {took:.1f} s after the losses were seen; link reconnects {s['link']['counters']['reconnects']}"
-    )
+    reconnects = s["link"]["counters"]["reconnects"]
+    print(f"recovered {took:.1f} s after the losses were seen; link reconnects {reconnects}")
     assert s["camera"]["reconnects"] >= 1 and s["link"]["counters"]["reconnects"] >= 1
     assert daemon.proc.poll() is None
 
