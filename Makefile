@@ -15,10 +15,9 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev]'
 	@touch $(STAMP)
 
-# Until the daemon lands, the main job records the `compress` scenario and renders its preview.
+# The main job: the daemon against the simulated cell (hwsim serve as its child), API on loopback.
 run: $(STAMP)
-	$(BIN)/hwsim record compress --out out/compress
-	$(BIN)/hwsim preview out/compress
+	$(BIN)/clothd run --sim --config config.yaml
 
 lint: $(STAMP)
 	$(BIN)/ruff check clothd hwsim tests

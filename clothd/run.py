@@ -149,7 +149,11 @@ def run(cfg: Config, sim_scenario: str | None) -> int:
         if sim is not None:
             cfg = sim_config(cfg, sim.ready)
         base = f"http://{cfg.api.host}:{cfg.api.port}"
-        urls = f"clothd: dashboard {base}/  status {base}/api/v1/status  API docs {base}/docs"
+        urls = (
+            f"clothd: status {base}/api/v1/status\n"
+            f"clothd: annotated view {base}/api/v1/view.mjpg\n"
+            f"clothd: API docs {base}/docs"
+        )
         if sim is not None:
             urls += f"\nclothd: simulated cell truth {sim.ready['truth_url']}"
         asyncio.run(serve(cfg, urls))

@@ -104,7 +104,7 @@ def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cell]:
         proc.wait(timeout=20)
 
 
-def start_daemon(cell: Cell, tmp_path: Path) -> Daemon:
+def start_daemon(cell: Cell, tmp_path: Path, env: dict[str, str] | None = None) -> Daemon:
     port = _free_port()
     cfg = {
         "camera": {"source": cell.ready["video_url"], "calibration": cell.ready["camera_json"]},
@@ -117,6 +117,7 @@ def start_daemon(cell: Cell, tmp_path: Path) -> Daemon:
         [sys.executable, "-m", "clothd.cli", "run", "--config", str(path)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
+        env={**os.environ, **(env or {})},
     )
     d = Daemon(f"http://127.0.0.1:{port}", proc)
 
@@ -246,3 +247,18 @@ def test_the_controller_watchdog_stops_the_modules_after_kill_9(
         print(f"modules stopped {took * 1e3:.0f} ms after kill -9 (watchdog 250 ms, then the ramp)")
     finally:
         victim.stop()
+
+
+def test_systemd_hears_ready_after_the_first_good_tick_and_then_the_watchdog(
+    cell: Cell, tmp_path: Path
+) -> None:
+    sock_path = tmp_path / "notify.sock"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as sock:
+        sock.bind(str(sock_path))
+        sock.settimeout(30)
+        d = start_daemon(cell, tmp_path, env={"NOTIFY_SOCKET": str(sock_path)})
+        try:
+            messages = [sock.recv(256).decode() for _ in range(3)]
+        finally:
+            d.stop()
+    assert "READY=1" in messages and "WATCHDOG=1" in messages

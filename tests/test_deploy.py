@@ -1,0 +1,35 @@
+"""The systemd unit says what the service needs: notify, watchdog, restart, and its devices."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+UNIT = Path(__file__).resolve().parent.parent / "deploy" / "clothd.service"
+
+
+def _settings() -> dict[str, list[str]]:
+    out: dict[str, list[str]] = {}
+    for line in UNIT.read_text().splitlines():
+        line = line.strip()
+        if line and not line.startswith(("#", "[")):
+            key, _, value = line.partition("=")
+            out.setdefault(key, []).append(value)
+    return out
+
+
+def test_unit_is_a_notifying_watched_service_that_restarts() -> None:
+    s = _settings()
+    assert s["Type"] == ["notify"]
+    assert s["Restart"] == ["on-failure"]
+    assert s["WatchdogSec"] and s["WatchdogSec"][0].rstrip("s").isdigit()
+    assert "clothd run --config" in s["ExecStart"][0]
+
+
+def test_unit_is_hardened_but_reaches_serial_and_video() -> None:
+    s = _settings()
+    assert "PrivateDevices" not in s
+    assert set(s["SupplementaryGroups"][0].split()) == {"dialout", "video"}
+    allowed = {v.split()[0] for v in s["DeviceAllow"]}
+    assert {"char-ttyACM", "char-ttyUSB", "char-video4linux"} <= allowed
+    assert s["DevicePolicy"] == ["closed"] and s["NoNewPrivileges"] == ["yes"]
+    assert s["ProtectSystem"] == ["strict"]
