@@ -158,11 +158,22 @@ def test_move_reaches_its_setpoint(cell: Cell, daemon: Daemon) -> None:
     target = [0.05, 0.03, 0.25]
     daemon.put_setpoint({"mode": "move", "x_m": target[0], "y_m": target[1], "theta_rad": target[2]})
 
+    seen: list[tuple[float, float]] = []
+
     def there() -> bool:
         dist, ang = _pose_error(cell.truth()["pose"], target)
+        seen.append((dist, ang))
         return dist < 0.005 and ang < math.radians(1.0)
 
-    took = _wait(there, 15, "true pose within 5 mm and 1 deg of the setpoint", every_s=0.1)
+    try:
+        took = _wait(there, 15, "true pose within 5 mm and 1 deg of the setpoint", every_s=0.1)
+    except AssertionError:
+        s = daemon.status()
+        print(
+            f"last true error {seen[-1][0] * 1e3:.1f} mm {math.degrees(seen[-1][1]):.2f} deg; estimate {s['pose']}"
+        )
+        print(f"state {s['state']}, features {s['features']}, rejected {s['rejected_features']}")
+        raise
     print(f"move settled in {took:.2f} s")
     time.sleep(1.0)
     assert there(), "the pose did not hold at the setpoint"
