@@ -169,9 +169,8 @@ def test_move_reaches_its_setpoint(cell: Cell, daemon: Daemon) -> None:
         took = _wait(there, 15, "true pose within 5 mm and 1 deg of the setpoint", every_s=0.1)
     except AssertionError:
         s = daemon.status()
-        print(
-            f"last true error {seen[-1][0] * 1e3:.1f} mm {math.degrees(seen[-1][1]):.2f} deg; estimate {s['pose']}"
-        )
+        dist, ang = seen[-1]
+        print(f"last true error {dist * 1e3:.1f} mm {math.degrees(ang):.2f} deg; estimate {s['pose']}")
         print(f"state {s['state']}, features {s['features']}, rejected {s['rejected_features']}")
         raise
     print(f"move settled in {took:.2f} s")

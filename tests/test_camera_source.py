@@ -1,0 +1,50 @@
+"""The live frame source: newest frame only, stamped at capture; a missing source is reported and
+retried with backoff."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from clothd.config import CameraSourceConfig
+from clothd.drivers.camera import CameraSource
+
+
+def _wait(check: object, timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not check():  # type: ignore[operator]
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+
+
+def test_an_image_directory_plays_as_a_camera(tmp_path: Path) -> None:
+    rng = np.random.default_rng(5)
+    for k in (1, 2, 10):
+        cv2.imwrite(str(tmp_path / f"img_{k}.png"), rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
+    cam = CameraSource(CameraSourceConfig(source=str(tmp_path)))
+    cam.start()
+    try:
+        _wait(lambda: cam.latest() is not None)
+        first = cam.latest()
+        assert first is not None and first.image.shape == (48, 64, 3)
+        _wait(lambda: (f := cam.latest()) is not None and f.index > first.index)
+        later = cam.latest()
+        assert later is not None and later.t_mono_s > first.t_mono_s
+        assert cam.state == "streaming" and cam.healthy
+    finally:
+        cam.stop()
+
+
+def test_a_missing_source_is_reported_and_retried(tmp_path: Path) -> None:
+    cfg = CameraSourceConfig(source=str(tmp_path / "nope.mp4"), reconnect_initial_s=0.05, reconnect_max_s=0.1)
+    cam = CameraSource(cfg)
+    cam.start()
+    try:
+        _wait(lambda: cam.reconnects >= 2)
+        assert cam.state == "lost" and cam.latest() is None and not cam.healthy
+        assert "nope.mp4" in (cam.last_error or "")
+    finally:
+        cam.stop()
