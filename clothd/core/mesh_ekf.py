@@ -77,6 +77,14 @@ class NodeBelief:
         self.x = x
         self.P = P
         self.pattern = InformationPattern(quad_nodes, len(x))
+        # Quads that share a node are neighbours (at most 8; a quad is not its own): (q, 8), -1 padded.
+        incidence = np.zeros((len(quad_nodes), len(x)))
+        incidence[np.arange(len(quad_nodes))[:, None], quad_nodes] = 1.0
+        adjacent = (incidence @ incidence.T > 0) & ~np.eye(len(quad_nodes), dtype=bool)
+        self.quad_neighbours = np.full((len(quad_nodes), 8), -1)
+        for q, row in enumerate(adjacent):
+            around = np.flatnonzero(row)
+            self.quad_neighbours[q, : len(around)] = around
 
     @property
     def positions_m(self) -> np.ndarray:
@@ -94,6 +102,25 @@ class NodeBelief:
         JP = J @ self.P[nodes][:, :, :3, :3]  # (k, 4, 2, 3)
         S = (JP @ J.transpose(0, 1, 3, 2)).sum(axis=1)
         return S + R_px2 * np.eye(2)
+
+    def _odd_quads(
+        self, quads: np.ndarray, quad_mean: np.ndarray, S: np.ndarray, gate_chi2: float
+    ) -> np.ndarray:
+        """(k,) bool: the feature's quad moves unlike the quads around it (the median of their mean
+        innovations), as a patch carried by an occluder does, while a model error is smooth."""
+        n_quads = len(self.quad_neighbours)
+        mean = np.full((n_quads + 1, 2), np.nan)  # the last row stands for "no neighbour"
+        mean[quads] = quad_mean
+        around = mean[self.quad_neighbours]  # (q, 8, 2); index -1 reads the NaN row
+        enough = (~np.isnan(around[:, :, 0])).sum(axis=1) >= 3
+        d = np.zeros((n_quads, 2))
+        d[enough] = mean[:n_quads][enough] - np.nanmedian(around[enough], axis=1)
+        # The quad's typical innovation variance: the mean of its features' S diagonals.
+        s = np.bincount(quads, S[:, 0, 0] + S[:, 1, 1], minlength=n_quads) / np.maximum(
+            2 * np.bincount(quads, minlength=n_quads), 1
+        )
+        odd = (d**2).sum(axis=1) > gate_chi2 * np.maximum(s, 1e-12)  # NaN (a quad without features) is False
+        return np.asarray(odd[quads])
 
     def correct(
         self,
@@ -114,7 +141,9 @@ class NodeBelief:
         rejected. Gating the raw innovation rejected whole regions in fast moves, and features re-bound
         through the lagging estimate locked its error in (docs/architecture.md)."""
         S = self.innovation_covariances(nodes, J, R_px2)
-        accepted, d2 = gate(residual_px - _quad_mean(quads, residual_px), S, gate_chi2)
+        quad_mean = _quad_mean(quads, residual_px)
+        accepted, d2 = gate(residual_px - quad_mean, S, gate_chi2)
+        accepted &= ~self._odd_quads(quads, quad_mean, S, gate_chi2)
         if not accepted.any():
             return UpdateStats(0, len(accepted), 0.0), accepted
         n, pat = len(self.x), self.pattern
