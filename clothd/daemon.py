@@ -1,13 +1,15 @@
 """The fixed-rate loop: camera -> tracker -> control -> stepper link, and the state the API publishes.
 
 Every tick has an absolute deadline (next += period). A tick that starts a whole period late counts the
-ticks it missed and skips ahead; there are no catch-up ticks. The compute stages (tracker and control)
-run on one dedicated worker thread, which is also the only thread that calls Taichi; the event loop only
-schedules, talks to the serial port and serves the API.
+ticks it missed and skips ahead; there are no catch-up ticks. The compute stages (camera capture,
+tracker, control, the annotated view) run in the compute process (clothd/compute.py), one request and
+one reply per tick; this process's event loop only schedules, talks to the serial port and serves the
+API, and shares its GIL with nothing heavy.
 
 Safety: whatever goes wrong in a tick (camera lost, cloth lost, an exception in the compute), the
-modules are commanded to stop before anything else is done about it. If the host itself goes silent,
-the controller's watchdog stops them.
+modules are commanded to stop before anything else is done about it. If the compute process dies the
+modules are stopped and the daemon exits (systemd restarts it). If the host itself goes silent, the
+controller's watchdog stops them.
 """
 
 from __future__ import annotations
@@ -16,42 +18,33 @@ import asyncio
 import contextlib
 import json
 import logging
+import multiprocessing
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
 from clothd.api.stream import StreamHub
+from clothd.compute import CameraState, TickReply, TickRequest, layout_of, serve_compute
 from clothd.config import Config
 from clothd.core.camera_model import CameraModel
-from clothd.core.control import Mode, PoseController, Setpoint
-from clothd.core.conveyor import ConveyorLayout
-from clothd.core.messages import Estimate, ModuleCommands
-from clothd.core.tracker import Tracker
-from clothd.drivers.camera import CameraSource, Frame
+from clothd.core.control import Mode, Setpoint
+from clothd.core.messages import ModuleCommands
 from clothd.drivers.stepper_link import StepperLink
 from clothd.drivers.wire import Fault
-from clothd.errors import RequestError
+from clothd.errors import HardwareError, RequestError
 from clothd.loop_stats import LoopStats
 from clothd.notify import SystemdNotifier
 from clothd.status import build_status
-from clothd.taichi_runtime import start_taichi
 
 log = logging.getLogger(__name__)
 
 WATCHDOG_NOTIFY_S = 1.0
 OVERRUN_LOG_S = 1.0
-
-
-@dataclass
-class TickResult:
-    state: str  # tracking | tracking_lost | camera_lost | fault
-    estimate: Estimate | None
-    commands: ModuleCommands
-    new_frame: bool
-    timing_s: dict[str, float] = field(default_factory=dict)
+COMPUTE_START_TIMEOUT_S = 120.0
+SEND_MARGIN_S = 0.003  # a tick's commands go out this long before the next deadline at the latest
 
 
 class Daemon:
@@ -59,28 +52,31 @@ class Daemon:
         self, cfg: Config, camera_model: CameraModel, notifier: SystemdNotifier | None = None
     ) -> None:
         self.cfg = cfg
-        cell = cfg.cell
-        self.layout = ConveyorLayout(cell.modules_x, cell.modules_y, cell.pitch_m, cell.module_size_m)
+        self.layout = layout_of(cfg)
         self.camera_model = camera_model
-        self.camera = CameraSource(cfg.camera)
         self.link = StepperLink(cfg.stepper, self.layout.n_modules, on_fault=self._on_fault)
-        self.tracker = Tracker(cfg.tracker, camera_model, self.layout, clock=time.perf_counter)
-        self.controller = PoseController(cfg.control, cell, self.layout.centres_m)
         self.notifier = notifier or SystemdNotifier()
         self.stats = LoopStats()
         self.hub = StreamHub()
         self.setpoint = Setpoint("idle", None)
         self.estopped = False
         self.state = "starting"
+        self.camera = CameraState("connecting", False, None, 0)
         self.faults: deque[dict[str, object]] = deque(maxlen=20)
-        self.latest_frame: Frame | None = None
-        self.latest: TickResult | None = None
+        self.latest: TickReply | None = None
         self.status: dict[str, object] = {}
         self.status_json = b"{}"
+        self.viewers = 0
+        self.view_jpeg: bytes | None = None
+        self.view_index = 0
+        self.view_period_s = 1.0 / cfg.api.view_fps
+        self._last_view_s = -np.inf
         self._period_s = 1.0 / cfg.loop.tick_hz
-        self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute")
-        self._last_frame_index = -1
-        self._commands_in_force = self.controller.stop()
+        self._conn: Any = None
+        self._process: Any = None
+        self._receiver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute-reply")
+        self._pending: asyncio.Future[TickReply] | None = None  # the compute in flight
+        self._commands = ModuleCommands(np.zeros(self.layout.n_modules), np.zeros(self.layout.n_modules))
         self._reset_requested = False
         self._stopping = False
         self._ready_sent = False
@@ -125,9 +121,7 @@ class Daemon:
 
     async def run(self) -> None:
         """Run the loop until stop() is called."""
-        loop = asyncio.get_running_loop()
-        await loop.run_in_executor(self._worker, start_taichi, self.cfg.taichi.arch)
-        self.camera.start()
+        await self._start_compute()
         link_task = asyncio.create_task(self.link.run())
         try:
             await self._loop()
@@ -146,8 +140,31 @@ class Daemon:
         log.info("shutting down: %s", reason)
         self.notifier.stopping()
         await self.link.stop()
-        await asyncio.get_running_loop().run_in_executor(None, self.camera.stop)
-        self._worker.shutdown(wait=True, cancel_futures=True)
+        if self._process is not None:
+            with contextlib.suppress(OSError, ValueError):
+                self._conn.send(None)
+            await asyncio.get_running_loop().run_in_executor(None, self._process.join, 10)
+            if self._process.is_alive():
+                self._process.kill()
+        self._receiver.shutdown(wait=False, cancel_futures=True)
+
+    async def _start_compute(self) -> None:
+        ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no inherited threads or Taichi
+        self._conn, child = ctx.Pipe()
+        self._process = ctx.Process(
+            target=serve_compute,
+            args=(child, self.cfg, self.camera_model),
+            name="clothd-compute",
+            daemon=True,
+        )
+        self._process.start()
+        child.close()
+        loop = asyncio.get_running_loop()
+        ready = await asyncio.wait_for(
+            loop.run_in_executor(self._receiver, self._conn.recv), COMPUTE_START_TIMEOUT_S
+        )
+        if ready != "ready":
+            raise HardwareError(f"the compute process did not start: {ready!r}")
 
     # -- the loop ------------------------------------------------------------------------------------
 
@@ -166,69 +183,60 @@ class Daemon:
                 self.stats.missed_ticks += missed
                 next_t += missed * period
                 self._log_overrun(missed, late)
-            await self._tick()
             next_t += period
+            await self._tick(next_t)
 
-    async def _tick(self) -> None:
-        frame = self.camera.latest()
-        setpoint, estopped = self.setpoint, self.estopped
-        reset, self._reset_requested = self._reset_requested, False
+    async def _tick(self, next_deadline_s: float) -> None:
+        """Send this tick's commands. The compute for them runs in the compute process; it may take
+        until just before the next deadline. If it takes longer, this tick repeats the last commands,
+        the overrun is counted, and the result is used by the first tick after it arrives: the tick
+        rate never depends on the compute."""
         loop = asyncio.get_running_loop()
-        try:
-            result = await loop.run_in_executor(self._worker, self._compute, frame, setpoint, estopped, reset)
-        except Exception:  # a bug in a compute stage must not take the loop, or the modules, with it
-            log.exception("tick failed; stopping the modules")
-            result = TickResult("fault", None, self.controller.stop(), False)
-        if not self.estopped:
-            self.link.send_commands(result.commands.speed_m_s, result.commands.heading_rad)
-        sent = time.monotonic()
-        if result.new_frame and frame is not None:
-            self.stats.latency.add_s(sent - frame.t_mono_s)
-        self.stats.ticks += 1
-        self.stats.add_stages(result.timing_s)
-        if result.state != self.state:
-            log.info("state: %s -> %s", self.state, result.state)
-        self.state = result.state
-        self.latest, self.latest_frame = result, frame
-        self.publish()
-        self._notify_systemd(sent, result)
-
-    def _compute(self, frame: Frame | None, setpoint: Setpoint, estopped: bool, reset: bool) -> TickResult:
-        """One tick's tracking and control, on the worker thread."""
-        t0 = time.perf_counter()
-        if reset:
-            self.tracker.reset()
-            self.controller.reset()
-        timing: dict[str, float] = {}
-        new_frame = frame is not None and frame.index != self._last_frame_index
-        est = self.latest.estimate if self.latest else None
-        if frame is not None and new_frame:
-            est = self.tracker.step(frame.image, frame.t_mono_s, self._commands_in_force)
-            self._last_frame_index = frame.index
-            timing.update({f"tracker_{k}": v for k, v in est.timing_s.items()})
-        t1 = time.perf_counter()
-        tracking = est is not None and est.status == "tracking"
-        if frame is None:
-            state, commands = "camera_lost", self.controller.stop()
-        elif not tracking or est is None:
-            state, commands = "tracking_lost", self.controller.stop()
-        elif estopped or setpoint.mode == "idle" or setpoint.pose is None:
-            state, commands = "tracking", self.controller.stop()
+        now = time.monotonic()
+        if self._pending is None:
+            want_view = self.viewers > 0 and now - self._last_view_s >= self.view_period_s
+            reset, self._reset_requested = self._reset_requested, False
+            self._conn.send(TickRequest(self.setpoint, self.estopped, reset, want_view))
+            self._pending = asyncio.ensure_future(loop.run_in_executor(self._receiver, self._conn.recv))
+        budget_s = next_deadline_s - time.monotonic() - SEND_MARGIN_S
+        done, _ = await asyncio.wait({self._pending}, timeout=max(0.0, budget_s))
+        reply: TickReply | None = None
+        if done:
+            try:
+                reply = self._pending.result()
+            except (EOFError, OSError) as err:
+                self.link.send_commands(np.zeros(self.layout.n_modules), np.zeros(self.layout.n_modules))
+                self.state = "fault"
+                self.publish()
+                raise HardwareError(
+                    f"the compute process died ({err or type(err).__name__}); modules stopped"
+                ) from err
+            finally:
+                self._pending = None
         else:
-            state = "tracking"
-            twist = self.controller.plan_twist(est.pose, setpoint.pose, self._period_s)
-            outline = self.tracker.outline_m()
-            commands = (
-                self.controller.stop()
-                if outline is None
-                else self.controller.module_commands(est.pose, twist, outline)
-            )
-        if estopped:
-            commands = ModuleCommands(np.zeros_like(commands.speed_m_s), commands.heading_rad)
-        self._commands_in_force = commands
-        timing["control"] = time.perf_counter() - t1
-        timing["compute"] = time.perf_counter() - t0
-        return TickResult(state, est, commands, new_frame, timing)
+            self.stats.compute_overruns += 1
+        if reply is not None:
+            self._commands = reply.commands
+        if not self.estopped:
+            self.link.send_commands(self._commands.speed_m_s, self._commands.heading_rad)
+        sent = time.monotonic()
+        self.stats.ticks += 1
+        if reply is not None:
+            self._take_reply(reply, now, sent)
+        self.publish()
+
+    def _take_reply(self, reply: TickReply, asked_s: float, sent_s: float) -> None:
+        if reply.new_frame and reply.frame_t_mono_s is not None:
+            self.stats.latency.add_s(sent_s - reply.frame_t_mono_s)
+        self.stats.add_stages(reply.timing_s)
+        if reply.view_jpeg is not None:
+            self.view_jpeg, self.view_index, self._last_view_s = reply.view_jpeg, self.view_index + 1, asked_s
+        if reply.state != self.state:
+            log.info("state: %s -> %s", self.state, reply.state)
+        self.state = reply.state
+        self.camera = reply.camera
+        self.latest = reply
+        self._notify_systemd(sent_s, reply)
 
     # -- publishing ------------------------------------------------------------------------------------
 
@@ -243,7 +251,7 @@ class Daemon:
             {"t_unix_s": time.time(), "code": fault.code, "module": fault.module, "text": fault.text}
         )
 
-    def _notify_systemd(self, now_s: float, result: TickResult) -> None:
+    def _notify_systemd(self, now_s: float, result: TickReply) -> None:
         healthy = result.state == "tracking" and self.link.connected
         if healthy and not self._ready_sent:
             self.notifier.ready()

@@ -44,6 +44,7 @@ class LoopStats:
         self.latency = Window()
         self.ticks = 0
         self.missed_ticks = 0
+        self.compute_overruns = 0  # ticks that went out with the previous commands: compute not done
 
     def add_stages(self, timing_s: dict[str, float]) -> None:
         for name, seconds in timing_s.items():
@@ -65,6 +66,7 @@ class LoopStats:
             "ticks": self.ticks,
             "missed_ticks": self.missed_ticks,
             "missed_pct": self.missed_pct,
+            "compute_overruns": self.compute_overruns,
         }
 
     def summary(self) -> dict[str, object]:
@@ -72,6 +74,7 @@ class LoopStats:
             "ticks": self.ticks,
             "missed_ticks": self.missed_ticks,
             "missed_pct": self.missed_pct,
+            "compute_overruns": self.compute_overruns,
             "stages": {name: w.summary() for name, w in self.stages.items()},
             "jitter": self.jitter.summary(),
             "frame_to_command": self.latency.summary(),

@@ -31,7 +31,6 @@ from clothd.errors import ConfigError, HardwareError
 
 log = logging.getLogger("clothd")
 SIM_START_TIMEOUT_S = 120.0
-GIL_SWITCH_S = 0.0005
 
 
 def is_loopback(host: str) -> bool:
@@ -113,9 +112,6 @@ class _Server(uvicorn.Server):
 
 
 async def serve(cfg: Config, on_ready: str | None = None) -> None:
-    # The compute thread runs Python between its NumPy/OpenCV calls; a shorter GIL switch interval than
-    # the default 5 ms lets the event loop (API, serial link, tick timer) in within a millisecond.
-    sys.setswitchinterval(GIL_SWITCH_S)
     daemon = Daemon(cfg, camera_model_for(cfg))
     app = create_app(daemon, cfg.api.token)
     server = _Server(uvicorn.Config(app, host=cfg.api.host, port=cfg.api.port, log_level="warning"))

@@ -7,7 +7,6 @@ Handlers only read the state the loop published or flip a request flag: none of 
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import hmac
 import time
 from collections.abc import AsyncIterator
@@ -21,7 +20,6 @@ from starlette.websockets import WebSocketDisconnect
 
 from clothd.api.metrics import registry_for
 from clothd.api.schemas import ErrorResponse, MoveSetpoint, Ok, SetpointRequest, StatusResponse
-from clothd.api.view import ViewPublisher
 from clothd.daemon import Daemon
 from clothd.errors import ClothdError, RequestError
 
@@ -37,17 +35,7 @@ STATUS_DOC: dict[int | str, dict[str, Any]] = {
 
 def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
     registry = registry_for(daemon)
-    view = ViewPublisher(daemon, daemon.cfg.api.view_fps)
-
-    @contextlib.asynccontextmanager
-    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        view.start()
-        yield
-        view.stop()
-
-    app = FastAPI(
-        title="clothd", version="1", description="Real-time cloth tracking and control", lifespan=lifespan
-    )
+    app = FastAPI(title="clothd", version="1", description="Real-time cloth tracking and control")
 
     @app.exception_handler(RequestError)
     async def _conflict(request: Request, err: RequestError) -> JSONResponse:
@@ -105,7 +93,7 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
     @api.get("/view.mjpg", response_class=StreamingResponse)
     async def view_mjpg() -> StreamingResponse:
         """The annotated camera view as MJPEG (multipart/x-mixed-replace)."""
-        return StreamingResponse(_mjpeg(view), media_type="multipart/x-mixed-replace; boundary=frame")
+        return StreamingResponse(_mjpeg(daemon), media_type="multipart/x-mixed-replace; boundary=frame")
 
     @api.websocket("/stream")
     async def stream(ws: WebSocket, hz: Annotated[float | None, Query(gt=0, le=30)] = None) -> None:
@@ -149,17 +137,18 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
     return app
 
 
-async def _mjpeg(view: ViewPublisher) -> AsyncIterator[bytes]:
-    view.viewers += 1
+async def _mjpeg(daemon: Daemon) -> AsyncIterator[bytes]:
+    """Frames as the compute process draws them; it draws only while someone watches."""
+    daemon.viewers += 1
     last = -1
     try:
         while True:
-            jpeg, index = view.jpeg, view.index
+            jpeg, index = daemon.view_jpeg, daemon.view_index
             if jpeg is None or index == last:
-                await asyncio.sleep(view.period_s / 2)
+                await asyncio.sleep(daemon.view_period_s / 2)
                 continue
             last = index
             head = f"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n"
             yield head.encode() + jpeg + b"\r\n"
     finally:
-        view.viewers -= 1
+        daemon.viewers -= 1

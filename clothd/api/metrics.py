@@ -23,6 +23,9 @@ class DaemonCollector(Collector):
         yield CounterMetricFamily(
             "clothd_missed_ticks", "Tick deadlines missed and skipped", value=s.missed_ticks
         )
+        yield CounterMetricFamily(
+            "clothd_compute_overruns", "Ticks sent with the previous commands", value=s.compute_overruns
+        )
         stage = GaugeMetricFamily(
             "clothd_stage_seconds", "Compute time per stage", labels=["stage", "quantile"]
         )

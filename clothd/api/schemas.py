@@ -69,6 +69,7 @@ class Timing(BaseModel):
     ticks: int
     missed_ticks: int
     missed_pct: float
+    compute_overruns: int = Field(description="ticks sent with the previous commands: compute not done")
     stages: dict[str, Window]
     jitter: Window
     frame_to_command: Window

@@ -1,0 +1,156 @@
+"""The compute process: camera capture, tracker, control and the annotated view.
+
+It runs apart from the daemon's event loop so that the two never share a GIL: the tracker's Python,
+its Taichi kernels and its LAPACK calls hold the GIL for milliseconds at a time, which in one process
+delayed every API request and tick timer behind them (docs/benchmarks.md, "The closed loop"). The
+daemon sends one TickRequest per tick over a pipe and gets one TickReply back; the process is the only
+one that calls Taichi.
+
+Any exception in a tick is answered with all-stop commands and state "fault"; the daemon treats the
+death of the process itself as a fault too, and stops the modules.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from multiprocessing.connection import Connection
+
+from clothd.config import Config
+from clothd.core.camera_model import CameraModel
+from clothd.core.control import PoseController, Setpoint
+from clothd.core.conveyor import ConveyorLayout
+from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.tracker import Tracker
+from clothd.drivers.camera import CameraSource
+from clothd.taichi_runtime import start_taichi
+from clothd.view import ViewRenderer
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class TickRequest:
+    setpoint: Setpoint
+    estopped: bool
+    reset: bool
+    want_view: bool  # draw the annotated view this tick
+
+
+@dataclass(frozen=True)
+class CameraState:
+    state: str
+    healthy: bool
+    last_error: str | None
+    reconnects: int
+
+
+@dataclass(frozen=True)
+class TickReply:
+    state: str  # tracking | tracking_lost | camera_lost | fault
+    estimate: Estimate | None
+    commands: ModuleCommands
+    new_frame: bool
+    frame_t_mono_s: float | None  # capture time of the frame this tick used
+    camera: CameraState
+    timing_s: dict[str, float] = field(default_factory=dict)
+    view_jpeg: bytes | None = None
+
+
+def layout_of(cfg: Config) -> ConveyorLayout:
+    c = cfg.cell
+    return ConveyorLayout(c.modules_x, c.modules_y, c.pitch_m, c.module_size_m)
+
+
+class Compute:
+    """One tick's tracking and control, and the view; lives in the compute process."""
+
+    def __init__(self, cfg: Config, camera_model: CameraModel) -> None:
+        self.period_s = 1.0 / cfg.loop.tick_hz
+        layout = layout_of(cfg)
+        self.camera = CameraSource(cfg.camera)
+        self.tracker = Tracker(cfg.tracker, camera_model, layout, clock=time.perf_counter)
+        self.controller = PoseController(cfg.control, cfg.cell, layout.centres_m)
+        self.view = ViewRenderer(camera_model)
+        self._estimate: Estimate | None = None
+        self._last_frame_index = -1
+        self._commands_in_force = self.controller.stop()
+
+    def start(self) -> None:
+        self.camera.start()
+
+    def close(self) -> None:
+        self.camera.stop()
+
+    def camera_state(self) -> CameraState:
+        c = self.camera
+        return CameraState(c.state, c.healthy, c.last_error, c.reconnects)
+
+    def stop_reply(self, state: str) -> TickReply:
+        return TickReply(state, None, self.controller.stop(), False, None, self.camera_state())
+
+    def tick(self, req: TickRequest) -> TickReply:
+        t0 = time.perf_counter()
+        if req.reset:
+            self.tracker.reset()
+            self.controller.reset()
+            self._estimate = None
+        frame = self.camera.latest()
+        timing: dict[str, float] = {}
+        new_frame = frame is not None and frame.index != self._last_frame_index
+        est = self._estimate
+        if frame is not None and new_frame:
+            est = self.tracker.step(frame.image, frame.t_mono_s, self._commands_in_force)
+            self._estimate = est
+            self._last_frame_index = frame.index
+            timing.update({f"tracker_{k}": v for k, v in est.timing_s.items()})
+        t1 = time.perf_counter()
+        state, commands = self._control(frame is not None, est, req)
+        self._commands_in_force = commands
+        timing["control"] = time.perf_counter() - t1
+        timing["compute"] = time.perf_counter() - t0
+        jpeg = None
+        if req.want_view and frame is not None:
+            jpeg = self.view.render(frame.image, est, self.tracker, req.setpoint)
+        frame_t = frame.t_mono_s if frame is not None else None
+        return TickReply(state, est, commands, new_frame, frame_t, self.camera_state(), timing, jpeg)
+
+    def _control(
+        self, have_frame: bool, est: Estimate | None, req: TickRequest
+    ) -> tuple[str, ModuleCommands]:
+        if not have_frame:
+            return "camera_lost", self.controller.stop()
+        if est is None or est.status != "tracking":
+            return "tracking_lost", self.controller.stop()
+        sp = req.setpoint
+        outline = self.tracker.outline_m()
+        if req.estopped or sp.mode == "idle" or sp.pose is None or outline is None:
+            return "tracking", self.controller.stop()
+        twist = self.controller.plan_twist(est.pose, sp.pose, self.period_s)
+        return "tracking", self.controller.module_commands(est.pose, twist, outline)
+
+
+def serve_compute(conn: Connection, cfg: Config, camera_model: CameraModel) -> None:
+    """The compute process's main: answer TickRequests until None arrives or the pipe closes."""
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    start_taichi(cfg.taichi.arch)
+    compute = Compute(cfg, camera_model)
+    compute.start()
+    conn.send("ready")
+    try:
+        while True:
+            try:
+                req = conn.recv()
+            except EOFError:
+                return
+            if req is None:
+                return
+            try:
+                reply = compute.tick(req)
+            except Exception:  # a bug in a stage must not take the loop, or the modules, with it
+                log.exception("tick failed; stopping the modules")
+                reply = compute.stop_reply("fault")
+            conn.send(reply)
+    finally:
+        compute.close()
