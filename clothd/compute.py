@@ -17,6 +17,8 @@ import time
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 
+import cv2
+
 from clothd.config import Config
 from clothd.core.camera_model import CameraModel
 from clothd.core.control import PoseController, Setpoint
@@ -135,6 +137,7 @@ def serve_compute(conn: Connection, cfg: Config, camera_model: CameraModel) -> N
     """The compute process's main: answer TickRequests until None arrives or the pipe closes."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     start_taichi(cfg.taichi.arch)
+    cv2.setNumThreads(1)
     compute = Compute(cfg, camera_model)
     compute.start()
     conn.send("ready")

@@ -19,6 +19,7 @@ import contextlib
 import json
 import logging
 import multiprocessing
+import os
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
@@ -76,6 +77,7 @@ class Daemon:
         self._process: Any = None
         self._receiver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute-reply")
         self._pending: asyncio.Future[TickReply] | None = None  # the compute in flight
+        self._unsent_frame_t_s: float | None = None  # capture time behind commands not yet sent
         self._commands = ModuleCommands(np.zeros(self.layout.n_modules), np.zeros(self.layout.n_modules))
         self._reset_requested = False
         self._stopping = False
@@ -149,6 +151,10 @@ class Daemon:
         self._receiver.shutdown(wait=False, cancel_futures=True)
 
     async def _start_compute(self) -> None:
+        # One thread for BLAS and OpenCV in the compute process: their pools, sized to every core, only
+        # contend with hwsim or the camera here, and the matrices are small (set before it imports them).
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ.setdefault(var, "1")
         ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no inherited threads or Taichi
         self._conn, child = ctx.Pipe()
         self._process = ctx.Process(
@@ -187,12 +193,15 @@ class Daemon:
             await self._tick(next_t)
 
     async def _tick(self, next_deadline_s: float) -> None:
-        """Send this tick's commands. The compute for them runs in the compute process; it may take
-        until just before the next deadline. If it takes longer, this tick repeats the last commands,
-        the overrun is counted, and the result is used by the first tick after it arrives: the tick
+        """Send this tick's commands. Their compute runs in the compute process and may take until just
+        before the next deadline; if it takes longer, this tick repeats the last commands (counted as a
+        compute overrun) and the first tick after the reply arrives uses it and asks again. The tick
         rate never depends on the compute."""
         loop = asyncio.get_running_loop()
         now = time.monotonic()
+        if self._pending is not None and self._pending.done():  # last tick's compute came in late
+            self._use(self._pending, now)
+            self._pending = None
         if self._pending is None:
             want_view = self.viewers > 0 and now - self._last_view_s >= self.view_period_s
             reset, self._reset_requested = self._reset_requested, False
@@ -200,34 +209,33 @@ class Daemon:
             self._pending = asyncio.ensure_future(loop.run_in_executor(self._receiver, self._conn.recv))
         budget_s = next_deadline_s - time.monotonic() - SEND_MARGIN_S
         done, _ = await asyncio.wait({self._pending}, timeout=max(0.0, budget_s))
-        reply: TickReply | None = None
         if done:
-            try:
-                reply = self._pending.result()
-            except (EOFError, OSError) as err:
-                self.link.send_commands(np.zeros(self.layout.n_modules), np.zeros(self.layout.n_modules))
-                self.state = "fault"
-                self.publish()
-                raise HardwareError(
-                    f"the compute process died ({err or type(err).__name__}); modules stopped"
-                ) from err
-            finally:
-                self._pending = None
+            self._use(self._pending, now)
+            self._pending = None
         else:
             self.stats.compute_overruns += 1
-        if reply is not None:
-            self._commands = reply.commands
         if not self.estopped:
             self.link.send_commands(self._commands.speed_m_s, self._commands.heading_rad)
-        sent = time.monotonic()
         self.stats.ticks += 1
-        if reply is not None:
-            self._take_reply(reply, now, sent)
+        if self._unsent_frame_t_s is not None:
+            self.stats.latency.add_s(time.monotonic() - self._unsent_frame_t_s)
+            self._unsent_frame_t_s = None
         self.publish()
 
-    def _take_reply(self, reply: TickReply, asked_s: float, sent_s: float) -> None:
+    def _use(self, pending: asyncio.Future[TickReply], asked_s: float) -> None:
+        """Take a finished compute's reply: its commands go out with this tick."""
+        try:
+            reply = pending.result()
+        except (EOFError, OSError) as err:
+            self.link.send_commands(np.zeros(self.layout.n_modules), np.zeros(self.layout.n_modules))
+            self.state = "fault"
+            self.publish()
+            raise HardwareError(
+                f"the compute process died ({err or type(err).__name__}); modules stopped"
+            ) from err
+        self._commands = reply.commands
         if reply.new_frame and reply.frame_t_mono_s is not None:
-            self.stats.latency.add_s(sent_s - reply.frame_t_mono_s)
+            self._unsent_frame_t_s = reply.frame_t_mono_s
         self.stats.add_stages(reply.timing_s)
         if reply.view_jpeg is not None:
             self.view_jpeg, self.view_index, self._last_view_s = reply.view_jpeg, self.view_index + 1, asked_s
@@ -236,7 +244,7 @@ class Daemon:
         self.state = reply.state
         self.camera = reply.camera
         self.latest = reply
-        self._notify_systemd(sent_s, reply)
+        self._notify_systemd(time.monotonic(), reply)
 
     # -- publishing ------------------------------------------------------------------------------------
 
