@@ -123,6 +123,31 @@ async def measure_settle(
     }
 
 
+async def measure_estop(client: httpx.AsyncClient, d: DaemonProcess) -> dict[str, float]:
+    """POST /estop while the modules run: the time until hwsim's firmware cut the drives (both on
+    this host's monotonic clock), beside one tick plus the link's round trip."""
+    body = {"mode": "move", "x_m": 0.0, "y_m": 0.0, "theta_rad": 0.0}
+    (await client.put(f"{d.base}/api/v1/setpoint", json=body)).raise_for_status()
+    deadline = time.monotonic() + 5.0
+    while max(map(abs, (await client.get(d.truth_url)).json()["module_speed_m_s"])) < 0.01:
+        if time.monotonic() > deadline:
+            raise RuntimeError("the modules did not start for the e-stop measurement")
+        await asyncio.sleep(0.02)
+    t0 = time.monotonic()
+    (await client.post(f"{d.base}/api/v1/estop")).raise_for_status()
+    truth = (await client.get(d.truth_url)).json()
+    while not truth["estopped"]:
+        await asyncio.sleep(0.005)
+        truth = (await client.get(d.truth_url)).json()
+    status = (await client.get(f"{d.base}/api/v1/status")).json()
+    (await client.post(f"{d.base}/api/v1/estop/clear")).raise_for_status()
+    return {
+        "estop_ms": (truth["estop_t_mono_s"] - t0) * 1e3,
+        "estop_modules_moving_after": float(sum(abs(v) > 0 for v in truth["module_speed_m_s"])),
+        "link_rtt_p99_ms": status["link"]["counters"]["rtt_p99_ms"],
+    }
+
+
 async def _timing(client: httpx.AsyncClient, base: str) -> dict[str, Any]:
     return dict((await client.get(f"{base}/api/v1/status")).json()["timing"])
 
@@ -258,6 +283,7 @@ async def _bench(config: Path | None, run_s: float, load_s: float, hold_s: float
             await asyncio.sleep(2.0)  # let the first ticks' start-up pass
             result: dict[str, Any] = {}
             result.update(await measure_settle(client, d, hold_s, timeout_s=20.0))
+            result.update(await measure_estop(client, d))
             result.update(await measure_run(client, d.base, run_s))
             result.update(await measure_load(client, d.base, load_s))
             return result
@@ -281,6 +307,9 @@ def format_result(r: dict[str, Any]) -> str:
             "clothd bench loop (closed loop against hwsim serve)",
             f"  move 100 mm + 30 deg: settled in {f('settle_s', 's')} "
             f"(final error {f('final_err_mm', 'mm')}, {f('final_err_deg', 'deg')}; bar 5 mm, 1 deg, 6 s)",
+            f"  e-stop: drives cut {f('estop_ms', 'ms', '.1f')} after POST /estop "
+            f"(one tick 33.3 ms + link RTT p99 {f('link_rtt_p99_ms', 'ms', '.1f')}); "
+            f"modules still moving {f('estop_modules_moving_after', '', '.0f')}",
             f"  missed ticks {f('missed_tick_pct', '%', '.3f')} (bar 0.5 %); frame-to-command latency "
             f"p50 {f('latency_p50_ms', 'ms', '.1f')}, p99 {f('latency_p99_ms', 'ms', '.1f')}; "
             f"ticks resending the last commands {f('compute_overrun_pct', '%', '.2f')}",

@@ -89,6 +89,8 @@ class Firmware:
         self.link_path = link_path
         self.estopped = False
         self.estop_t_mono_s: float | None = None  # when the drives were last cut, host monotonic clock
+        self.commands_applied = 0
+        self.commands_at_estop: int | None = None  # commands applied when the e-stop arrived
         self.watchdog_tripped = False
         self.frames_ok = 0
         self.frames_bad = 0
@@ -195,6 +197,7 @@ class Firmware:
                 self.table.stop_all()
                 self.table.speed_m_s[:] = 0.0  # drivers disabled: no ramp
                 self.estop_t_mono_s = time.monotonic()
+                self.commands_at_estop = self.commands_applied
             self._ack(seq)
         elif msg_type == ESTOP_CLEAR:
             self.estopped = False
@@ -221,6 +224,7 @@ class Firmware:
                 self.table.command(np.arange(n), np.abs(speed), heading)
             self.watchdog_tripped = False
             self._last_seq = seq
+            self.commands_applied += 1
         self._ack(seq)
 
     def _check_watchdog(self) -> None:

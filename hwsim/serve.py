@@ -130,6 +130,8 @@ class Cell:
             "module_cmd_speed_m_s": t.cmd_speed_m_s.tolist(),
             "estopped": self.firmware.estopped,
             "estop_t_mono_s": self.firmware.estop_t_mono_s,
+            "commands_applied": self.firmware.commands_applied,
+            "commands_at_estop": self.firmware.commands_at_estop,
             "watchdog_tripped": self.firmware.watchdog_tripped,
             "frames_ok": self.firmware.frames_ok,
             "frames_bad": self.firmware.frames_bad,

@@ -181,18 +181,21 @@ def test_move_reaches_its_setpoint(cell: Cell, daemon: Daemon) -> None:
 def test_estop_stops_every_module_at_once(cell: Cell, daemon: Daemon) -> None:
     daemon.put_setpoint({"mode": "move", "x_m": -0.05, "y_m": 0.0, "theta_rad": 0.0})
     _wait(lambda: max(map(abs, cell.truth()["module_speed_m_s"])) > 0.02, 5, "modules running")
+    commands_before = cell.truth()["commands_applied"]
     t0 = time.monotonic()
     daemon.post("/estop")
     _wait(lambda: cell.truth()["estopped"], 2, "controller e-stop latched", every_s=0.005)
     truth = cell.truth()
     assert not any(truth["module_speed_m_s"]), "every module stopped"
-    took_s = truth["estop_t_mono_s"] - t0  # the firmware's clock is this host's monotonic clock
-    rtt_p99_s = (daemon.status()["link"]["counters"]["rtt_p99_ms"] or 0.0) / 1e3
-    print(
-        f"e-stop: drives cut {took_s * 1e3:.1f} ms after the request (link RTT p99 {rtt_p99_s * 1e3:.1f} ms)"
-    )
-    # One tick plus the link's round trip, and slack for the HTTP request itself on a loaded machine.
-    assert took_s <= TICK_S + rtt_p99_s + 0.1
+    # How fast is a benchmark figure (clothd bench loop: estop_ms); here, for the record:
+    late = truth["commands_at_estop"] - commands_before
+    took_ms = (truth["estop_t_mono_s"] - t0) * 1e3  # the firmware's clock is this host's monotonic clock
+    print(f"e-stop: drives cut {took_ms:.1f} ms and {late} command(s) after the request")
+    daemon.put_setpoint({"mode": "idle"})
+    with pytest.raises(httpx.HTTPStatusError):  # moves are refused while the e-stop is latched
+        daemon.put_setpoint({"mode": "move", "x_m": 0.0, "y_m": 0.0, "theta_rad": 0.0})
+    time.sleep(0.3)
+    assert not any(cell.truth()["module_cmd_speed_m_s"]), "nothing restarted the modules"
     s = daemon.status()
     assert s["estop"] and s["mode"] == "idle" and s["link"]["controller_estop"]
     daemon.post("/estop/clear")

@@ -4,11 +4,12 @@ e-stop, the controller watchdog, faults, unplugging, and controllers that answer
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import os
 import threading
 import time
 import tty
-from collections.abc import Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 
 import numpy as np
@@ -39,11 +40,18 @@ def test_frames_round_trip_and_corruption_is_caught() -> None:
     assert splitter.feed(packet[5:]) == [packet[:-1]]
 
 
-def _firmware(tmp_path: Path) -> tuple[Firmware, Table]:
+Body = Callable[[Firmware, Table], Awaitable[None]]
+
+
+def _with_firmware(tmp_path: Path, body: Body) -> None:
+    """Run body against hwsim's firmware on a fresh pty, driving a table of N modules."""
     table = Table(TableSpec())
     fw = Firmware(table, threading.Lock(), tmp_path / "ttyCELL")
     fw.start()
-    return fw, table
+    try:
+        asyncio.run(asyncio.wait_for(body(fw, table), 20))
+    finally:
+        fw.stop()
 
 
 async def _until(check: Callable[[], bool], timeout_s: float = 3.0) -> None:
@@ -53,128 +61,102 @@ async def _until(check: Callable[[], bool], timeout_s: float = 3.0) -> None:
         await asyncio.sleep(0.01)
 
 
-def _run(coro: Callable[[], Awaitable[None]]) -> None:
-    asyncio.run(asyncio.wait_for(coro(), 20))
-
-
 def _link(port: Path, n: int = N, **kw: object) -> StepperLink:
     cfg = StepperConfig(port=str(port), reconnect_initial_s=0.05, reconnect_max_s=0.2, **kw)
     return StepperLink(cfg, n)
 
 
-def test_commands_reach_the_modules_and_are_acknowledged(tmp_path: Path) -> None:
-    fw, table = _firmware(tmp_path)
-
-    async def body() -> None:
-        link = _link(fw.link_path)
-        task = asyncio.create_task(link.run())
-        await _until(lambda: link.connected)
-        assert link.firmware and link.firmware.startswith("hwsim-fw")
-        heading = np.linspace(-3, 3, N)
-        for _ in range(5):
-            assert link.send_commands(np.full(N, 0.05), heading)
-            await asyncio.sleep(0.02)
-        await _until(lambda: link.counters.acked >= 5)
-        np.testing.assert_allclose(table.cmd_speed_m_s, 0.05, atol=1e-4)
-        np.testing.assert_allclose(table.cmd_heading_rad, heading, atol=2e-4)
-        assert link.counters.snapshot()["rtt_p50_ms"] is not None
-        # A negative speed is the same motion with the belt turned half round.
-        link.send_commands(np.full(N, -0.02), np.zeros(N))
-        await _until(lambda: abs(table.cmd_speed_m_s[0] - 0.02) < 1e-4)
-        assert abs(abs(table.cmd_heading_rad[0]) - np.pi) < 1e-3
-        await link.stop()
+@contextlib.asynccontextmanager
+async def _running(link: StepperLink) -> AsyncIterator[StepperLink]:
+    task = asyncio.create_task(link.run())
+    try:
+        yield link
+    finally:
         task.cancel()
 
-    try:
-        _run(body)
-    finally:
-        fw.stop()
+
+def test_commands_reach_the_modules_and_are_acknowledged(tmp_path: Path) -> None:
+    async def body(fw: Firmware, table: Table) -> None:
+        async with _running(_link(fw.link_path)) as link:
+            await _until(lambda: link.connected)
+            assert link.firmware and link.firmware.startswith("hwsim-fw")
+            heading = np.linspace(-3, 3, N)
+            for _ in range(5):
+                assert link.send_commands(np.full(N, 0.05), heading)
+                await asyncio.sleep(0.02)
+            await _until(lambda: link.counters.acked >= 5)
+            np.testing.assert_allclose(table.cmd_speed_m_s, 0.05, atol=1e-4)
+            np.testing.assert_allclose(table.cmd_heading_rad, heading, atol=2e-4)
+            assert link.counters.snapshot()["rtt_p50_ms"] is not None
+            # A negative speed is the same motion with the belt turned half round.
+            link.send_commands(np.full(N, -0.02), np.zeros(N))
+            await _until(lambda: abs(table.cmd_speed_m_s[0] - 0.02) < 1e-4)
+            assert abs(abs(table.cmd_heading_rad[0]) - np.pi) < 1e-3
+            await link.stop()
+
+    _with_firmware(tmp_path, body)
 
 
 def test_estop_cuts_the_drives_and_refuses_commands_until_cleared(tmp_path: Path) -> None:
-    fw, table = _firmware(tmp_path)
+    async def body(fw: Firmware, table: Table) -> None:
+        async with _running(_link(fw.link_path)) as link:
+            await _until(lambda: link.connected)
+            link.send_commands(np.full(N, 0.1), np.zeros(N))
+            await _until(lambda: table.cmd_speed_m_s[0] > 0)
+            table.speed_m_s[:] = 0.1  # the modules are running
+            link.estop()
+            await _until(lambda: link.controller_estopped)
+            assert fw.estopped and not table.speed_m_s.any() and not table.cmd_speed_m_s.any()
+            assert not link.send_commands(np.full(N, 0.1), np.zeros(N))  # the host holds back too
+            link.estop_clear()
+            await _until(lambda: not fw.estopped)
+            await _until(
+                lambda: link.send_commands(np.full(N, 0.03), np.zeros(N)) and table.cmd_speed_m_s[0] > 0
+            )
+            await link.stop()
 
-    async def body() -> None:
-        link = _link(fw.link_path)
-        task = asyncio.create_task(link.run())
-        await _until(lambda: link.connected)
-        link.send_commands(np.full(N, 0.1), np.zeros(N))
-        await _until(lambda: table.cmd_speed_m_s[0] > 0)
-        table.speed_m_s[:] = 0.1  # the modules are running
-        link.estop()
-        await _until(lambda: link.controller_estopped)
-        assert fw.estopped and not table.speed_m_s.any() and not table.cmd_speed_m_s.any()
-        assert not link.send_commands(np.full(N, 0.1), np.zeros(N))  # the host holds back too
-        link.estop_clear()
-        await _until(lambda: not fw.estopped)
-        await _until(lambda: link.send_commands(np.full(N, 0.03), np.zeros(N)) and table.cmd_speed_m_s[0] > 0)
-        await link.stop()
-        task.cancel()
-
-    try:
-        _run(body)
-    finally:
-        fw.stop()
+    _with_firmware(tmp_path, body)
 
 
 def test_watchdog_stops_the_modules_when_the_host_goes_silent(tmp_path: Path) -> None:
-    fw, table = _firmware(tmp_path)
     faults: list[wire.Fault] = []
 
-    async def body() -> None:
+    async def body(fw: Firmware, table: Table) -> None:
         link = _link(fw.link_path)
         link.on_fault = faults.append
-        task = asyncio.create_task(link.run())
-        await _until(lambda: link.connected)
-        link.send_commands(np.full(N, 0.1), np.zeros(N))
-        await _until(lambda: table.cmd_speed_m_s[0] > 0)
-        # The host stops talking (a hung or killed daemon): within the watchdog the modules stop.
-        await _until(lambda: fw.watchdog_tripped, timeout_s=1.0)
-        assert not table.cmd_speed_m_s.any()
-        await _until(lambda: bool(faults))
-        assert faults[0].code == FAULT_WATCHDOG
-        task.cancel()
+        async with _running(link):
+            await _until(lambda: link.connected)
+            link.send_commands(np.full(N, 0.1), np.zeros(N))
+            await _until(lambda: table.cmd_speed_m_s[0] > 0)
+            # The host stops talking (a hung or killed daemon): within the watchdog the modules stop.
+            await _until(lambda: fw.watchdog_tripped, timeout_s=1.0)
+            assert not table.cmd_speed_m_s.any()
+            await _until(lambda: bool(faults))
+            assert faults[0].code == FAULT_WATCHDOG
 
-    try:
-        _run(body)
-    finally:
-        fw.stop()
+    _with_firmware(tmp_path, body)
 
 
 def test_link_comes_back_after_an_unplug(tmp_path: Path) -> None:
-    fw, _ = _firmware(tmp_path)
+    async def body(fw: Firmware, table: Table) -> None:
+        async with _running(_link(fw.link_path)) as link:
+            await _until(lambda: link.connected)
+            fw.unplug(0.3)
+            await _until(lambda: not link.connected)
+            assert link.last_error
+            await _until(lambda: link.connected, timeout_s=5.0)
+            assert link.counters.reconnects >= 1
 
-    async def body() -> None:
-        link = _link(fw.link_path)
-        task = asyncio.create_task(link.run())
-        await _until(lambda: link.connected)
-        fw.unplug(0.3)
-        await _until(lambda: not link.connected)
-        assert link.last_error
-        await _until(lambda: link.connected, timeout_s=5.0)
-        assert link.counters.reconnects >= 1
-        task.cancel()
-
-    try:
-        _run(body)
-    finally:
-        fw.stop()
+    _with_firmware(tmp_path, body)
 
 
 def test_wrong_module_count_is_a_clear_error(tmp_path: Path) -> None:
-    fw, _ = _firmware(tmp_path)
+    async def body(fw: Firmware, table: Table) -> None:
+        async with _running(_link(fw.link_path, n=12)) as link:
+            await _until(lambda: link.last_error is not None)
+            assert "drives 48 modules" in (link.last_error or "") and not link.connected
 
-    async def body() -> None:
-        link = _link(fw.link_path, n=12)
-        task = asyncio.create_task(link.run())
-        await _until(lambda: link.last_error is not None)
-        assert "drives 48 modules" in (link.last_error or "") and not link.connected
-        task.cancel()
-
-    try:
-        _run(body)
-    finally:
-        fw.stop()
+    _with_firmware(tmp_path, body)
 
 
 def test_a_controller_that_answers_garbage_gets_a_clear_error(tmp_path: Path) -> None:
@@ -196,14 +178,12 @@ def test_a_controller_that_answers_garbage_gets_a_clear_error(tmp_path: Path) ->
     threading.Thread(target=babble, daemon=True).start()
 
     async def body() -> None:
-        link = _link(port, handshake_timeout_s=0.1)
-        task = asyncio.create_task(link.run())
-        await _until(lambda: "not in the clothd stepper protocol" in (link.last_error or ""))
-        assert not link.connected
-        task.cancel()
+        async with _running(_link(port, handshake_timeout_s=0.1)) as link:
+            await _until(lambda: "not in the clothd stepper protocol" in (link.last_error or ""))
+            assert not link.connected
 
     try:
-        _run(body)
+        asyncio.run(asyncio.wait_for(body(), 20))
     finally:
         stop.set()
         os.close(master)
