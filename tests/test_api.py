@@ -108,3 +108,25 @@ def test_slow_subscriber_drops_instead_of_queueing() -> None:
         d.hub.publish(str(k).encode())
     assert sub.dropped == 4
     assert np.isclose(float(sub._slot or b"nan"), 4.0)
+
+
+def test_dashboard_page_and_its_assets_are_served(client: TestClient) -> None:
+    page = client.get("/")
+    assert page.status_code == 200 and "text/html" in page.headers["content-type"]
+    for element in ('id="estop"', 'id="video"', 'id="plot-residual"', 'id="setpoint-form"', "/static/app.js"):
+        assert element in page.text
+    js = client.get("/static/app.js")
+    assert js.status_code == 200 and "/api/v1/stream" in js.text
+    assert client.get("/static/style.css").status_code == 200
+
+
+def test_camera_homography_maps_the_table_like_the_camera_model(client: TestClient) -> None:
+    info = client.get("/api/v1/camera").json()
+    H = np.asarray(info["table_to_pixel"])
+    cam = CameraModel.ideal(640, 480, 900.0, 1.0)
+    pts = np.array([[0.0, 0.0], [0.1, -0.05], [-0.2, 0.15]])
+    hom = np.column_stack([pts, np.ones(3)]) @ H.T
+    np.testing.assert_allclose(
+        hom[:, :2] / hom[:, 2:], cam.project(np.column_stack([pts, np.zeros(3)])), atol=1e-9
+    )
+    assert (info["width"], info["height"]) == (640, 480)

@@ -10,16 +10,18 @@ import asyncio
 import hmac
 import time
 from collections.abc import AsyncIterator
+from pathlib import Path
 from typing import Annotated, Any
 
 import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Header, HTTPException, Query, Request, WebSocket
-from fastapi.responses import JSONResponse, PlainTextResponse, Response, StreamingResponse
+from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, Response, StreamingResponse
+from fastapi.staticfiles import StaticFiles
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.websockets import WebSocketDisconnect
 
 from clothd.api.metrics import registry_for
-from clothd.api.schemas import ErrorResponse, MoveSetpoint, Ok, SetpointRequest, StatusResponse
+from clothd.api.schemas import CameraInfo, ErrorResponse, MoveSetpoint, Ok, SetpointRequest, StatusResponse
 from clothd.daemon import Daemon
 from clothd.errors import ClothdError, RequestError
 
@@ -28,6 +30,7 @@ ERROR_DOC: dict[int | str, dict[str, Any]] = {
     401: {"model": ErrorResponse, "description": "a token is configured and the request did not carry it"},
     409: {"model": ErrorResponse, "description": "not possible in the daemon's current state"},
 }
+STATIC_DIR = Path(__file__).resolve().parent / "static"
 STATUS_DOC: dict[int | str, dict[str, Any]] = {
     200: {"model": StatusResponse, "description": "the state published by the last tick"}
 }
@@ -90,6 +93,12 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
         daemon.reset()
         return Ok(detail="tracking re-initialises on the next frame")
 
+    @api.get("/camera", response_model=CameraInfo)
+    async def camera() -> CameraInfo:
+        """The image size and the table plane's homography to pixels, for picking poses on the view."""
+        cam = daemon.camera_model
+        return CameraInfo(width=cam.width, height=cam.height, table_to_pixel=cam.table_homography().tolist())
+
     @api.get("/view.mjpg", response_class=StreamingResponse)
     async def view_mjpg() -> StreamingResponse:
         """The annotated camera view as MJPEG (multipart/x-mixed-replace)."""
@@ -116,6 +125,12 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
             daemon.hub.unsubscribe(sub)
 
     app.include_router(api)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+    @app.get("/", response_class=FileResponse, include_in_schema=False)
+    async def dashboard() -> FileResponse:
+        """The operator dashboard (static HTML and JavaScript, no build step)."""
+        return FileResponse(STATIC_DIR / "index.html")
 
     @app.get("/healthz", responses={503: {"description": "unhealthy; `problems` names what"}})
     async def healthz() -> JSONResponse:

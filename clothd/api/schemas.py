@@ -128,6 +128,12 @@ class StatusResponse(BaseModel):
     faults: list[FaultReport]
 
 
+class CameraInfo(BaseModel):
+    width: int
+    height: int
+    table_to_pixel: list[list[float]] = Field(description="3 x 3 homography: table [x_m, y_m, 1] to pixels")
+
+
 class ErrorResponse(BaseModel):
     detail: str = Field(description="what was wrong, in words")
 

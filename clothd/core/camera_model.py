@@ -134,6 +134,13 @@ class CameraModel:
         v = K[1, 1] * xyd[..., 1] + K[1, 2]
         return np.stack([u, v], axis=-1)
 
+    def table_homography(self) -> np.ndarray:
+        """H (3, 3) mapping table-plane points [x, y, 1] (metres, z = 0) to pixels, lens distortion left
+        out: K [r1 r2 t] of the plane's pose. For drawing and picking in a browser, not for measuring."""
+        R, t = self.T_cam_world[:3, :3], self.T_cam_world[:3, 3]
+        H = self.K @ np.column_stack([R[:, 0], R[:, 1], t])
+        return np.asarray(H / H[2, 2])
+
     def project(self, points_m: np.ndarray) -> np.ndarray:
         """World points (..., 3), metres -> pixels (..., 2), lens distortion included."""
         pc = self.to_camera(points_m)

@@ -1,0 +1,167 @@
+// clothd dashboard: live status over the WebSocket, the annotated MJPEG view, plots, and controls.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const HISTORY = 300;
+const history = { mean: [], worst: [], p50: [], p99: [], features: [] };
+let token = localStorage.getItem("clothd-token") || "";
+let tableToPixel = null; // 3x3 homography, table plane (m) -> image (px)
+let imageSize = [640, 480];
+
+// -- the API ---------------------------------------------------------------------------------------
+
+async function call(method, path, body) {
+  const headers = { "Content-Type": "application/json" };
+  if (token) headers.Authorization = `Bearer ${token}`;
+  const r = await fetch(path, { method, headers, body: body ? JSON.stringify(body) : undefined });
+  if (r.status === 401) {
+    $("token-box").hidden = false;
+    throw new Error("this daemon needs a token");
+  }
+  if (!r.ok) {
+    const detail = await r.json().catch(() => ({}));
+    const text = Array.isArray(detail.detail) ? detail.detail.map((d) => d.msg).join("; ") : detail.detail;
+    throw new Error(text || `${r.status}`);
+  }
+  return r.json();
+}
+
+function say(text) { $("message").textContent = text; }
+
+async function act(method, path, body) {
+  try { const r = await call(method, path, body); say(r.detail || ""); } catch (e) { say(e.message); }
+}
+
+// -- live status -----------------------------------------------------------------------------------
+
+function pill(el, text, cls) { el.textContent = text; el.className = `pill ${cls}`; }
+function fmt(v, digits = 4) { return v === null || v === undefined ? "–" : Number(v).toFixed(digits); }
+function push(key, v) { const a = history[key]; a.push(v); if (a.length > HISTORY) a.shift(); }
+
+function show(s) {
+  const stateCls = s.state === "tracking" ? "ok" : s.state === "starting" ? "warn" : "bad";
+  pill($("state"), s.state, stateCls);
+  pill($("mode"), `mode ${s.mode}`, s.mode === "idle" ? "" : "ok");
+  pill($("camera"), `camera ${s.camera.state}`, s.camera.healthy ? "ok" : "bad");
+  pill($("link"), `link ${s.link.state}`, s.link.state === "connected" ? "ok" : "bad");
+  $("estop").classList.toggle("latched", s.estop);
+  const p = s.pose || {};
+  $("pose-x").textContent = fmt(p.x_m); $("pose-y").textContent = fmt(p.y_m);
+  $("pose-t").textContent = p.theta_rad === undefined ? "–" : `${fmt(p.theta_rad * 180 / Math.PI, 2)}°`;
+  const sp = s.setpoint || {};
+  $("sp-x").textContent = fmt(sp.x_m); $("sp-y").textContent = fmt(sp.y_m);
+  $("sp-t").textContent = sp.theta_rad === undefined ? "–" : `${fmt(sp.theta_rad * 180 / Math.PI, 2)}°`;
+  $("features").textContent = s.features;
+  $("residual").textContent = `${fmt(s.residual.mean_px, 2)} / ${fmt(s.residual.worst_px, 2)} px`;
+  const tick = s.timing.stages.compute || {};
+  $("missed").textContent = s.timing.missed_ticks;
+  const c = s.link.counters;
+  $("counters").textContent = `sent ${c.sent} · acked ${c.acked} · retransmitted ${c.retransmitted} · ` +
+    `invalid ${c.invalid} · faults ${c.faults} · reconnects ${c.reconnects} · RTT p50 ${fmt(c.rtt_p50_ms, 1)} ms`;
+  push("mean", s.residual.mean_px); push("worst", s.residual.worst_px);
+  push("p50", tick.p50_ms); push("p99", tick.p99_ms); push("features", s.features);
+  plot($("plot-residual"), [[history.mean, "#4fc3f7"], [history.worst, "#ffb74d"]]);
+  plot($("plot-tick"), [[history.p50, "#4fc3f7"], [history.p99, "#ffb74d"]]);
+  plot($("plot-features"), [[history.features, "#9ccc65"]]);
+}
+
+function plot(canvas, series) {
+  const g = canvas.getContext("2d");
+  const w = canvas.width, h = canvas.height;
+  g.clearRect(0, 0, w, h);
+  const values = series.flatMap(([a]) => a.filter((v) => v !== null && v !== undefined));
+  const top = Math.max(1e-9, ...values) * 1.1;
+  g.fillStyle = "#778"; g.font = "10px sans-serif"; g.fillText(top.toPrecision(3), 2, 10);
+  for (const [a, colour] of series) {
+    g.strokeStyle = colour; g.beginPath();
+    a.forEach((v, i) => {
+      if (v === null || v === undefined) return;
+      const x = (i / (HISTORY - 1)) * w, y = h - (v / top) * h;
+      i === 0 ? g.moveTo(x, y) : g.lineTo(x, y);
+    });
+    g.stroke();
+  }
+}
+
+let backoff = 1000;
+function connect() {
+  const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/api/v1/stream?hz=10`);
+  ws.onopen = () => { backoff = 1000; pill($("stream"), "stream live", "ok"); };
+  ws.onmessage = (ev) => show(JSON.parse(ev.data));
+  ws.onclose = () => {
+    pill($("stream"), "stream reconnecting", "bad");
+    setTimeout(connect, backoff);
+    backoff = Math.min(backoff * 2, 5000);
+  };
+}
+
+// The MJPEG view reconnects by itself when its stream drops.
+$("video").onerror = () => setTimeout(() => { $("video").src = `/api/v1/view.mjpg?t=${Date.now()}`; }, 1000);
+
+// -- controls --------------------------------------------------------------------------------------
+
+function estop() { act("POST", "/api/v1/estop"); }
+$("estop").onclick = estop;
+document.addEventListener("keydown", (ev) => { if (ev.key === "Escape") { ev.preventDefault(); estop(); } });
+$("estop-clear").onclick = () => act("POST", "/api/v1/estop/clear");
+$("reset").onclick = () => act("POST", "/api/v1/reset");
+$("token-save").onclick = () => {
+  token = $("token").value; localStorage.setItem("clothd-token", token); $("token-box").hidden = true; say("");
+};
+$("setpoint-form").onsubmit = (ev) => {
+  ev.preventDefault();
+  const mode = $("mode-select").value;
+  const body = mode === "move"
+    ? { mode, x_m: Number($("in-x").value), y_m: Number($("in-y").value), theta_rad: Number($("in-t").value) * Math.PI / 180 }
+    : { mode };
+  act("PUT", "/api/v1/setpoint", body);
+};
+
+// -- dragging a target pose on the video -----------------------------------------------------------
+
+function invert3(m) {
+  const [a, b, c] = m[0], [d, e, f] = m[1], [g, h, i] = m[2];
+  const A = e * i - f * h, B = -(d * i - f * g), C = d * h - e * g;
+  const det = a * A + b * B + c * C;
+  return [[A / det, -(b * i - c * h) / det, (b * f - c * e) / det],
+          [B / det, (a * i - c * g) / det, -(a * f - c * d) / det],
+          [C / det, -(a * h - b * g) / det, (a * e - b * d) / det]];
+}
+
+function toTable(px) {
+  const m = invert3(tableToPixel);
+  const v = [0, 1, 2].map((r) => m[r][0] * px[0] + m[r][1] * px[1] + m[r][2]);
+  return [v[0] / v[2], v[1] / v[2]];
+}
+
+function imagePoint(ev) {
+  const box = $("drag").getBoundingClientRect();
+  return [(ev.clientX - box.left) / box.width * imageSize[0], (ev.clientY - box.top) / box.height * imageSize[1]];
+}
+
+let dragFrom = null;
+const drag = $("drag");
+drag.onpointerdown = (ev) => { if (tableToPixel) { dragFrom = imagePoint(ev); drag.setPointerCapture(ev.pointerId); } };
+drag.onpointermove = (ev) => {
+  const g = drag.getContext("2d");
+  drag.width = imageSize[0]; drag.height = imageSize[1];
+  if (!dragFrom) return;
+  const to = imagePoint(ev);
+  g.strokeStyle = "#ff80ff"; g.lineWidth = 3;
+  g.beginPath(); g.moveTo(...dragFrom); g.lineTo(...to); g.stroke();
+};
+drag.onpointerup = (ev) => {
+  if (!dragFrom) return;
+  const to = imagePoint(ev);
+  const a = toTable(dragFrom), b = toTable(to);
+  const moved = Math.hypot(to[0] - dragFrom[0], to[1] - dragFrom[1]) > 8;
+  const theta = moved ? Math.atan2(b[1] - a[1], b[0] - a[0]) : Number($("in-t").value) * Math.PI / 180;
+  dragFrom = null;
+  drag.getContext("2d").clearRect(0, 0, drag.width, drag.height);
+  $("mode-select").value = "move";
+  $("in-x").value = a[0].toFixed(4); $("in-y").value = a[1].toFixed(4); $("in-t").value = (theta * 180 / Math.PI).toFixed(1);
+  act("PUT", "/api/v1/setpoint", { mode: "move", x_m: a[0], y_m: a[1], theta_rad: theta });
+};
+
+call("GET", "/api/v1/camera").then((c) => { tableToPixel = c.table_to_pixel; imageSize = [c.width, c.height]; });
+connect();
