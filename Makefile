@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test lint venv clean
+.PHONY: run test lint venv clean browser
 
 venv: $(STAMP)
 
@@ -23,7 +23,13 @@ lint: $(STAMP)
 	$(BIN)/ruff check clothd hwsim tests
 	$(BIN)/mypy
 
-test: lint
+# The dashboard's tests drive Debian's Chromium (no browser download); CI runs as root and installs it.
+browser:
+	@command -v chromium >/dev/null || { \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -q && apt-get install -y -q chromium; \
+	  else echo "make test: the browser tests need Debian's chromium: sudo apt-get install chromium"; exit 1; fi; }
+
+test: lint browser
 	$(BIN)/pytest -q
 
 clean:

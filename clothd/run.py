@@ -146,6 +146,7 @@ def run(cfg: Config, sim_scenario: str | None) -> int:
             cfg = sim_config(cfg, sim.ready)
         base = f"http://{cfg.api.host}:{cfg.api.port}"
         urls = (
+            f"clothd: dashboard {base}/\n"
             f"clothd: status {base}/api/v1/status\n"
             f"clothd: annotated view {base}/api/v1/view.mjpg\n"
             f"clothd: API docs {base}/docs"

@@ -9,126 +9,22 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import json
 import math
 import os
 import signal
 import socket
-import subprocess
-import sys
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import httpx
 import pytest
 import websockets
-import yaml
+from live_cell import Cell, Daemon, serve_cell, start_daemon, wait
 
 pytestmark = pytest.mark.slow
 TICK_S = 1 / 30
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-def _wait(check: Callable[[], bool], timeout_s: float, what: str, every_s: float = 0.05) -> float:
-    """Poll until check() holds; returns the seconds it took."""
-    t0 = time.monotonic()
-    while not check():
-        if time.monotonic() - t0 > timeout_s:
-            raise AssertionError(f"{what}: not within {timeout_s} s")
-        time.sleep(every_s)
-    return time.monotonic() - t0
-
-
-@dataclass
-class Cell:
-    http: str
-    ready: dict[str, Any]
-
-    def truth(self) -> dict[str, Any]:
-        return dict(httpx.get(f"{self.http}/truth", timeout=5).json())
-
-    def post(self, path: str) -> None:
-        httpx.post(f"{self.http}{path}", timeout=5).raise_for_status()
-
-
-@dataclass
-class Daemon:
-    base: str
-    proc: subprocess.Popen[bytes]
-
-    def status(self) -> dict[str, Any]:
-        return dict(httpx.get(f"{self.base}/api/v1/status", timeout=5).json())
-
-    def put_setpoint(self, body: dict[str, Any]) -> None:
-        httpx.put(f"{self.base}/api/v1/setpoint", json=body, timeout=5).raise_for_status()
-
-    def post(self, path: str) -> None:
-        httpx.post(f"{self.base}/api/v1{path}", timeout=5).raise_for_status()
-
-    def stop(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
-
-
-@pytest.fixture(scope="module")
-def cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cell]:
-    state = tmp_path_factory.mktemp("cell")
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "hwsim.cli", "serve", "--state-dir", str(state)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.DEVNULL,
-    )
-    try:
-        assert proc.stdout is not None
-        line = b""
-        while not line.startswith(b"{"):  # Taichi announces itself on stdout first
-            line = proc.stdout.readline()
-            assert line, "hwsim serve exited before it was ready"
-        ready = json.loads(line)
-        yield Cell(str(ready["http"]), ready)
-    finally:
-        proc.terminate()
-        proc.wait(timeout=20)
-
-
-def start_daemon(cell: Cell, tmp_path: Path, env: dict[str, str] | None = None) -> Daemon:
-    port = _free_port()
-    cfg = {
-        "camera": {"source": cell.ready["video_url"], "calibration": cell.ready["camera_json"]},
-        "stepper": {"port": cell.ready["serial"]},
-        "api": {"port": port},
-    }
-    path = tmp_path / f"clothd-{port}.yaml"
-    path.write_text(yaml.safe_dump(cfg))
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "clothd.cli", "run", "--config", str(path)],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        env={**os.environ, **(env or {})},
-    )
-    d = Daemon(f"http://127.0.0.1:{port}", proc)
-
-    def tracking() -> bool:
-        with contextlib.suppress(httpx.HTTPError):
-            s = d.status()
-            return s["state"] == "tracking" and s["link"]["state"] == "connected"
-        return False
-
-    _wait(tracking, 120, "daemon tracking the cloth with the link up", every_s=0.3)
-    return d
+cell = pytest.fixture(scope="module", name="cell")(serve_cell)
 
 
 @pytest.fixture(scope="module")
@@ -166,7 +62,7 @@ def test_move_reaches_its_setpoint(cell: Cell, daemon: Daemon) -> None:
         return dist < 0.005 and ang < math.radians(1.0)
 
     try:
-        took = _wait(there, 15, "true pose within 5 mm and 1 deg of the setpoint", every_s=0.1)
+        took = wait(there, 15, "true pose within 5 mm and 1 deg of the setpoint", every_s=0.1)
     except AssertionError:
         s = daemon.status()
         dist, ang = seen[-1]
@@ -180,11 +76,11 @@ def test_move_reaches_its_setpoint(cell: Cell, daemon: Daemon) -> None:
 
 def test_estop_stops_every_module_at_once(cell: Cell, daemon: Daemon) -> None:
     daemon.put_setpoint({"mode": "move", "x_m": -0.05, "y_m": 0.0, "theta_rad": 0.0})
-    _wait(lambda: max(map(abs, cell.truth()["module_speed_m_s"])) > 0.02, 5, "modules running")
+    wait(lambda: max(map(abs, cell.truth()["module_speed_m_s"])) > 0.02, 5, "modules running")
     commands_before = cell.truth()["commands_applied"]
     t0 = time.monotonic()
     daemon.post("/estop")
-    _wait(lambda: cell.truth()["estopped"], 2, "controller e-stop latched", every_s=0.005)
+    wait(lambda: cell.truth()["estopped"], 2, "controller e-stop latched", every_s=0.005)
     truth = cell.truth()
     assert not any(truth["module_speed_m_s"]), "every module stopped"
     # How fast is a benchmark figure (clothd bench loop: estop_ms); here, for the record:
@@ -199,7 +95,7 @@ def test_estop_stops_every_module_at_once(cell: Cell, daemon: Daemon) -> None:
     s = daemon.status()
     assert s["estop"] and s["mode"] == "idle" and s["link"]["controller_estop"]
     daemon.post("/estop/clear")
-    _wait(lambda: not cell.truth()["estopped"], 2, "e-stop cleared")
+    wait(lambda: not cell.truth()["estopped"], 2, "e-stop cleared")
 
 
 def test_a_stalled_websocket_client_does_not_slow_the_loop(daemon: Daemon) -> None:
@@ -230,14 +126,14 @@ def test_a_stalled_websocket_client_does_not_slow_the_loop(daemon: Daemon) -> No
 def test_unplugged_serial_and_video_are_survived(cell: Cell, daemon: Daemon) -> None:
     cell.post("/unplug?seconds=1.5")
     cell.post("/camera/drop?seconds=1.5")
-    _wait(lambda: daemon.status()["link"]["state"] != "connected", 5, "link loss noticed")
-    _wait(lambda: daemon.status()["state"] == "camera_lost", 5, "camera loss noticed")
+    wait(lambda: daemon.status()["link"]["state"] != "connected", 5, "link loss noticed")
+    wait(lambda: daemon.status()["state"] == "camera_lost", 5, "camera loss noticed")
 
     def recovered() -> bool:
         s = daemon.status()
         return s["state"] == "tracking" and s["link"]["state"] == "connected"
 
-    took = _wait(recovered, 30, "tracking again with the link up", every_s=0.2)
+    took = wait(recovered, 30, "tracking again with the link up", every_s=0.2)
     s = daemon.status()
     reconnects = s["link"]["counters"]["reconnects"]
     print(f"recovered {took:.1f} s after the losses were seen; link reconnects {reconnects}")
@@ -252,10 +148,10 @@ def test_the_controller_watchdog_stops_the_modules_after_kill_9(
     victim = start_daemon(cell, tmp_path)
     try:
         victim.put_setpoint({"mode": "move", "x_m": 0.05, "y_m": -0.03, "theta_rad": -0.2})
-        _wait(lambda: max(map(abs, cell.truth()["module_speed_m_s"])) > 0.02, 5, "modules running")
+        wait(lambda: max(map(abs, cell.truth()["module_speed_m_s"])) > 0.02, 5, "modules running")
         os.kill(victim.proc.pid, signal.SIGKILL)
         victim.proc.wait()
-        took = _wait(lambda: not any(cell.truth()["module_speed_m_s"]), 2, "every module stopped")
+        took = wait(lambda: not any(cell.truth()["module_speed_m_s"]), 2, "every module stopped")
         assert cell.truth()["watchdog_tripped"]
         print(f"modules stopped {took * 1e3:.0f} ms after kill -9 (watchdog 250 ms, then the ramp)")
     finally:

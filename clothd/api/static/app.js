@@ -3,7 +3,7 @@
 
 const $ = (id) => document.getElementById(id);
 const HISTORY = 300;
-const history = { mean: [], worst: [], p50: [], p99: [], features: [] };
+const samples = { mean: [], worst: [], p50: [], p99: [], features: [] };
 let token = localStorage.getItem("clothd-token") || "";
 let tableToPixel = null; // 3x3 homography, table plane (m) -> image (px)
 let imageSize = [640, 480];
@@ -36,7 +36,7 @@ async function act(method, path, body) {
 
 function pill(el, text, cls) { el.textContent = text; el.className = `pill ${cls}`; }
 function fmt(v, digits = 4) { return v === null || v === undefined ? "–" : Number(v).toFixed(digits); }
-function push(key, v) { const a = history[key]; a.push(v); if (a.length > HISTORY) a.shift(); }
+function push(key, v) { const a = samples[key]; a.push(v); if (a.length > HISTORY) a.shift(); }
 
 function show(s) {
   const stateCls = s.state === "tracking" ? "ok" : s.state === "starting" ? "warn" : "bad";
@@ -60,9 +60,9 @@ function show(s) {
     `invalid ${c.invalid} · faults ${c.faults} · reconnects ${c.reconnects} · RTT p50 ${fmt(c.rtt_p50_ms, 1)} ms`;
   push("mean", s.residual.mean_px); push("worst", s.residual.worst_px);
   push("p50", tick.p50_ms); push("p99", tick.p99_ms); push("features", s.features);
-  plot($("plot-residual"), [[history.mean, "#4fc3f7"], [history.worst, "#ffb74d"]]);
-  plot($("plot-tick"), [[history.p50, "#4fc3f7"], [history.p99, "#ffb74d"]]);
-  plot($("plot-features"), [[history.features, "#9ccc65"]]);
+  plot($("plot-residual"), [[samples.mean, "#4fc3f7"], [samples.worst, "#ffb74d"]]);
+  plot($("plot-tick"), [[samples.p50, "#4fc3f7"], [samples.p99, "#ffb74d"]]);
+  plot($("plot-features"), [[samples.features, "#9ccc65"]]);
 }
 
 function plot(canvas, series) {
