@@ -37,7 +37,7 @@ OFFSET = (0.10, 0.0, math.radians(30.0))
 STATUS_RATE_HZ = 50.0
 
 
-def _free_port() -> int:
+def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
@@ -275,7 +275,7 @@ async def measure_load(client: httpx.AsyncClient, base: str, load_s: float) -> d
 
 
 async def _bench(config: Path | None, run_s: float, load_s: float, hold_s: float) -> dict[str, Any]:
-    d = DaemonProcess(config, _free_port())
+    d = DaemonProcess(config, free_port())
     try:
         await asyncio.get_running_loop().run_in_executor(None, d.wait_ready)
         async with httpx.AsyncClient(timeout=10.0) as client:

@@ -71,6 +71,7 @@ class Daemon:
         self.view_jpeg: bytes | None = None
         self.view_index = 0
         self.view_period_s = 1.0 / cfg.api.view_fps
+        self.sim_truth_url: str | None = None  # hwsim's ground truth, when running against it
         self._last_view_s = -np.inf
         self._period_s = 1.0 / cfg.loop.tick_hz
         self._conn: Any = None

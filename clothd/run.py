@@ -111,8 +111,9 @@ class _Server(uvicorn.Server):
         yield
 
 
-async def serve(cfg: Config, on_ready: str | None = None) -> None:
+async def serve(cfg: Config, on_ready: str | None = None, sim_truth_url: str | None = None) -> None:
     daemon = Daemon(cfg, camera_model_for(cfg))
+    daemon.sim_truth_url = sim_truth_url
     app = create_app(daemon, cfg.api.token)
     server = _Server(uvicorn.Config(app, host=cfg.api.host, port=cfg.api.port, log_level="warning"))
     loop = asyncio.get_running_loop()
@@ -153,7 +154,7 @@ def run(cfg: Config, sim_scenario: str | None) -> int:
         )
         if sim is not None:
             urls += f"\nclothd: simulated cell truth {sim.ready['truth_url']}"
-        asyncio.run(serve(cfg, urls))
+        asyncio.run(serve(cfg, urls, None if sim is None else str(sim.ready["truth_url"])))
     finally:
         if sim is not None:
             sim.stop()

@@ -1,5 +1,5 @@
 """The dashboard in a real headless Chromium (Debian's `chromium`, driven by Playwright's Python package;
-no browser download) against the daemon and `hwsim serve` as separate processes."""
+no browser download) against the daemon in sim mode (`clothd run --sim`, hwsim serve as its child)."""
 
 from __future__ import annotations
 
@@ -8,23 +8,43 @@ import shutil
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
+import httpx
 import pytest
-from live_cell import Cell, Daemon, serve_cell, start_daemon, wait
+from live_cell import wait
 from playwright.sync_api import Browser, Page, sync_playwright
+
+from clothd.bench_loop import DaemonProcess, free_port
 
 pytestmark = pytest.mark.slow
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 ARTIFACTS = Path(__file__).resolve().parent.parent / "out" / "test-artifacts"
 
-cell = pytest.fixture(scope="module", name="cell")(serve_cell)
+
+class Sim:
+    """`clothd run --sim`: the daemon's status and hwsim's truth."""
+
+    def __init__(self, d: DaemonProcess) -> None:
+        self.base, self.truth_url = d.base, d.truth_url
+
+    def status(self) -> dict[str, Any]:
+        return dict(httpx.get(f"{self.base}/api/v1/status", timeout=5).json())
+
+    def truth(self) -> dict[str, Any]:
+        return dict(httpx.get(self.truth_url, timeout=5).json())
 
 
 @pytest.fixture(scope="module")
-def daemon(cell: Cell, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    d = start_daemon(cell, tmp_path_factory.mktemp("daemon"))
-    yield d
-    d.stop()
+def sim() -> Iterator[Sim]:
+    d = DaemonProcess(None, free_port())
+    try:
+        d.wait_ready()
+        s = Sim(d)
+        wait(lambda: s.status()["state"] == "tracking", 60, "tracking")
+        yield s
+    finally:
+        d.stop()
 
 
 @pytest.fixture(scope="module")
@@ -36,9 +56,9 @@ def browser() -> Iterator[Browser]:
 
 
 @pytest.fixture(scope="module")
-def page(browser: Browser, daemon: Daemon) -> Iterator[Page]:
+def page(browser: Browser, sim: Sim) -> Iterator[Page]:
     pg = browser.new_page(viewport={"width": 1280, "height": 720})
-    pg.goto(daemon.base + "/")
+    pg.goto(sim.base + "/")
     yield pg
     pg.close()
 
@@ -77,32 +97,46 @@ def test_video_and_plots_update(page: Page) -> None:
     assert drawn
 
 
-def test_a_setpoint_set_in_the_page_reaches_the_daemon(page: Page, daemon: Daemon) -> None:
+def test_a_setpoint_set_in_the_page_reaches_the_daemon(page: Page, sim: Sim) -> None:
     page.select_option("#mode-select", "move")
     page.fill("#in-x", "0.03")
     page.fill("#in-y", "-0.02")
     page.fill("#in-t", "10")
     page.click("#apply")
-    wait(lambda: daemon.status()["mode"] == "move", 5, "mode move")
-    sp = daemon.status()["setpoint"]
+    wait(lambda: sim.status()["mode"] == "move", 5, "mode move")
+    sp = sim.status()["setpoint"]
     assert math.isclose(sp["x_m"], 0.03) and math.isclose(sp["y_m"], -0.02)
     assert math.isclose(sp["theta_rad"], math.radians(10), rel_tol=1e-6)
 
 
-def test_the_estop_button_stops_the_modules(page: Page, daemon: Daemon, cell: Cell) -> None:
+def test_the_estop_button_stops_the_modules(page: Page, sim: Sim) -> None:
     page.select_option("#mode-select", "move")
     page.fill("#in-x", "-0.05")
     page.fill("#in-y", "0.03")
     page.fill("#in-t", "-15")
     page.click("#apply")
-    wait(lambda: max(map(abs, cell.truth()["module_speed_m_s"])) > 0.01, 10, "modules running")
+    wait(lambda: max(map(abs, sim.truth()["module_speed_m_s"])) > 0.01, 10, "modules running")
     page.click("#estop")
-    wait(lambda: cell.truth()["estopped"], 5, "the controller's e-stop")
-    assert not any(cell.truth()["module_speed_m_s"])
+    wait(lambda: sim.truth()["estopped"], 5, "the controller's e-stop")
+    assert not any(sim.truth()["module_speed_m_s"])
     page.wait_for_function("document.getElementById('estop').classList.contains('latched')", timeout=5000)
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(ARTIFACTS / "dashboard.png"))
     assert (ARTIFACTS / "dashboard.png").stat().st_size > 10_000
     page.click("#estop-clear")
-    wait(lambda: not cell.truth()["estopped"], 5, "e-stop cleared")
+    wait(lambda: not sim.truth()["estopped"], 5, "e-stop cleared")
     time.sleep(0.1)
+
+
+def test_the_truth_overlay_draws_hwsims_cloth(page: Page) -> None:
+    page.wait_for_selector("#truth-toggle:not([hidden])", timeout=10000)
+    page.check("#show-truth")
+    yellow = (
+        "() => { const c = document.getElementById('truth'); if (!c.width) return 0;"
+        " const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data; let n = 0;"
+        " for (let i = 0; i < d.length; i += 4)"
+        " if (d[i] > 200 && d[i + 1] > 200 && d[i + 2] < 100) n++; return n; }"
+    )
+    wait(lambda: page.evaluate(yellow) > 500, 5, "truth nodes drawn")
+    page.uncheck("#show-truth")
+    wait(lambda: page.evaluate(yellow) == 0, 5, "overlay cleared")

@@ -13,6 +13,7 @@ from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Annotated, Any
 
+import httpx
 import numpy as np
 from fastapi import APIRouter, Depends, FastAPI, Header, HTTPException, Query, Request, WebSocket
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, Response, StreamingResponse
@@ -23,7 +24,7 @@ from starlette.websockets import WebSocketDisconnect
 from clothd.api.metrics import registry_for
 from clothd.api.schemas import CameraInfo, ErrorResponse, MoveSetpoint, Ok, SetpointRequest, StatusResponse
 from clothd.daemon import Daemon
-from clothd.errors import ClothdError, RequestError
+from clothd.errors import ClothdError, HardwareError, RequestError
 
 ERROR_DOC: dict[int | str, dict[str, Any]] = {
     400: {"model": ErrorResponse, "description": "a body that is not JSON"},
@@ -98,6 +99,19 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
         """The image size and the table plane's homography to pixels, for picking poses on the view."""
         cam = daemon.camera_model
         return CameraInfo(width=cam.width, height=cam.height, table_to_pixel=cam.table_homography().tolist())
+
+    @api.get("/sim/truth", responses={404: {"model": ErrorResponse}})
+    async def sim_truth() -> JSONResponse:
+        """hwsim's ground truth (pose, module states, cloth nodes), relayed for the dashboard's truth
+        overlay; 404 unless the daemon runs against the simulated cell."""
+        if daemon.sim_truth_url is None:
+            return JSONResponse({"detail": "not running against hwsim (clothd run --sim)"}, status_code=404)
+        try:
+            async with httpx.AsyncClient(timeout=1.0) as client:
+                r = await client.get(daemon.sim_truth_url, params={"nodes": 1})
+            return JSONResponse(r.json())
+        except (httpx.HTTPError, ValueError) as err:
+            raise HardwareError(f"hwsim's truth is not answering: {err}") from err
 
     @api.get("/view.mjpg", response_class=StreamingResponse)
     async def view_mjpg() -> StreamingResponse:

@@ -163,5 +163,28 @@ drag.onpointerup = (ev) => {
   act("PUT", "/api/v1/setpoint", { mode: "move", x_m: a[0], y_m: a[1], theta_rad: theta });
 };
 
+// -- hwsim's ground truth over the video (sim mode) -------------------------------------------------
+
+function toPixel(x, y) {
+  const m = tableToPixel;
+  const v = [0, 1, 2].map((r) => m[r][0] * x + m[r][1] * y + m[r][2]);
+  return [v[0] / v[2], v[1] / v[2]];
+}
+
+async function drawTruth() {
+  const canvas = $("truth");
+  canvas.width = imageSize[0]; canvas.height = imageSize[1];
+  if (!$("show-truth").checked || !tableToPixel) return;
+  try {
+    const t = await call("GET", "/api/v1/sim/truth");
+    const g = canvas.getContext("2d");
+    g.fillStyle = "#ffeb3b";
+    for (const row of t.nodes_m) for (const [x, y] of row) { const [u, v] = toPixel(x, y); g.fillRect(u - 1, v - 1, 2, 2); }
+  } catch (e) { /* the toggle stays; the next poll tries again */ }
+}
+
+fetch("/api/v1/sim/truth").then((r) => { if (r.ok) $("truth-toggle").hidden = false; });
+setInterval(drawTruth, 200);
+
 call("GET", "/api/v1/camera").then((c) => { tableToPixel = c.table_to_pixel; imageSize = [c.width, c.height]; });
 connect();
