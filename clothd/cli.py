@@ -26,7 +26,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     api = cfg.api.model_copy(
         update={k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
     )
-    return run(cfg.model_copy(update={"api": api}), args.sim)
+    return run(cfg.model_copy(update={"api": api}), args.sim, args.record)
 
 
 def _cmd_bench_loop(args: argparse.Namespace) -> int:
@@ -132,6 +132,9 @@ def build_parser() -> argparse.ArgumentParser:
         const="cell",
         metavar="SCENARIO",
         help="start hwsim serve (default scenario: cell) and run against it",
+    )
+    rn.add_argument(
+        "--record", type=Path, metavar="DIR", help="record the session into DIR (a new directory)"
     )
     rn.set_defaults(func=_cmd_run)
     r = sub.add_parser("replay", help="track recorded footage offline")

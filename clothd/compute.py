@@ -13,9 +13,11 @@ death of the process itself as a fault too, and stops the modules.
 from __future__ import annotations
 
 import logging
+import signal
 import time
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
+from pathlib import Path
 
 import cv2
 
@@ -26,6 +28,7 @@ from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.tracker import Tracker
 from clothd.drivers.camera import CameraSource
+from clothd.recorder import Recorder, RecordingStatus
 from clothd.taichi_runtime import start_taichi
 from clothd.view import ViewRenderer
 
@@ -38,6 +41,8 @@ class TickRequest:
     estopped: bool
     reset: bool
     want_view: bool  # draw the annotated view this tick
+    record_start: Path | None = None  # begin recording into this new directory
+    record_stop: bool = False
 
 
 @dataclass(frozen=True)
@@ -58,6 +63,7 @@ class TickReply:
     camera: CameraState
     timing_s: dict[str, float] = field(default_factory=dict)
     view_jpeg: bytes | None = None
+    recording: RecordingStatus | None = None
 
 
 def layout_of(cfg: Config) -> ConveyorLayout:
@@ -70,7 +76,10 @@ class Compute:
 
     def __init__(self, cfg: Config, camera_model: CameraModel) -> None:
         self.period_s = 1.0 / cfg.loop.tick_hz
-        layout = layout_of(cfg)
+        self.max_record_bytes = cfg.recording.max_bytes
+        self.camera_model = camera_model
+        self.layout = layout = layout_of(cfg)
+        self.recorder: Recorder | None = None
         self.camera = CameraSource(cfg.camera)
         self.tracker = Tracker(cfg.tracker, camera_model, layout, clock=time.perf_counter)
         self.controller = PoseController(cfg.control, cfg.cell, layout.centres_m)
@@ -83,6 +92,8 @@ class Compute:
         self.camera.start()
 
     def close(self) -> None:
+        if self.recorder is not None:
+            self.recorder.stop("daemon stopped")
         self.camera.stop()
 
     def camera_state(self) -> CameraState:
@@ -98,6 +109,7 @@ class Compute:
             self.tracker.reset()
             self.controller.reset()
             self._estimate = None
+        self._record_requests(req)
         frame = self.camera.latest()
         timing: dict[str, float] = {}
         new_frame = frame is not None and frame.index != self._last_frame_index
@@ -107,6 +119,11 @@ class Compute:
             self._estimate = est
             self._last_frame_index = frame.index
             timing.update({f"tracker_{k}": v for k, v in est.timing_s.items()})
+            if self.recorder is not None:
+                t_rec = time.perf_counter()
+                # The commands in force while this frame was captured: replay feeds them back the same way.
+                self.recorder.add(frame.image, frame.t_mono_s, self._commands_in_force, est)
+                timing["record"] = time.perf_counter() - t_rec
         t1 = time.perf_counter()
         state, commands = self._control(frame is not None, est, req)
         self._commands_in_force = commands
@@ -116,7 +133,23 @@ class Compute:
         if req.want_view and frame is not None:
             jpeg = self.view.render(frame.image, est, self.tracker, req.setpoint)
         frame_t = frame.t_mono_s if frame is not None else None
-        return TickReply(state, est, commands, new_frame, frame_t, self.camera_state(), timing, jpeg)
+        recording = None if self.recorder is None else self.recorder.status()
+        return TickReply(
+            state, est, commands, new_frame, frame_t, self.camera_state(), timing, jpeg, recording
+        )
+
+    def _record_requests(self, req: TickRequest) -> None:
+        if req.record_stop and self.recorder is not None:
+            self.recorder.stop()
+        if req.record_start is not None:
+            if self.recorder is not None:
+                self.recorder.stop("a new recording started")
+            try:
+                self.recorder = Recorder(
+                    req.record_start, self.camera_model, self.layout, self.max_record_bytes, time.monotonic()
+                )
+            except OSError as err:
+                log.warning("cannot start recording in %s: %s", req.record_start, err)
 
     def _control(
         self, have_frame: bool, est: Estimate | None, req: TickRequest
@@ -135,6 +168,10 @@ class Compute:
 
 def serve_compute(conn: Connection, cfg: Config, camera_model: CameraModel) -> None:
     """The compute process's main: answer TickRequests until None arrives or the pipe closes."""
+    # Signals are the daemon's to handle: it stops the modules, then tells this process to finish
+    # (a terminal's Ctrl-C or systemd's stop reach the whole process group).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     start_taichi(cfg.taichi.arch)
     cv2.setNumThreads(1)

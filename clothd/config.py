@@ -152,6 +152,11 @@ class ApiConfig(_Strict):
     view_fps: float = Field(10.0, gt=0, le=30, description="the annotated MJPEG view's rate")
 
 
+class RecordingConfig(_Strict):
+    dir: Path = Field(Path("recordings"), description="where POST /record/start puts sessions by default")
+    max_bytes: int = Field(2_000_000_000, ge=100_000, le=10**13, description="a recording stops at this size")
+
+
 class Config(_Strict):
     taichi: TaichiConfig = TaichiConfig()
     tracker: TrackerConfig = TrackerConfig()
@@ -161,6 +166,7 @@ class Config(_Strict):
     cell: CellConfig = CellConfig()
     control: ControlConfig = ControlConfig()
     api: ApiConfig = ApiConfig()
+    recording: RecordingConfig = RecordingConfig()
 
 
 def _describe(err: ValidationError, source: str) -> str:

@@ -23,7 +23,8 @@ import os
 import time
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from pathlib import Path
+from typing import Any, NoReturn
 
 import numpy as np
 
@@ -81,6 +82,8 @@ class Daemon:
         self._unsent_frame_t_s: float | None = None  # capture time behind commands not yet sent
         self._commands = ModuleCommands(np.zeros(self.layout.n_modules), np.zeros(self.layout.n_modules))
         self._reset_requested = False
+        self._record_start: Path | None = None
+        self._record_stop = False
         self._stopping = False
         self._ready_sent = False
         self._last_watchdog_s = 0.0
@@ -114,6 +117,28 @@ class Daemon:
         self.link.estop_clear()
         self.estopped = False
         self.publish()
+
+    def start_recording(self, out_dir: Path | None) -> Path:
+        """Record from the next frame into out_dir (a new directory; by default a timestamped one under
+        recording.dir). Returns the directory."""
+        rec = self.latest.recording if self.latest else None
+        if rec is not None and rec.active:
+            raise RequestError(f"already recording into {rec.dir}: stop it first")
+        path = out_dir or self.cfg.recording.dir / time.strftime("%Y%m%d-%H%M%S")
+        try:
+            exists = path.exists()
+        except OSError as err:
+            raise RequestError(f"{path}: not a usable directory name ({err.strerror})") from None
+        if exists:
+            raise RequestError(f"{path} exists: a recording needs a new directory")
+        self._record_start = path
+        return path
+
+    def stop_recording(self) -> None:
+        rec = self.latest.recording if self.latest else None
+        if rec is None or not rec.active:
+            raise RequestError("not recording")
+        self._record_stop = True
 
     def reset(self) -> None:
         """Re-initialise tracking on the next frame; the modules stop meanwhile (setpoint idle)."""
@@ -206,7 +231,12 @@ class Daemon:
         if self._pending is None:
             want_view = self.viewers > 0 and now - self._last_view_s >= self.view_period_s
             reset, self._reset_requested = self._reset_requested, False
-            self._conn.send(TickRequest(self.setpoint, self.estopped, reset, want_view))
+            start, self._record_start = self._record_start, None
+            stop, self._record_stop = self._record_stop, False
+            try:
+                self._conn.send(TickRequest(self.setpoint, self.estopped, reset, want_view, start, stop))
+            except OSError as err:
+                self._compute_died(err)
             self._pending = asyncio.ensure_future(loop.run_in_executor(self._receiver, self._conn.recv))
         budget_s = next_deadline_s - time.monotonic() - SEND_MARGIN_S
         done, _ = await asyncio.wait({self._pending}, timeout=max(0.0, budget_s))
@@ -223,17 +253,21 @@ class Daemon:
             self._unsent_frame_t_s = None
         self.publish()
 
+    def _compute_died(self, err: BaseException) -> NoReturn:
+        """Stop the modules, say so, and end the loop (systemd restarts the service)."""
+        self.link.send_commands(np.zeros(self.layout.n_modules), np.zeros(self.layout.n_modules))
+        self.state = "fault"
+        self.publish()
+        raise HardwareError(
+            f"the compute process died ({err or type(err).__name__}); modules stopped"
+        ) from err
+
     def _use(self, pending: asyncio.Future[TickReply], asked_s: float) -> None:
         """Take a finished compute's reply: its commands go out with this tick."""
         try:
             reply = pending.result()
         except (EOFError, OSError) as err:
-            self.link.send_commands(np.zeros(self.layout.n_modules), np.zeros(self.layout.n_modules))
-            self.state = "fault"
-            self.publish()
-            raise HardwareError(
-                f"the compute process died ({err or type(err).__name__}); modules stopped"
-            ) from err
+            self._compute_died(err)
         self._commands = reply.commands
         if reply.new_frame and reply.frame_t_mono_s is not None:
             self._unsent_frame_t_s = reply.frame_t_mono_s

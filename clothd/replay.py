@@ -116,7 +116,7 @@ def replay(
             video.release()
     end = time.perf_counter()
     wall = end - start
-    _write_estimates(out_dir / "estimates.npz", estimates)
+    write_estimates(out_dir / "estimates.npz", estimates)
     steady_frames = max(len(estimates) - _STARTUP_TICKS, 0)
     result = ReplayResult(
         len(estimates), wall, len(estimates) / footage.fps, end - steady_start, steady_frames / footage.fps
@@ -135,7 +135,7 @@ def _write_overlay(
     video.write(draw_estimate(image, est, mesh_shape, nodes_px))
 
 
-def _write_estimates(path: Path, estimates: list[Estimate]) -> None:
+def write_estimates(path: Path, estimates: list[Estimate]) -> None:
     ids = np.unique(np.concatenate([e.feature_id for e in estimates])) if estimates else np.zeros(0, np.int64)
     col = {int(i): k for k, i in enumerate(ids)}
     F, n = len(estimates), len(ids)

@@ -70,7 +70,9 @@ def start_sim(scenario: str) -> SimCell:
     """Start `hwsim serve` and wait for the line that says where its hardware is."""
     state_dir = Path(tempfile.mkdtemp(prefix="clothd-sim-"))
     cmd = [sys.executable, "-m", "hwsim.cli", "serve", "--scenario", scenario, "--state-dir", str(state_dir)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE)
+    # Its own session: a Ctrl-C in the terminal must not take the cell away before the daemon has
+    # stopped the modules; the daemon stops it last.
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, start_new_session=True)
     assert proc.stdout is not None
     deadline = time.monotonic() + SIM_START_TIMEOUT_S
     while time.monotonic() < deadline:
@@ -111,9 +113,13 @@ class _Server(uvicorn.Server):
         yield
 
 
-async def serve(cfg: Config, on_ready: str | None = None, sim_truth_url: str | None = None) -> None:
+async def serve(
+    cfg: Config, on_ready: str | None = None, sim_truth_url: str | None = None, record_dir: Path | None = None
+) -> None:
     daemon = Daemon(cfg, camera_model_for(cfg))
     daemon.sim_truth_url = sim_truth_url
+    if record_dir is not None:
+        daemon.start_recording(record_dir)
     app = create_app(daemon, cfg.api.token)
     server = _Server(uvicorn.Config(app, host=cfg.api.host, port=cfg.api.port, log_level="warning"))
     loop = asyncio.get_running_loop()
@@ -139,7 +145,7 @@ async def serve(cfg: Config, on_ready: str | None = None, sim_truth_url: str | N
             raise task.exception()  # type: ignore[misc]
 
 
-def run(cfg: Config, sim_scenario: str | None) -> int:
+def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -> int:
     check_exposure(cfg)
     sim = start_sim(sim_scenario) if sim_scenario is not None else None
     try:
@@ -154,7 +160,8 @@ def run(cfg: Config, sim_scenario: str | None) -> int:
         )
         if sim is not None:
             urls += f"\nclothd: simulated cell truth {sim.ready['truth_url']}"
-        asyncio.run(serve(cfg, urls, None if sim is None else str(sim.ready["truth_url"])))
+        truth_url = None if sim is None else str(sim.ready["truth_url"])
+        asyncio.run(serve(cfg, urls, truth_url, record_dir))
     finally:
         if sim is not None:
             sim.stop()

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 import time
+from dataclasses import asdict
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -72,4 +73,5 @@ def build_status(d: Daemon) -> dict[str, Any]:
             "counters": link.counters.snapshot(),
         },
         "faults": list(d.faults),
+        "recording": None if d.latest is None or d.latest.recording is None else asdict(d.latest.recording),
     }

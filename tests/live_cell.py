@@ -63,6 +63,9 @@ class Daemon:
     def post(self, path: str) -> None:
         httpx.post(f"{self.base}/api/v1{path}", timeout=5).raise_for_status()
 
+    def post_json(self, path: str, body: dict[str, Any]) -> None:
+        httpx.post(f"{self.base}/api/v1{path}", json=body, timeout=5).raise_for_status()
+
     def stop(self) -> None:
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
@@ -100,6 +103,7 @@ def start_daemon(cell: Cell, tmp_path: Path, env: dict[str, str] | None = None) 
         "camera": {"source": cell.ready["video_url"], "calibration": cell.ready["camera_json"]},
         "stepper": {"port": cell.ready["serial"]},
         "api": {"port": port},
+        "recording": {"max_bytes": 3_000_000},  # a few frames: recordings in these tests get cut short
     }
     path = tmp_path / f"clothd-{port}.yaml"
     path.write_text(yaml.safe_dump(cfg))

@@ -22,7 +22,15 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.websockets import WebSocketDisconnect
 
 from clothd.api.metrics import registry_for
-from clothd.api.schemas import CameraInfo, ErrorResponse, MoveSetpoint, Ok, SetpointRequest, StatusResponse
+from clothd.api.schemas import (
+    CameraInfo,
+    ErrorResponse,
+    MoveSetpoint,
+    Ok,
+    RecordStart,
+    SetpointRequest,
+    StatusResponse,
+)
 from clothd.daemon import Daemon
 from clothd.errors import ClothdError, HardwareError, RequestError
 
@@ -93,6 +101,17 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
         """Re-initialise tracking from the next frame; the mode becomes idle."""
         daemon.reset()
         return Ok(detail="tracking re-initialises on the next frame")
+
+    @api.post("/record/start", dependencies=guarded, responses=ERROR_DOC)
+    async def record_start(body: RecordStart | None = None) -> Ok:
+        """Record the session (frames, commands, estimates) in the format `clothd replay` reads."""
+        path = daemon.start_recording(Path(body.dir) if body and body.dir else None)
+        return Ok(detail=f"recording into {path}")
+
+    @api.post("/record/stop", dependencies=guarded, responses=ERROR_DOC)
+    async def record_stop() -> Ok:
+        daemon.stop_recording()
+        return Ok(detail="recording stops; estimates.npz is written")
 
     @api.get("/camera", response_model=CameraInfo)
     async def camera() -> CameraInfo:

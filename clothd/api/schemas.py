@@ -111,6 +111,21 @@ class FaultReport(BaseModel):
     text: str
 
 
+class Recording(BaseModel):
+    active: bool
+    dir: str | None
+    frames: int
+    bytes: int
+    max_bytes: int
+    stopped_reason: str | None = Field(description="why it stopped: a request, the size limit, a full disk")
+
+
+class RecordStart(_Strict):
+    dir: str | None = Field(
+        None, min_length=1, max_length=1024, description="a new directory; default: dated"
+    )
+
+
 class StatusResponse(BaseModel):
     t_unix_s: float
     state: str = Field(description="starting | tracking | tracking_lost | camera_lost | fault")
@@ -126,6 +141,7 @@ class StatusResponse(BaseModel):
     camera: CameraState
     link: LinkState
     faults: list[FaultReport]
+    recording: Recording | None
 
 
 class CameraInfo(BaseModel):

@@ -57,6 +57,16 @@ class CameraModel:
         object.__setattr__(self, "dist", dist)
         object.__setattr__(self, "T_cam_world", T)
 
+    def to_json(self) -> dict[str, object]:
+        """camera.json's content (the keys load() reads)."""
+        return {
+            "K": self.K.tolist(),
+            "dist": self.dist.tolist(),
+            "T_cam_world": self.T_cam_world.tolist(),
+            "width": self.width,
+            "height": self.height,
+        }
+
     @classmethod
     def load(cls, path: Path) -> CameraModel:
         """Read camera.json (keys K, dist, T_cam_world, width, height). Any problem -> InputError."""

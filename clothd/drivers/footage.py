@@ -40,16 +40,21 @@ class Footage:
     table_json: Path | None
     commands_csv: Path | None
     _images: tuple[Path, ...] | None  # None for a video
+    _times_s: tuple[float, ...] | None = None  # a live recording's capture times (frames.csv)
+
+    def _t(self, k: int) -> float:
+        return self._times_s[k] if self._times_s is not None else k / self.fps
 
     def frames(self, read_ahead: bool = True) -> Iterator[tuple[float, np.ndarray]]:
-        """(t_s, BGR image) in order; t_s = index / fps. Without read_ahead, image files are decoded on
-        the caller's thread (benchmarks that time the tracker's own stages want the core to themselves)."""
+        """(t_s, BGR image) in order; t_s = index / fps, or the capture time a live recording kept.
+        Without read_ahead, image files are decoded on the caller's thread (benchmarks that time the
+        tracker's own stages want the core to themselves)."""
         if self._images is not None and not read_ahead:
             for k, path in enumerate(self._images):
                 img = cv2.imread(str(path), cv2.IMREAD_COLOR)
                 if img is None:
                     raise InputError(f"{path}: not a readable image")
-                yield k / self.fps, img
+                yield self._t(k), img
             return
         if self._images is not None:
             # Decode a few frames ahead on a second thread (PNG decoding releases the GIL): at 640x480
@@ -69,7 +74,7 @@ class Footage:
                         ahead.append(pool.submit(cv2.imread, str(nxt), cv2.IMREAD_COLOR))
                     if img is None:
                         raise InputError(f"{self._images[k]}: not a readable image")
-                    yield k / self.fps, img
+                    yield self._t(k), img
                     k += 1
             return
         cap = cv2.VideoCapture(str(self.source))
@@ -79,7 +84,7 @@ class Footage:
                 ok, img = cap.read()
                 if not ok:
                     return
-                yield k / self.fps, img
+                yield self._t(k), img
                 k += 1
         finally:
             cap.release()
@@ -89,13 +94,18 @@ def open_footage(source: Path) -> Footage:
     if source.is_dir():
         frames_dir = source / "frames"
         if frames_dir.is_dir():
+            images = _images_in(frames_dir)
+            times = _frame_times(source / "frames.csv")
+            if times is not None:  # cut short: only frames with a capture time count
+                images, times = images[: len(times)], times[: len(images)]
             return Footage(
                 source,
                 _recording_fps(source),
                 _existing(source / "camera.json"),
                 _existing(source / "table.json"),
                 _existing(source / "commands.csv"),
-                _images_in(frames_dir),
+                images,
+                times,
             )
         return Footage(source, DEFAULT_FPS, None, None, None, _images_in(source))
     if not source.exists():
@@ -117,6 +127,18 @@ def _images_in(directory: Path) -> tuple[Path, ...]:
     if not images:
         raise InputError(f"{directory}: no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
     return tuple(images)
+
+
+def _frame_times(path: Path) -> tuple[float, ...] | None:
+    """frames.csv (index, t_s) of a live recording; None when there is none."""
+    if not path.exists():
+        return None
+    try:
+        with path.open(newline="") as f:
+            times = tuple(float(r["t_s"]) for r in csv.DictReader(f))
+    except (OSError, KeyError, ValueError) as err:
+        raise InputError(f"{path}: not a usable frame-time file ({err})") from None
+    return times
 
 
 def _recording_fps(recording: Path) -> float:

@@ -1,0 +1,141 @@
+"""Session recording, in the format `clothd replay` reads (docs/recording-format.md) and writes:
+
+DIR/frames/NNNNNN.png   every new camera frame, lossless
+DIR/frames.csv          index, t_s: each frame's capture time, seconds since the recording began
+DIR/camera.json         the camera model the daemon ran with
+DIR/table.json          the module layout
+DIR/commands.csv        t_s, module, speed_m_s, heading_rad: the commands sent, as they changed
+DIR/estimates.npz       what the tracker believed live (replay's format), written when recording stops
+
+A frame's PNG is written before its frames.csv row, and both files are flushed as they grow, so a
+recording cut short (process killed, disk full, size limit) replays up to its last complete frame.
+Recording stops by itself at `max_bytes` or on any write error, with the reason in its status; the
+loop goes on either way.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import cv2
+import numpy as np
+
+from clothd.core.camera_model import CameraModel
+from clothd.core.conveyor import ConveyorLayout
+from clothd.core.messages import Estimate, ModuleCommands
+from clothd.replay import write_estimates
+
+log = logging.getLogger(__name__)
+_PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+
+
+@dataclass(frozen=True)
+class RecordingStatus:
+    active: bool
+    dir: str | None
+    frames: int
+    bytes: int
+    max_bytes: int
+    stopped_reason: str | None
+
+
+class Recorder:
+    def __init__(
+        self, out_dir: Path, camera: CameraModel, layout: ConveyorLayout, max_bytes: int, t0_mono_s: float
+    ) -> None:
+        self.dir = out_dir
+        self.max_bytes = max_bytes
+        self.t0_mono_s = t0_mono_s
+        self.frames = 0
+        self.bytes = 0
+        self.active = True
+        self.stopped_reason: str | None = None
+        self._estimates: list[Estimate] = []
+        self._last_cmd: ModuleCommands | None = None
+        (out_dir / "frames").mkdir(parents=True, exist_ok=False)
+        _write_json(out_dir / "camera.json", camera.to_json())
+        centres = layout.centres_m.tolist()
+        _write_json(
+            out_dir / "table.json",
+            {
+                "modules_x": layout.modules_x,
+                "modules_y": layout.modules_y,
+                "pitch_m": layout.pitch_m,
+                "module_size_m": layout.belt_size_m,
+                "centres_m": centres,
+            },
+        )
+        self._times: IO[str] = (out_dir / "frames.csv").open("w", newline="")
+        self._times.write("index,t_s\n")
+        self._commands: IO[str] = (out_dir / "commands.csv").open("w", newline="")
+        self._commands.write("t_s,module,speed_m_s,heading_rad\n")
+
+    def status(self) -> RecordingStatus:
+        return RecordingStatus(
+            self.active, str(self.dir), self.frames, self.bytes, self.max_bytes, self.stopped_reason
+        )
+
+    def add(self, image: np.ndarray, t_mono_s: float, commands: ModuleCommands, est: Estimate | None) -> None:
+        """One new frame, the commands in force with it, and the estimate made from it."""
+        if not self.active:
+            return
+        t_s = t_mono_s - self.t0_mono_s
+        ok, png = cv2.imencode(".png", image, _PNG_PARAMS)
+        if not ok:
+            self.stop("could not encode a frame")
+            return
+        if self.bytes + len(png) > self.max_bytes:
+            self.stop(f"size limit reached ({self.max_bytes} bytes)")
+            return
+        try:
+            (self.dir / "frames" / f"{self.frames:06d}.png").write_bytes(png.tobytes())
+            self._times.write(f"{self.frames},{t_s:.6f}\n")
+            self._times.flush()
+            self._write_commands(t_s, commands)
+        except OSError as err:
+            self.stop(f"write failed: {err.strerror or err}")
+            return
+        self.bytes += len(png)
+        self.frames += 1
+        if est is not None:
+            self._estimates.append(est)
+
+    def stop(self, reason: str = "stopped") -> None:
+        """Close the files and write the estimates; safe to call twice."""
+        if not self.active:
+            return
+        self.active = False
+        self.stopped_reason = reason
+        log.info("recording %s stopped: %s (%d frames)", self.dir, reason, self.frames)
+        for f in (self._times, self._commands):
+            try:
+                f.close()
+            except OSError as err:
+                log.warning("recording: closing %s failed: %s", f.name, err)
+        if self._estimates:
+            try:
+                write_estimates(self.dir / "estimates.npz", self._estimates)
+            except OSError as err:  # the disk is full: the frames and commands stay replayable
+                self.stopped_reason = f"{reason}; estimates not written: {err.strerror or err}"
+
+    def _write_commands(self, t_s: float, cmd: ModuleCommands) -> None:
+        last = self._last_cmd
+        changed = (
+            np.ones(len(cmd.speed_m_s), bool)
+            if last is None
+            else (cmd.speed_m_s != last.speed_m_s) | (cmd.heading_rad != last.heading_rad)
+        )
+        w = csv.writer(self._commands)
+        for m in np.flatnonzero(changed):
+            w.writerow([f"{t_s:.6f}", int(m), f"{cmd.speed_m_s[m]:.6f}", f"{cmd.heading_rad[m]:.6f}"])
+        self._commands.flush()
+        self._last_cmd = cmd
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    path.write_text(json.dumps(obj, indent=2) + "\n")
