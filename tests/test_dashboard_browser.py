@@ -140,3 +140,13 @@ def test_the_truth_overlay_draws_hwsims_cloth(page: Page) -> None:
     wait(lambda: page.evaluate(yellow) > 500, 5, "truth nodes drawn")
     page.uncheck("#show-truth")
     wait(lambda: page.evaluate(yellow) == 0, 5, "overlay cleared")
+
+
+def test_the_page_follows_a_dropped_camera_and_its_return(page: Page, sim: Sim) -> None:
+    hwsim = sim.truth_url.removesuffix("/truth")
+    httpx.post(f"{hwsim}/camera/drop?seconds=1.5", timeout=5).raise_for_status()
+    page.wait_for_function("document.getElementById('state').textContent === 'camera_lost'", timeout=10000)
+    page.wait_for_function("document.getElementById('state').textContent === 'tracking'", timeout=30000)
+    first = _video_signature(page)
+    wait(lambda: _video_signature(page) != first, 10, "the video moving again")
+    page.wait_for_function("document.getElementById('stream').textContent === 'stream live'", timeout=5000)
