@@ -150,3 +150,28 @@ def test_the_page_follows_a_dropped_camera_and_its_return(page: Page, sim: Sim) 
     first = _video_signature(page)
     wait(lambda: _video_signature(page) != first, 10, "the video moving again")
     page.wait_for_function("document.getElementById('stream').textContent === 'stream live'", timeout=5000)
+
+
+def test_a_daemon_with_a_token_gets_one_from_the_page(
+    browser: Browser, tmp_path_factory: pytest.TempPathFactory
+) -> None:
+    token = "browser-test-token-0123"
+    cfg = tmp_path_factory.mktemp("token") / "clothd.yaml"
+    cfg.write_text(f"api:\n  token: {token}\n")
+    d = DaemonProcess(cfg, free_port())
+    try:
+        d.wait_ready()
+        s = Sim(d)
+        wait(lambda: s.status()["state"] == "tracking", 60, "tracking")
+        pg = browser.new_page(viewport={"width": 1280, "height": 720})
+        pg.goto(s.base + "/")
+        pg.click("#reset")
+        pg.wait_for_selector("#token-box:not([hidden])", timeout=5000)
+        assert "token" in (pg.text_content("#message") or "")
+        pg.fill("#token", token)
+        pg.click("#token-save")
+        pg.click("#estop")
+        wait(lambda: s.truth()["estopped"], 5, "the e-stop with the token")
+        pg.close()
+    finally:
+        d.stop()
