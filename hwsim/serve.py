@@ -77,6 +77,7 @@ class Cell:
         self._truth_cache: dict[str, Any] = {}
 
     def start(self) -> None:
+        self._update_truth()  # /truth answers in full from the first request on
         self._publish_frame()
         self.firmware.start()
         self._thread.start()

@@ -97,12 +97,16 @@ def test_video_and_plots_update(page: Page) -> None:
     assert drawn
 
 
-def test_a_setpoint_set_in_the_page_reaches_the_daemon(page: Page, sim: Sim) -> None:
+def _move_through_the_form(page: Page, x_m: float, y_m: float, theta_deg: float) -> None:
     page.select_option("#mode-select", "move")
-    page.fill("#in-x", "0.03")
-    page.fill("#in-y", "-0.02")
-    page.fill("#in-t", "10")
+    page.fill("#in-x", str(x_m))
+    page.fill("#in-y", str(y_m))
+    page.fill("#in-t", str(theta_deg))
     page.click("#apply")
+
+
+def test_a_setpoint_set_in_the_page_reaches_the_daemon(page: Page, sim: Sim) -> None:
+    _move_through_the_form(page, 0.03, -0.02, 10)
     wait(lambda: sim.status()["mode"] == "move", 5, "mode move")
     sp = sim.status()["setpoint"]
     assert math.isclose(sp["x_m"], 0.03) and math.isclose(sp["y_m"], -0.02)
@@ -110,11 +114,7 @@ def test_a_setpoint_set_in_the_page_reaches_the_daemon(page: Page, sim: Sim) -> 
 
 
 def test_the_estop_button_stops_the_modules(page: Page, sim: Sim) -> None:
-    page.select_option("#mode-select", "move")
-    page.fill("#in-x", "-0.05")
-    page.fill("#in-y", "0.03")
-    page.fill("#in-t", "-15")
-    page.click("#apply")
+    _move_through_the_form(page, -0.05, 0.03, -15)
     wait(lambda: max(map(abs, sim.truth()["module_speed_m_s"])) > 0.01, 10, "modules running")
     page.click("#estop")
     wait(lambda: sim.truth()["estopped"], 5, "the controller's e-stop")

@@ -151,7 +151,6 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
                     next_s = time.monotonic() + sub.min_interval_s
                 data = await sub.take()
                 await ws.send_text(data.decode())
-                sub.sent += 1
         except (WebSocketDisconnect, RuntimeError):
             pass
         finally:

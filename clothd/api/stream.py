@@ -14,7 +14,6 @@ class Subscriber:
     def __init__(self, min_interval_s: float) -> None:
         self.min_interval_s = min_interval_s
         self.dropped = 0
-        self.sent = 0
         self._slot: bytes | None = None
         self._event = asyncio.Event()
 
