@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from clothd.errors import ConfigError
 
@@ -48,6 +48,9 @@ class FeatureConfig(_Strict):
 class MeshConfig(_Strict):
     nodes_x: int = Field(12, ge=2, le=64)
     nodes_y: int = Field(12, ge=2, le=64)
+    fold_tolerance_strain: float = Field(
+        0.10, ge=0, lt=1, description="an edge this much shorter on the table than at rest has folded up"
+    )
 
 
 class PhysicsConfig(_Strict):
@@ -61,7 +64,21 @@ class PhysicsConfig(_Strict):
     friction_mu: float = Field(1.0, gt=0, le=3)
     stick_speed_m_s: float = Field(0.002, gt=0, le=0.1)
     strain_limit: float = Field(0.05, gt=0, le=1, description="Provot: springs never stretch past this")
+    slack_strain: float = Field(
+        0.04, ge=0, lt=1, description="springs pull only past this strain (a woven fabric's crimp)"
+    )
+    compression_k_ratio: float = Field(
+        0.05, ge=0, le=1, description="a compressed spring's share of its stiffness: cloth buckles instead"
+    )
     substeps: int = Field(20, ge=1, le=500)
+
+    @model_validator(mode="after")
+    def _slack_below_limit(self) -> PhysicsConfig:
+        if self.slack_strain >= self.strain_limit:
+            raise ValueError(
+                f"slack_strain ({self.slack_strain}) must be below strain_limit ({self.strain_limit})"
+            )
+        return self
 
 
 class EkfConfig(_Strict):

@@ -24,6 +24,10 @@ def test_defaults_are_valid() -> None:
         ("tracker: {ekf: {meas_sigma_px: -1}}\n", ["tracker.ekf.meas_sigma_px", "greater than 0"]),
         ("tracker: {mesh: {nodes_z: 4}}\n", ["tracker.mesh.nodes_z", "Extra inputs"]),
         ("taichi: {arch: tpu}\n", ["taichi.arch"]),
+        (
+            "tracker: {physics: {slack_strain: 0.06}}\n",
+            ["tracker.physics", "slack_strain (0.06) must be below strain_limit (0.05)"],
+        ),
         ("- a\n- list\n", ["a mapping"]),
         ("tracker: [unclosed\n", ["not valid YAML"]),
     ],

@@ -57,6 +57,24 @@ def test_mesh_nodes_follow_the_material_points(short_recording: Recorder) -> Non
     assert ests[-1].stats.accepted > 300
 
 
+def test_mesh_follows_the_cloth_into_a_fold(short_recording: Recorder) -> None:
+    """compress: the two halves are pushed together and the middle buckles up. The mesh follows the
+    halves and lifts its middle nodes by inextensibility (the camera barely sees height)."""
+    rec = short_recording("compress")
+    tracker, ests = _run(rec, TrackerConfig(model="mesh"))
+    truth = Truth.load(rec)
+    assert tracker.mesh is not None and all(e.status == "tracking" for e in ests)
+    st = material_coordinates(truth, tracker.mesh.rest_nodes_m().reshape(-1, 2))
+    true_nodes = true_positions(truth, st, np.arange(len(ests)))
+    est_nodes = np.array([e.nodes_m.reshape(-1, 3) for e in ests if e.nodes_m is not None])
+    err_mm = np.linalg.norm(est_nodes - true_nodes, axis=2) * 1e3
+    assert np.sqrt(np.mean(err_mm**2)) < 4.0 and err_mm.max() < 15.0  # the Hookean mesh: 11 / 36 mm
+    folded = true_nodes[-1, :, 2] > 0.015
+    assert folded.sum() >= 12  # the fold really rose (two columns of the mesh)
+    assert np.all(est_nodes[-1, folded, 2] > 0.008)
+    assert np.all(est_nodes[-1, true_nodes[-1, :, 2] < 0.001, 2] < 0.005)
+
+
 def test_features_keep_their_identity_and_are_resampled(short_recording: Recorder) -> None:
     rec = short_recording("occlude")
     _, ests = _run(rec, TrackerConfig(model="mesh"))

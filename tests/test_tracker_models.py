@@ -86,6 +86,62 @@ def test_strain_limiting_holds_a_stretched_mesh() -> None:
     assert dx.max() < 1.0 + cfg.strain_limit + 0.01  # from 1.30: Provot's correction holds the limit
 
 
+def _rest_state(mesh: QuadMesh) -> np.ndarray:
+    return np.column_stack([mesh.rest_nodes_m().reshape(-1, 2), np.zeros(mesh.n_nodes)])
+
+
+def _edge_strain(x: np.ndarray, mesh: QuadMesh) -> np.ndarray:
+    g = x.reshape(mesh.ny, mesh.nx, 3)
+    return np.linalg.norm(np.diff(g, axis=1), axis=-1) / mesh.spacing_m[0] - 1.0
+
+
+def test_woven_springs_are_slack_up_to_the_crimp_and_soft_in_compression() -> None:
+    """A mesh 3 % long or short, on still belts, stays about where the features put it; Hookean springs
+    spring it back further than friction holds in one tick."""
+    mesh = _mesh()
+    still = np.zeros((mesh.n_nodes, 2)), np.ones(mesh.n_nodes, bool)
+    woven, hookean = PhysicsConfig(), PhysicsConfig(slack_strain=0.0, compression_k_ratio=1.0)
+    moved_mm = {}
+    for name, cfg in (("woven", woven), ("hookean", hookean)):
+        for scale in (1.03, 0.97):
+            sim = MassSpring(cfg, mesh.rest_nodes_m())
+            start = _rest_state(mesh) * np.array([scale, 1.0, 1.0])
+            sim.set_state(start, np.zeros_like(start))
+            sim.step(1 / 30, *still)
+            moved_mm[name, scale] = np.abs(sim.state()[0] - start).max() * 1e3
+    assert moved_mm["woven", 1.03] < 1e-6  # within the crimp: no force at all
+    assert moved_mm["woven", 0.97] < 1.0
+    assert moved_mm["hookean", 1.03] > 2.0 and moved_mm["hookean", 0.97] > 2.0
+
+
+def test_height_is_kinematic_and_cloth_up_in_a_fold_feels_no_belt() -> None:
+    mesh = _mesh()
+    belts = np.tile([0.03, 0.0], (mesh.n_nodes, 1)), np.ones(mesh.n_nodes, bool)
+    for height_m, carried in ((0.0, True), (0.01, False)):
+        sim = MassSpring(PhysicsConfig(), mesh.rest_nodes_m())
+        x0 = _rest_state(mesh)
+        x0[:, 2] = height_m
+        sim.set_state(x0, np.zeros_like(x0))
+        for _ in range(3):
+            sim.step(1 / 30, *belts)
+        x, v = sim.state()
+        np.testing.assert_array_equal(x[:, 2], height_m)  # no node fell
+        assert np.all(v[:, 0] > 0.025) if carried else np.all(v == 0.0)
+
+
+def test_set_heights_takes_height_out_of_the_filter() -> None:
+    rng = np.random.default_rng(5)
+    A = rng.normal(0, 1e-3, (4, 6, 6))
+    P = A @ A.transpose(0, 2, 1) + 1e-8 * np.eye(6)
+    belief = NodeBelief(rng.normal(0, 0.01, (4, 6)), P, np.array([[0, 1, 3, 2]]))
+    belief.set_heights(np.array([0.0, 0.01, 0.02, 0.0]), 0.002, 0.01)
+    np.testing.assert_array_equal(belief.x[:, 2], [0.0, 0.01, 0.02, 0.0])
+    np.testing.assert_array_equal(belief.x[:, 5], 0.0)
+    np.testing.assert_array_equal(belief.P[:, 2, [0, 1, 3, 4, 5]], 0.0)
+    np.testing.assert_allclose(belief.P[:, 2, 2], 0.002**2)
+    assert np.all(np.linalg.eigvalsh(belief.P) > 0)
+
+
 def test_mesh_ekf_update_is_the_exact_information_form_update() -> None:
     """For a block-diagonal prior, the sparse update equals the dense textbook EKF update."""
     cam = CameraModel.ideal(640, 480, 900.0, 1.0)

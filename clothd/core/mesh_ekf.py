@@ -90,6 +90,16 @@ class NodeBelief:
     def positions_m(self) -> np.ndarray:
         return self.x[:, :3]
 
+    def set_heights(self, z_m: np.ndarray, sigma_z_m: float, sigma_vz_m_s: float) -> None:
+        """Heights (n,) given from outside the filter (folds.py): the camera does not estimate them, so
+        height and vertical speed leave the filter with fixed variances, uncorrelated with the rest."""
+        self.x[:, 2] = z_m
+        self.x[:, 5] = 0.0
+        for i, var in ((2, sigma_z_m**2), (5, sigma_vz_m_s**2)):
+            self.P[:, i, :] = 0.0
+            self.P[:, :, i] = 0.0
+            self.P[:, i, i] = var
+
     def predict(self, x_pred: np.ndarray, F: np.ndarray, Q: np.ndarray) -> None:
         """x⁻ = f(x, u) from the model; P_i⁻ = F_i P_i F_iᵀ + Q_i. F, Q: (n, 6, 6)."""
         self.x = x_pred

@@ -3,10 +3,22 @@
 Nodes carry mass from the cloth's areal density. Springs (Provot 1995): structural (grid edges), shear
 (cell diagonals) and flexion (every second node along rows and columns), with Provot's strain limiting:
 after each substep a structural or shear spring stretched past (1 + strain_limit) of its rest length is
-pulled back, half from each end. Gravity, the table (z >= 0) and friction against the belt under each
-node: the belt's surface velocity, from the module commands, is the control input u. Friction is
-Coulomb with a regularised stick zone, applied implicitly on the velocity so it is stable at any step.
-Symplectic Euler with at least `substeps` per tick, more when the springs need it for stability.
+pulled back, half from each end.
+
+The springs are a woven fabric's, not Hooke's: slack up to `slack_strain` (the crimp of the yarns), and
+soft in compression (`compression_k_ratio`), because cloth buckles rather than push. This matters more
+than it seems: a 0.14 g node's friction on a belt is ~1.4 mN, which a 50 N/m spring exceeds at 0.03 mm
+of strain. Hookean springs snapped the mesh back to its rest shape every tick, against the features,
+whenever the cloth was compressed or its rest lengths (measured at initialisation) were a little off
+(docs/architecture.md, "Folds").
+
+Height is kinematic: the model moves the nodes in the plane and keeps the heights it is given (folds.py
+computes them from inextensibility after each correction), so the springs see the fold in 3-D and a
+folded edge, back at its rest length, pushes on nothing. A node on the table rests on it (normal force
+m·g) and feels friction against the belt under it: Coulomb with a regularised stick zone, applied
+implicitly on the velocity so it is stable at any step; the belt's surface velocity, from the module
+commands, is the control input u. A node up in a fold feels no belt. Symplectic Euler with at least
+`substeps` per tick, more when the springs need it for stability.
 
 `step` advances the state in place; `transition_blocks` gives the per-node linearisation the filter
 propagates its covariance with (see mesh_ekf.py for why the spring couplings are not linearised).
@@ -20,6 +32,8 @@ import taichi as ti
 from clothd.config import PhysicsConfig
 
 GRAVITY_M_S2 = 9.81
+# A node this close to the table rests on it.
+CONTACT_HEIGHT_M = 1e-4
 vec3d = ti.types.vector(3, ti.f64)
 
 
@@ -96,7 +110,14 @@ class MassSpring:
         c = self.cfg
         substeps = max(c.substeps, math.ceil(dt_s * self.omega_max_rad_s))
         self._advance(
-            substeps, dt_s / substeps, c.friction_mu, c.stick_speed_m_s, c.damping_1_s, c.strain_limit
+            substeps,
+            dt_s / substeps,
+            c.friction_mu,
+            c.stick_speed_m_s,
+            c.damping_1_s,
+            c.strain_limit,
+            c.slack_strain,
+            c.compression_k_ratio,
         )
 
     def transition_blocks(self, dt_s: float, in_contact: np.ndarray) -> np.ndarray:
@@ -120,43 +141,55 @@ class MassSpring:
         stick_speed: ti.f64,
         damping: ti.f64,
         strain_limit: ti.f64,
+        slack: ti.f64,
+        compression_ratio: ti.f64,
     ):
         # One serial kernel for all substeps: the mesh is small, and a launch per substep would cost more
         # than the arithmetic.
         ti.loop_config(serialize=True)
         for _ in range(substeps):
-            self._substep(h, mu, stick_speed, damping, strain_limit)
+            self._substep(h, mu, stick_speed, damping, strain_limit, slack, compression_ratio)
 
     @ti.func
-    def _substep(self, h: ti.f64, mu: ti.f64, stick_speed: ti.f64, damping: ti.f64, strain_limit: ti.f64):
+    def _substep(
+        self,
+        h: ti.f64,
+        mu: ti.f64,
+        stick_speed: ti.f64,
+        damping: ti.f64,
+        strain_limit: ti.f64,
+        slack: ti.f64,
+        compression_ratio: ti.f64,
+    ):
         for i in range(self.n):
-            self.force[i] = vec3d(0.0, 0.0, -GRAVITY_M_S2 * self.mass_kg)
+            self.force[i] = vec3d(0.0, 0.0, 0.0)
         for s in range(self.rest.shape[0]):
             a, b = self.pair[s][0], self.pair[s][1]
             d = self.x[b] - self.x[a]
             length = d.norm()
             if length > 1e-12:
-                f = self.k[s] * (length - self.rest[s]) * d / length
+                # Cloth pulls only once its crimp is taken up, and buckles rather than push.
+                extension = ti.max(length - (1.0 + slack) * self.rest[s], 0.0)
+                compression = ti.min(length - self.rest[s], 0.0)
+                f = self.k[s] * (extension + compression_ratio * compression) * d / length
                 self.force[a] += f
                 self.force[b] -= f
         for i in range(self.n):
             v = self.v[i] + h * self.force[i] / self.mass_kg
             v[0] *= 1.0 / (1.0 + h * damping)
             v[1] *= 1.0 / (1.0 + h * damping)
-            # Resting on the table (at or below it, moving down): the table takes the normal impulse,
-            # m·g·h per substep when at rest, and friction may use μ times it.
-            if self.x[i][2] + h * v[2] <= 0.0:
-                budget = mu * ti.max(-v[2], 0.0)
-                v[2] = 0.0
-                if self.belt[i][2] > 0.0:
-                    slip = ti.Vector([v[0] - self.belt[i][0], v[1] - self.belt[i][1]])
-                    speed = slip.norm()
-                    keep = ti.max(1.0 - budget / ti.max(speed, 1e-15), 1.0 / (1.0 + budget / stick_speed))
-                    v[0] = self.belt[i][0] + keep * slip[0]
-                    v[1] = self.belt[i][1] + keep * slip[1]
+            v[2] = 0.0  # height is kinematic
+            # On the table, gravity's normal force m·g lets friction take up to μ·g·h of slip speed per
+            # substep from a node on a belt; a node up in a fold feels no belt.
+            if self.x[i][2] <= CONTACT_HEIGHT_M and self.belt[i][2] > 0.0:
+                budget = mu * GRAVITY_M_S2 * h
+                slip = ti.Vector([v[0] - self.belt[i][0], v[1] - self.belt[i][1]])
+                speed = slip.norm()
+                keep = ti.max(1.0 - budget / ti.max(speed, 1e-15), 1.0 / (1.0 + budget / stick_speed))
+                v[0] = self.belt[i][0] + keep * slip[0]
+                v[1] = self.belt[i][1] + keep * slip[1]
             self.v[i] = v
             self.x[i] += h * v
-            self.x[i][2] = ti.max(self.x[i][2], 0.0)
         # Provot's strain limiting on structural and shear springs (one Gauss-Seidel pass).
         for s in range(self.n_limited):
             a, b = self.pair[s][0], self.pair[s][1]
@@ -165,6 +198,7 @@ class MassSpring:
             limit = (1.0 + strain_limit) * self.rest[s]
             if length > limit:
                 fix = 0.5 * (length - limit) * d / length
+                fix[2] = 0.0
                 self.x[a] += fix
                 self.x[b] -= fix
 

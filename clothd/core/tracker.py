@@ -28,10 +28,11 @@ from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout, ModuleModel, rigid_velocity_fit
 from clothd.core.ekf import UpdateStats, gate, predict, update_information
 from clothd.core.features import FeatureEngine, GrayFrame, coverage_holes
+from clothd.core.folds import fold_heights_m
 from clothd.core.mesh import Binding, QuadMesh, blend, measurement_jacobian
 from clothd.core.mesh_ekf import NodeBelief
 from clothd.core.messages import Estimate, ModuleCommands
-from clothd.core.physics import MassSpring, stick_time_s
+from clothd.core.physics import CONTACT_HEIGHT_M, MassSpring, stick_time_s
 from clothd.core.segmentation import ClothRegion, cloth_mask_from_outline, find_cloth, full_frame_region
 
 Clock = Callable[[], float]
@@ -201,7 +202,7 @@ class Tracker:
         self.sim.set_state(pos, vel)
         self.sim.step(dt, belt_v, on_belt)
         x_new, v_new = self.sim.state()
-        in_contact = on_belt & (x_new[:, 2] <= 1e-4)
+        in_contact = on_belt & (x_new[:, 2] <= CONTACT_HEIGHT_M)
         F = self.sim.transition_blocks(dt, in_contact)
         e = cfg.ekf
         Q = np.diag([e.process_pos_sigma_m**2] * 3 + [e.process_vel_sigma_m_s**2] * 3)
@@ -228,9 +229,25 @@ class Tracker:
         assert self.belief is not None and self.binding is not None
         sub = self.binding.subset(idx)
         pred, J = measurement_jacobian(self.camera, self.belief.positions_m, sub)
+        # The camera corrects the nodes on the table plane only. From above, height barely moves a pixel,
+        # and a filter free to use it explained in-plane model error with it: nodes floated 15-20 mm up
+        # on flat cloth. Height comes from inextensibility instead (_lift_folds).
+        J[..., 2] = 0.0
         stats, inside = self.belief.correct(sub.quad, sub.nodes, J, meas[idx] - pred, R_px2, e.gate_chi2)
         accepted[idx[~inside]] = False
+        self._lift_folds()
         return stats, accepted
+
+    def _lift_folds(self) -> None:
+        """Set the node heights from how much shorter the cloth is on the table than at rest."""
+        assert self.belief is not None and self.mesh is not None
+        z = fold_heights_m(
+            self.belief.positions_m[:, :2].reshape(self.mesh.ny, self.mesh.nx, 2),
+            self.mesh.rest_nodes_m(),
+            self.cfg.mesh.fold_tolerance_strain,
+        )
+        e = self.cfg.ekf
+        self.belief.set_heights(z.ravel(), e.initial_pos_sigma_m, e.initial_vel_sigma_m_s)
 
     def _diverged(self, stats: UpdateStats) -> bool:
         """Lost: too few features survive, or the innovations are far beyond what the filter expects."""
