@@ -141,7 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("source", type=Path, help="a video file, an image directory, or an hwsim recording")
     r.add_argument("--out", type=Path, required=True)
     r.add_argument("--model", choices=["none", "predict", "rigid", "mesh"])
-    r.add_argument("--no-input", action="store_true", help="ignore the conveyor commands")
+    r.add_argument("--no-input", action="store_true", help="the model takes the modules as stopped")
     r.add_argument("--roi", choices=["auto", "full"], default="auto")
     r.add_argument("--camera", type=Path, help="camera.json (default: the recording's, else an ideal camera)")
     r.add_argument("--commands", type=Path, help="commands.csv (default: the recording's)")

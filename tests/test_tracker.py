@@ -57,11 +57,12 @@ def test_mesh_nodes_follow_the_material_points(short_recording: Recorder) -> Non
     assert ests[-1].stats.accepted > 300
 
 
-def test_mesh_follows_the_cloth_into_a_fold(short_recording: Recorder) -> None:
+@pytest.mark.parametrize("use_input", [True, False])
+def test_mesh_follows_the_cloth_into_a_fold(short_recording: Recorder, use_input: bool) -> None:
     """compress: the two halves are pushed together and the middle buckles up. The mesh follows the
     halves and lifts its middle nodes by inextensibility (the camera barely sees height)."""
     rec = short_recording("compress")
-    tracker, ests = _run(rec, TrackerConfig(model="mesh"))
+    tracker, ests = _run(rec, TrackerConfig(model="mesh", use_input=use_input))
     truth = Truth.load(rec)
     assert tracker.mesh is not None and all(e.status == "tracking" for e in ests)
     st = material_coordinates(truth, tracker.mesh.rest_nodes_m().reshape(-1, 2))

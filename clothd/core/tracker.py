@@ -164,9 +164,14 @@ class Tracker:
 
     def _belt_input(self, points_m: np.ndarray, belts: Belts | None) -> tuple[np.ndarray, np.ndarray]:
         """Belt velocity (n, 2) under points, and whether a belt is there, for the modules' state."""
-        if self.conveyor is None or belts is None or not self.cfg.use_input:
+        if self.conveyor is None or belts is None:
             return np.zeros((len(points_m), 2)), np.zeros(len(points_m), bool)
-        return self.conveyor.belt_velocity(points_m, *belts)
+        speed_m_s, heading_rad = belts
+        if not self.cfg.use_input:
+            # Without the input (u = 0) the model takes the modules as stopped: the cloth rests on still
+            # belts, and friction holds the mesh where the features last put it.
+            speed_m_s = np.zeros_like(speed_m_s)
+        return self.conveyor.belt_velocity(points_m, speed_m_s, heading_rad)
 
     def _advance_modules(self, t_s: float, commands: ModuleCommands | None) -> Belts | None:
         """The modules' (signed speed, heading) over the tick ending at t_s, from their commands."""
