@@ -8,7 +8,7 @@ from clothd.core.binding import cloth_coordinates, invert_bilinear
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout, ModuleModel, rigid_velocity_fit
 from clothd.core.mesh import QuadMesh, blend, measurement_jacobian, shape_functions
-from clothd.core.mesh_ekf import NodeBelief
+from clothd.core.mesh_ekf import NodeBelief, _nanmedian_rows
 from clothd.core.physics import MassSpring, spring_pairs
 from clothd.taichi_runtime import start_taichi
 
@@ -203,3 +203,11 @@ def test_module_model_follows_the_stepper_limits() -> None:
         modules.advance(np.array([0.3, 0.1]), np.array([1.0, np.pi]), 0.1)
     np.testing.assert_allclose(modules.heading_rad[1], 0.0)
     np.testing.assert_allclose(modules.speed_m_s[1], -0.1)
+
+
+def test_nanmedian_rows_matches_numpy() -> None:
+    rng = np.random.default_rng(11)
+    a = rng.normal(size=(40, 8, 2))
+    a[rng.random((40, 8)) < 0.5] = np.nan
+    a[:, 0] = rng.normal(size=(40, 2))  # every row holds a number
+    np.testing.assert_allclose(_nanmedian_rows(a), np.nanmedian(a, axis=1))

@@ -214,21 +214,26 @@ def _spaced(px: np.ndarray, n_fixed: int, min_distance_px: float) -> np.ndarray:
 def _patch_ncc(a: np.ndarray, b: np.ndarray, pa: np.ndarray, pb: np.ndarray, size_px: int) -> np.ndarray:
     """Zero-mean NCC (n,) float32 of the size_px x size_px patches of grey images a and b centred on
     pa and pb (n, 2), pixels, sampled bilinearly: all patches with one remap per image."""
+    if len(pa) == 0:
+        return np.zeros(0, np.float32)
     d = np.arange(size_px, dtype=np.float32) - (size_px - 1) / 2.0
     dx, dy = (g.ravel() for g in np.meshgrid(d, d))
 
     def patches(img: np.ndarray, p: np.ndarray) -> np.ndarray:
         mx = np.ascontiguousarray(p[:, :1] + dx, dtype=np.float32)
         my = np.ascontiguousarray(p[:, 1:] + dy, dtype=np.float32)
-        out = cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
-        return np.asarray(out - out.mean(axis=1, keepdims=True))
+        return cv2.remap(img, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
 
-    if len(pa) == 0:
-        return np.zeros(0, np.float32)
     pa_, pb_ = patches(a, pa), patches(b, pb)
-    denom = np.sqrt((pa_ * pa_).sum(axis=1) * (pb_ * pb_).sum(axis=1))
+    m = float(size_px * size_px)
+    # Zero-mean sums from raw ones, without centred copies of the patches.
+    sa, sb = pa_.sum(axis=1), pb_.sum(axis=1)
+    cov = np.einsum("ij,ij->i", pa_, pb_) - sa * sb / m
+    var_a = np.einsum("ij,ij->i", pa_, pa_) - sa * sa / m
+    var_b = np.einsum("ij,ij->i", pb_, pb_) - sb * sb / m
+    denom = np.sqrt(np.maximum(var_a, 0.0) * np.maximum(var_b, 0.0))
     # A flat patch (no texture in either frame) correlates with nothing: 0, as in hwsim.verify.
-    return np.where(denom > 1e-6, (pa_ * pb_).sum(axis=1) / np.maximum(denom, 1e-6), 0.0).astype(np.float32)
+    return np.where(denom > 1e-6, cov / np.maximum(denom, 1e-6), 0.0).astype(np.float32)
 
 
 def coverage_holes(mask: np.ndarray, px: np.ndarray, cell_px: int) -> np.ndarray:
@@ -236,19 +241,17 @@ def coverage_holes(mask: np.ndarray, px: np.ndarray, cell_px: int) -> np.ndarray
     from the top-left corner that are mostly (> 50 % of their in-image pixels) inside `mask` but hold
     no point of px (n, 2) pixels, intersected with `mask` so that it can be passed to `detect` as is."""
     h, w = mask.shape
-    gh, gw = -(-h // cell_px), -(-w // cell_px)
-    padded = np.zeros((gh * cell_px, gw * cell_px), np.float32)
-    padded[:h, :w] = mask > 0
-    valid = np.zeros_like(padded)
-    valid[:h, :w] = 1.0
-    inside = padded.reshape(gh, cell_px, gw, cell_px).sum(axis=(1, 3))
-    area = valid.reshape(gh, cell_px, gw, cell_px).sum(axis=(1, 3))
-    occupied = np.zeros((gh, gw), bool)
+    rows, cols = np.arange(0, h, cell_px), np.arange(0, w, cell_px)
+    inside = np.add.reduceat(np.add.reduceat((mask > 0).astype(np.int32), rows, axis=0), cols, axis=1)
+    area = np.outer(np.diff(np.append(rows, h)), np.diff(np.append(cols, w)))
+    occupied = np.zeros(inside.shape, bool)
     pts = np.asarray(px, np.float64).reshape(-1, 2)
     pts = pts[np.isfinite(pts).all(axis=1)]
     cells = np.floor(pts / cell_px).astype(np.int64)
-    on = (cells[:, 0] >= 0) & (cells[:, 0] < gw) & (cells[:, 1] >= 0) & (cells[:, 1] < gh)
+    on = (cells[:, 0] >= 0) & (cells[:, 0] < len(cols)) & (cells[:, 1] >= 0) & (cells[:, 1] < len(rows))
     occupied[cells[on, 1], cells[on, 0]] = True
     holes = (inside > _CELL_INSIDE_FRACTION * area) & ~occupied
+    if not holes.any():
+        return np.zeros((h, w), np.uint8)
     full = np.repeat(np.repeat(holes, cell_px, axis=0), cell_px, axis=1)[:h, :w]
     return np.where(full & (mask > 0), np.uint8(255), np.uint8(0))

@@ -95,21 +95,26 @@ class MassSpring:
         self.rest.from_numpy(lengths)
         self.k.from_numpy(stiffness)
 
+        # The state crosses into the kernel as one array, [x, v, belt vx, belt vy, on belt] per node: one
+        # kernel launch per tick, where a field copy in and out cost a launch each.
+        self._io = np.zeros((self.n, 9))
+
     def set_state(self, x_m: np.ndarray, v_m_s: np.ndarray) -> None:
         """x_m, v_m_s: (n, 3)."""
-        self.x.from_numpy(np.ascontiguousarray(x_m, dtype=np.float64))
-        self.v.from_numpy(np.ascontiguousarray(v_m_s, dtype=np.float64))
+        self._io[:, :3] = x_m
+        self._io[:, 3:6] = v_m_s
 
     def state(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.x.to_numpy(), self.v.to_numpy()
+        return self._io[:, :3].copy(), self._io[:, 3:6].copy()
 
     def step(self, dt_s: float, belt_velocity_m_s: np.ndarray, on_belt: np.ndarray) -> None:
         """Advance one tick. belt_velocity_m_s (n, 2) and on_belt (n,) bool: the input u at each node."""
-        belt = np.column_stack([belt_velocity_m_s, on_belt.astype(np.float64)])
-        self.belt.from_numpy(np.ascontiguousarray(belt))
+        self._io[:, 6:8] = belt_velocity_m_s
+        self._io[:, 8] = on_belt
         c = self.cfg
         substeps = max(c.substeps, math.ceil(dt_s * self.omega_max_rad_s))
         self._advance(
+            self._io,
             substeps,
             dt_s / substeps,
             c.friction_mu,
@@ -135,6 +140,7 @@ class MassSpring:
     @ti.kernel
     def _advance(
         self,
+        io: ti.types.ndarray(dtype=ti.f64, ndim=2),
         substeps: ti.i32,
         h: ti.f64,
         mu: ti.f64,
@@ -146,9 +152,17 @@ class MassSpring:
     ):
         # One serial kernel for all substeps: the mesh is small, and a launch per substep would cost more
         # than the arithmetic.
+        for i in range(self.n):
+            self.x[i] = vec3d(io[i, 0], io[i, 1], io[i, 2])
+            self.v[i] = vec3d(io[i, 3], io[i, 4], io[i, 5])
+            self.belt[i] = vec3d(io[i, 6], io[i, 7], io[i, 8])
         ti.loop_config(serialize=True)
         for _ in range(substeps):
             self._substep(h, mu, stick_speed, damping, strain_limit, slack, compression_ratio)
+        for i in range(self.n):
+            for j in ti.static(range(3)):
+                io[i, j] = self.x[i][j]
+                io[i, 3 + j] = self.v[i][j]
 
     @ti.func
     def _substep(
