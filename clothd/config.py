@@ -40,6 +40,7 @@ class FeatureConfig(_Strict):
     lk_epsilon_px: float = Field(0.01, gt=0, le=1)
     fb_max_error_px: float = Field(0.5, gt=0, le=20, description="forward-backward check threshold")
     lk_min_ncc: float = Field(0.6, ge=-1, le=1, description="the LK window must still correlate this well")
+    ncc_window_px: int = Field(9, ge=3, le=63, description="the centre of the LK window that NCC compares")
     resample_below_fraction: float = Field(0.7, gt=0, le=1, description="of max_features")
     resample_cell_px: int = Field(48, ge=8, le=640, description="a cell of the cloth with no feature")
     edge_margin_px: float = Field(6.0, ge=0, le=100, description="keep new features this far inside")
