@@ -89,6 +89,9 @@ class EkfConfig(_Strict):
     initial_pos_sigma_m: float = Field(0.002, gt=0, le=1)
     initial_vel_sigma_m_s: float = Field(0.01, gt=0, le=10)
     gate_chi2: float = Field(13.8, gt=0, le=1000, description="Mahalanobis gate, 2 dof (13.8 = 99.9 %)")
+    smoothness_sigma_m: float = Field(
+        0.005, gt=0, le=1, description="how far the corrections of neighbouring mesh nodes may differ"
+    )
     divergence_nis: float = Field(50.0, gt=0, le=1e6, description="mean NIS per measurement that means lost")
 
 

@@ -172,6 +172,43 @@ def test_mesh_ekf_update_is_the_exact_information_form_update() -> None:
         assert np.all(np.diag(belief.P[k]) <= np.diag(P_blocks[k]) + 1e-15)
 
 
+def test_smoothness_prior_carries_corrections_to_nodes_without_features() -> None:
+    """With the smoothness prior the sparse update is the exact solve with the mesh's Laplacian added to
+    the prior information; a corner node no feature touches is then corrected with its neighbours."""
+    cam = CameraModel.ideal(640, 480, 900.0, 1.0)
+    mesh = QuadMesh.covering(np.array([[-0.05, -0.05], [0.05, -0.05], [0.05, 0.05], [-0.05, 0.05]]), 3, 3)
+    n = mesh.n_nodes
+    pos = np.column_stack([mesh.rest_nodes_m().reshape(-1, 2), np.zeros(n)])
+    P_blocks = np.tile(np.diag([1e-6] * 3 + [1e-5] * 3), (n, 1, 1))
+    rng = np.random.default_rng(4)
+    binding = mesh.bind(rng.uniform(-0.045, -0.005, (8, 2)))  # all in the quad of nodes 0, 1, 3, 4
+    _, J = measurement_jacobian(cam, pos, binding)
+    nu = np.tile([2.0, 0.0], (8, 1))  # the features all moved 2 px along x
+    moved = {}
+    for sigma in (None, 0.005):
+        belief = NodeBelief(np.column_stack([pos, np.zeros_like(pos)]), P_blocks.copy(), mesh.quad_nodes())
+        belief.correct(binding.quad, binding.nodes, J, nu, 0.25, gate_chi2=1e9, smoothness_m=sigma)
+        moved[sigma] = belief.x[:, 0] - pos[:, 0]
+    away = [2, 5, 6, 7, 8]  # the nodes of the quads with no feature
+    assert np.all(moved[None][away] == 0.0) and np.all(moved[0.005][away] > 0.0)
+    assert moved[0.005][2] > 0.02 * moved[0.005][1]  # next to a corrected node: a share of its correction
+    # The exact solve: (P⁻¹ + L/σ² + HᵀR⁻¹H) Δp = HᵀR⁻¹ν over the positions.
+    Hp = np.zeros((16, 3 * n))
+    for i in range(8):
+        for c in range(4):
+            Hp[2 * i : 2 * i + 2, 3 * binding.nodes[i, c] : 3 * binding.nodes[i, c] + 3] = J[i, c]
+    L = np.zeros((n, n))
+    for a, b in [(j * 3 + i, j * 3 + i + 1) for j in range(3) for i in range(2)] + [
+        (j * 3 + i, (j + 1) * 3 + i) for j in range(2) for i in range(3)
+    ]:
+        L[[a, b], [a, b]] += 1.0
+        L[a, b] -= 1.0
+        L[b, a] -= 1.0
+    info = np.kron(np.eye(n), np.linalg.inv(P_blocks[0, :3, :3])) + np.kron(L, np.eye(3)) / 0.005**2
+    dp = np.linalg.solve(info + Hp.T @ Hp / 0.25, Hp.T @ nu.ravel() / 0.25)
+    np.testing.assert_allclose(moved[0.005], dp.reshape(n, 3)[:, 0], rtol=1e-9, atol=1e-15)
+
+
 def test_rebinding_through_a_moved_mesh() -> None:
     cam = CameraModel.ideal(640, 480, 900.0, 1.0)
     mesh = _mesh()

@@ -43,6 +43,7 @@ class InformationPattern:
         )
         keys = np.concatenate([cols * (3 * n_nodes) + rows, diag_c * (3 * n_nodes) + diag_r])
         unique, inverse = np.unique(keys, return_inverse=True)  # sorted by column, then row: CSC order
+        self._keys = unique
         self.size = 3 * n_nodes
         self.quad_slots = inverse[: len(rows)].reshape(len(dof), 144)
         self.diag_slots = inverse[len(rows) :].reshape(n_nodes, 9)
@@ -55,6 +56,10 @@ class InformationPattern:
         self._upper_slots = np.flatnonzero(upper)
         self._band_rows = self.band + row[upper] - col[upper]
         self._band_cols = col[upper]
+
+    def slots(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """Where the entries (rows[i], cols[i]) of the pattern are stored (all must be in it)."""
+        return np.asarray(np.searchsorted(self._keys, cols * self.size + rows))
 
     def solve(self, data: np.ndarray, rhs: np.ndarray) -> np.ndarray:
         """Solve A x = rhs for the symmetric positive definite A with these entries (nnz,)."""
@@ -95,6 +100,14 @@ class NodeBelief:
         for q, row in enumerate(adjacent):
             around = np.flatnonzero(row)
             self.quad_neighbours[q, : len(around)] = around
+        # The graph Laplacian of the mesh's edges on node positions, as entries of the pattern.
+        sides = np.concatenate([quad_nodes[:, [k, (k + 1) % 4]] for k in range(4)])
+        edges = np.unique(np.sort(sides, axis=1), axis=0)
+        a = (3 * edges[:, :1] + np.arange(3)).ravel()
+        b = (3 * edges[:, 1:] + np.arange(3)).ravel()
+        slot = self.pattern.slots
+        self._laplacian_slots = np.concatenate([slot(a, a), slot(b, b), slot(a, b), slot(b, a)])
+        self._laplacian_values = np.concatenate([np.ones(2 * len(a)), -np.ones(2 * len(a))])
 
     @property
     def positions_m(self) -> np.ndarray:
@@ -150,10 +163,17 @@ class NodeBelief:
         residual_px: np.ndarray,
         R_px2: float,
         gate_chi2: float,
+        smoothness_m: float | None = None,
     ) -> tuple[UpdateStats, np.ndarray]:
         """Gate, then correct with the accepted features. quads (k,) each feature's quad, nodes (k, 4) its
         corner nodes, J (k, 4, 2, 3) ∂h/∂p blocks, residual ν = z − h(x⁻) (k, 2). Returns the statistics
         and the accepted mask (k,).
+
+        smoothness_m: how far the corrections of two nodes joined by a mesh edge are expected to differ
+        (a zero-mean Gaussian prior on each difference). Localising the prior to node blocks dropped
+        the spatial correlation a cloth has; this puts a sparse part of it back, in information form,
+        so that a node no feature reaches (at the cloth's edge, in a fold, under an arm) is corrected
+        with its neighbours instead of not at all.
 
         The gate (and the NIS it reports) judges each feature against its quad's mean innovation: an
         outlier (an arm, a glint) disagrees with its neighbours, while a model error (the cloth slipping
@@ -179,6 +199,9 @@ class NodeBelief:
         data = np.bincount(pat.quad_slots[q[order][starts]].ravel(), per_quad.ravel(), minlength=pat.nnz)
         gain_diag = data[pat.diag_slots].reshape(n, 3, 3)  # measurement information on each node alone
         data += np.bincount(pat.diag_slots.ravel(), Ppp_inv.ravel(), minlength=pat.nnz)
+        if smoothness_m is not None:
+            w = 1.0 / smoothness_m**2
+            data += np.bincount(self._laplacian_slots, w * self._laplacian_values, minlength=pat.nnz)
         # Hᵀ R⁻¹ ν on the corner positions.
         g = np.bincount(
             (3 * nodes[accepted][:, :, None] + np.arange(3)).ravel(),

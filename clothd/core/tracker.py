@@ -238,7 +238,9 @@ class Tracker:
         # and a filter free to use it explained in-plane model error with it: nodes floated 15-20 mm up
         # on flat cloth. Height comes from inextensibility instead (_lift_folds).
         J[..., 2] = 0.0
-        stats, inside = self.belief.correct(sub.quad, sub.nodes, J, meas[idx] - pred, R_px2, e.gate_chi2)
+        stats, inside = self.belief.correct(
+            sub.quad, sub.nodes, J, meas[idx] - pred, R_px2, e.gate_chi2, e.smoothness_sigma_m
+        )
         accepted[idx[~inside]] = False
         self._lift_folds()
         return stats, accepted
