@@ -17,6 +17,10 @@ Why this structure (the measured costs are in docs/architecture.md and docs/benc
 - The posterior is localised back to node blocks: node i's 6x6 information gains the diagonal 3x3
   block of Hᵀ R⁻¹ H that falls on its position (the node-decoupled EKF). Every block stays symmetric
   positive definite. The cost grows about linearly with the node count.
+- Optionally a smoothness prior on the correction (the mesh's edge Laplacian added to the information
+  matrix) puts back some of the spatial correlation the localisation dropped; it has the quads'
+  sparsity, so the solve is unchanged. The camera corrects in the table plane only: the tracker zeroes
+  the height column of H, and heights come from folds.py.
 """
 
 from __future__ import annotations
