@@ -35,6 +35,9 @@ GRAVITY_M_S2 = 9.81
 # A node this close to the table rests on it.
 CONTACT_HEIGHT_M = 1e-4
 vec3d = ti.types.vector(3, ti.f64)
+_Material = ti.types.struct(
+    mu=ti.f64, stick_speed=ti.f64, damping=ti.f64, strain_limit=ti.f64, slack=ti.f64, compression_ratio=ti.f64
+)
 
 
 def stick_time_s(cfg: PhysicsConfig) -> float:
@@ -87,6 +90,15 @@ class MassSpring:
         self.rest = ti.field(ti.f64, shape=len(pairs))
         self.k = ti.field(ti.f64, shape=len(pairs))
         self.force = ti.Vector.field(3, ti.f64, shape=self.n)
+        self.material = _Material.field(shape=())
+        self.material[None] = _Material(
+            mu=cfg.friction_mu,
+            stick_speed=cfg.stick_speed_m_s,
+            damping=cfg.damping_1_s,
+            strain_limit=cfg.strain_limit,
+            slack=cfg.slack_strain,
+            compression_ratio=cfg.compression_k_ratio,
+        )
         # Symplectic Euler is stable for h < 2/ω; the stiffest node (all 12 springs) sets ω. Substeps are
         # raised to keep h <= 1/ω, a factor 2 of margin.
         per_node = np.bincount(pairs.ravel(), weights=np.repeat(stiffness, 2), minlength=self.n)
@@ -111,19 +123,8 @@ class MassSpring:
         """Advance one tick. belt_velocity_m_s (n, 2) and on_belt (n,) bool: the input u at each node."""
         self._io[:, 6:8] = belt_velocity_m_s
         self._io[:, 8] = on_belt
-        c = self.cfg
-        substeps = max(c.substeps, math.ceil(dt_s * self.omega_max_rad_s))
-        self._advance(
-            self._io,
-            substeps,
-            dt_s / substeps,
-            c.friction_mu,
-            c.stick_speed_m_s,
-            c.damping_1_s,
-            c.strain_limit,
-            c.slack_strain,
-            c.compression_k_ratio,
-        )
+        substeps = max(self.cfg.substeps, math.ceil(dt_s * self.omega_max_rad_s))
+        self._advance(self._io, substeps, dt_s / substeps)
 
     def transition_blocks(self, dt_s: float, in_contact: np.ndarray) -> np.ndarray:
         """Per-node F_i (n, 6, 6) for [p_i, v_i]: v⁺ = α_i v + (1 − α_i)·(input), p⁺ = p + dt·v⁺.
@@ -143,12 +144,6 @@ class MassSpring:
         io: ti.types.ndarray(dtype=ti.f64, ndim=2),
         substeps: ti.i32,
         h: ti.f64,
-        mu: ti.f64,
-        stick_speed: ti.f64,
-        damping: ti.f64,
-        strain_limit: ti.f64,
-        slack: ti.f64,
-        compression_ratio: ti.f64,
     ):
         # One serial kernel for all substeps: the mesh is small, and a launch per substep would cost more
         # than the arithmetic.
@@ -158,23 +153,15 @@ class MassSpring:
             self.belt[i] = vec3d(io[i, 6], io[i, 7], io[i, 8])
         ti.loop_config(serialize=True)
         for _ in range(substeps):
-            self._substep(h, mu, stick_speed, damping, strain_limit, slack, compression_ratio)
+            self._substep(h)
         for i in range(self.n):
             for j in ti.static(range(3)):
                 io[i, j] = self.x[i][j]
                 io[i, 3 + j] = self.v[i][j]
 
     @ti.func
-    def _substep(
-        self,
-        h: ti.f64,
-        mu: ti.f64,
-        stick_speed: ti.f64,
-        damping: ti.f64,
-        strain_limit: ti.f64,
-        slack: ti.f64,
-        compression_ratio: ti.f64,
-    ):
+    def _substep(self, h: ti.f64):
+        m = self.material[None]
         for i in range(self.n):
             self.force[i] = vec3d(0.0, 0.0, 0.0)
         for s in range(self.rest.shape[0]):
@@ -183,23 +170,23 @@ class MassSpring:
             length = d.norm()
             if length > 1e-12:
                 # Cloth pulls only once its crimp is taken up, and buckles rather than push.
-                extension = ti.max(length - (1.0 + slack) * self.rest[s], 0.0)
+                extension = ti.max(length - (1.0 + m.slack) * self.rest[s], 0.0)
                 compression = ti.min(length - self.rest[s], 0.0)
-                f = self.k[s] * (extension + compression_ratio * compression) * d / length
+                f = self.k[s] * (extension + m.compression_ratio * compression) * d / length
                 self.force[a] += f
                 self.force[b] -= f
         for i in range(self.n):
             v = self.v[i] + h * self.force[i] / self.mass_kg
-            v[0] *= 1.0 / (1.0 + h * damping)
-            v[1] *= 1.0 / (1.0 + h * damping)
+            v[0] *= 1.0 / (1.0 + h * m.damping)
+            v[1] *= 1.0 / (1.0 + h * m.damping)
             v[2] = 0.0  # height is kinematic
             # On the table, gravity's normal force m·g lets friction take up to μ·g·h of slip speed per
             # substep from a node on a belt; a node up in a fold feels no belt.
             if self.x[i][2] <= CONTACT_HEIGHT_M and self.belt[i][2] > 0.0:
-                budget = mu * GRAVITY_M_S2 * h
+                budget = m.mu * GRAVITY_M_S2 * h
                 slip = ti.Vector([v[0] - self.belt[i][0], v[1] - self.belt[i][1]])
                 speed = slip.norm()
-                keep = ti.max(1.0 - budget / ti.max(speed, 1e-15), 1.0 / (1.0 + budget / stick_speed))
+                keep = ti.max(1.0 - budget / ti.max(speed, 1e-15), 1.0 / (1.0 + budget / m.stick_speed))
                 v[0] = self.belt[i][0] + keep * slip[0]
                 v[1] = self.belt[i][1] + keep * slip[1]
             self.v[i] = v
@@ -209,7 +196,7 @@ class MassSpring:
             a, b = self.pair[s][0], self.pair[s][1]
             d = self.x[b] - self.x[a]
             length = d.norm()
-            limit = (1.0 + strain_limit) * self.rest[s]
+            limit = (1.0 + m.strain_limit) * self.rest[s]
             if length > limit:
                 fix = 0.5 * (length - limit) * d / length
                 fix[2] = 0.0
