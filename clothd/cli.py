@@ -22,15 +22,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from clothd.run import run
 
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    cfg = load_config(args.config)
-    api = cfg.api.model_copy(
-        update={k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
-    )
-    return run(cfg.model_copy(update={"api": api}), args.sim, args.record)
+    flags = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
+    cfg = load_config(args.config, {"api": flags})
+    return run(cfg, args.sim, args.record)
 
 
 def _cmd_bench_loop(args: argparse.Namespace) -> int:
-    from clothd.bench_loop import format_result, run_bench, write_json
+    from clothd.tools.bench_loop import format_result, run_bench, write_json
 
     result = run_bench(args.config, run_s=args.run_seconds, load_s=args.load_seconds)
     print(format_result(result))
@@ -40,16 +38,14 @@ def _cmd_bench_loop(args: argparse.Namespace) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    from clothd.replay import replay
     from clothd.taichi_runtime import start_taichi
+    from clothd.tools.replay import replay
 
-    cfg = load_config(args.config)
-    tracker_cfg = cfg.tracker.model_copy(
-        update={
-            "model": args.model or cfg.tracker.model,
-            "use_input": cfg.tracker.use_input and not args.no_input,
-        }
-    )
+    overrides: dict[str, object] = {"model": args.model} if args.model else {}
+    if args.no_input:
+        overrides["use_input"] = False
+    cfg = load_config(args.config, {"tracker": overrides})
+    tracker_cfg = cfg.tracker
     start_taichi(cfg.taichi.arch)
     result = replay(
         args.source, args.out, tracker_cfg, roi=args.roi, camera_json=args.camera, commands_csv=args.commands
@@ -63,30 +59,19 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     return 0
 
 
-def _bench_recording(cache: Path, scenario: str, duration_s: float | None = None) -> Path:
-    """An hwsim recording of a shipped scenario, recorded into the cache once and reused."""
-    out = cache / (scenario if duration_s is None else f"{scenario}-{duration_s:g}s")
-    if not (out / "truth.npz").exists():
-        from hwsim import scenario as scenarios
-        from hwsim.recording import record
-
-        print(f"recording {scenario} into {out} ...", flush=True)
-        record(scenarios.load(scenario, duration_s=duration_s), out)
-    return out
-
-
 def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
     import json
 
-    from clothd.bench_accuracy import MODES, format_table, grade, plot, rows_json
     from clothd.taichi_runtime import start_taichi
+    from clothd.tools.bench_accuracy import MODES, format_table, grade, plot, rows_json
+    from clothd.tools.recordings import scenario_recording
 
     cfg = load_config(args.config)
     start_taichi(cfg.taichi.arch)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for scenario in args.scenarios:
-        rec = _bench_recording(args.cache, scenario, args.duration)
+        rec = scenario_recording(args.cache, scenario, args.duration)
         graded = {}
         for label, model, use_input in MODES:
             if args.modes and label not in args.modes:
@@ -105,11 +90,12 @@ def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
     import json
 
-    from clothd.bench_speed import format_rows, rows_json, run_speed
     from clothd.taichi_runtime import start_taichi
+    from clothd.tools.bench_speed import format_rows, rows_json, run_speed
+    from clothd.tools.recordings import scenario_recording
 
-    start_taichi("cpu")
-    rows = run_speed(_bench_recording(args.cache, "translate"), frames=args.frames)
+    start_taichi(load_config(args.config).taichi.arch)
+    rows = run_speed(scenario_recording(args.cache, "translate"), frames=args.frames)
     print(format_rows(rows))
     if args.json:
         args.json.write_text(json.dumps(rows_json(rows), indent=1) + "\n")
@@ -154,6 +140,7 @@ def build_parser() -> argparse.ArgumentParser:
     bs.add_argument(
         "--cache", type=Path, default=Path("out/bench"), help="where shipped scenarios are recorded"
     )
+    bs.add_argument("--config", type=Path, help="taichi.arch is taken from it")
     bs.add_argument("--json", type=Path)
     bs.set_defaults(func=_cmd_bench_speed)
     ba = bsub.add_parser("accuracy", help="every mode on the shipped scenarios, against hwsim's truth")

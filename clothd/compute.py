@@ -1,10 +1,10 @@
-"""The compute process: camera capture, tracker, control and the annotated view.
+"""The compute process: camera capture, tracker, control and the annotated view, one request per tick.
 
 It runs apart from the daemon's event loop so that the two never share a GIL: the tracker's Python,
 its Taichi kernels and its LAPACK calls hold the GIL for milliseconds at a time, which in one process
 delayed every API request and tick timer behind them (docs/benchmarks.md, "The closed loop"). The
-daemon sends one TickRequest per tick over a pipe and gets one TickReply back; the process is the only
-one that calls Taichi.
+daemon sends one TickRequest per tick over a pipe (compute_process.py) and gets one TickReply back;
+this process is the only one that calls Taichi.
 
 Any exception in a tick is answered with all-stop commands and state "fault"; the daemon treats the
 death of the process itself as a fault too, and stops the modules.
@@ -15,19 +15,20 @@ from __future__ import annotations
 import logging
 import signal
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
 
 import cv2
 
-from clothd.config import Config
+from clothd.config import CellConfig, ControlConfig, TrackerConfig
 from clothd.core.camera_model import CameraModel
 from clothd.core.control import PoseController, Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.tracker import Tracker
-from clothd.drivers.camera import CameraSource
+from clothd.drivers.ports import FrameSource, FrameSourceHealth
 from clothd.recorder import Recorder, RecordingStatus
 from clothd.taichi_runtime import start_taichi
 from clothd.view import ViewRenderer
@@ -38,19 +39,11 @@ log = logging.getLogger(__name__)
 @dataclass(frozen=True)
 class TickRequest:
     setpoint: Setpoint
-    estopped: bool
+    commands_in_force: ModuleCommands  # what the modules were told since the last request: the model's input
     reset: bool
     want_view: bool  # draw the annotated view this tick
     record_start: Path | None = None  # begin recording into this new directory
     record_stop: bool = False
-
-
-@dataclass(frozen=True)
-class CameraState:
-    state: str
-    healthy: bool
-    last_error: str | None
-    reconnects: int
 
 
 @dataclass(frozen=True)
@@ -60,48 +53,51 @@ class TickReply:
     commands: ModuleCommands
     new_frame: bool
     frame_t_mono_s: float | None  # capture time of the frame this tick used
-    camera: CameraState
+    camera: FrameSourceHealth
     timing_s: dict[str, float] = field(default_factory=dict)
     view_jpeg: bytes | None = None
     recording: RecordingStatus | None = None
 
 
-def layout_of(cfg: Config) -> ConveyorLayout:
-    c = cfg.cell
-    return ConveyorLayout(c.modules_x, c.modules_y, c.pitch_m, c.module_size_m)
+@dataclass(frozen=True)
+class ComputeSpec:
+    """What the compute process is built from; it crosses into the process by pickling, so the frame
+    source travels as a factory and is opened there."""
+
+    tracker: TrackerConfig
+    control: ControlConfig
+    cell: CellConfig
+    layout: ConveyorLayout
+    camera_model: CameraModel
+    period_s: float
+    taichi_arch: str
+    max_record_bytes: int
+    frame_source: Callable[[], FrameSource]
 
 
 class Compute:
     """One tick's tracking and control, and the view; lives in the compute process."""
 
-    def __init__(self, cfg: Config, camera_model: CameraModel) -> None:
-        self.period_s = 1.0 / cfg.loop.tick_hz
-        self.max_record_bytes = cfg.recording.max_bytes
-        self.camera_model = camera_model
-        self.layout = layout = layout_of(cfg)
+    def __init__(self, spec: ComputeSpec, frames: FrameSource) -> None:
+        self.spec = spec
+        self.frames = frames
         self.recorder: Recorder | None = None
-        self.camera = CameraSource(cfg.camera)
-        self.tracker = Tracker(cfg.tracker, camera_model, layout, clock=time.perf_counter)
-        self.controller = PoseController(cfg.control, cfg.cell, layout.centres_m)
-        self.view = ViewRenderer(camera_model)
+        self.tracker = Tracker(spec.tracker, spec.camera_model, spec.layout, clock=time.perf_counter)
+        self.controller = PoseController(spec.control, spec.cell, spec.layout.centres_m)
+        self.view = ViewRenderer(spec.camera_model)
         self._estimate: Estimate | None = None
         self._last_frame_index = -1
-        self._commands_in_force = self.controller.stop()
 
     def start(self) -> None:
-        self.camera.start()
+        self.frames.start()
 
     def close(self) -> None:
         if self.recorder is not None:
             self.recorder.stop("daemon stopped")
-        self.camera.stop()
-
-    def camera_state(self) -> CameraState:
-        c = self.camera
-        return CameraState(c.state, c.healthy, c.last_error, c.reconnects)
+        self.frames.stop()
 
     def stop_reply(self, state: str) -> TickReply:
-        return TickReply(state, None, self.controller.stop(), False, None, self.camera_state())
+        return TickReply(state, None, self.controller.stop(), False, None, self.frames.health())
 
     def tick(self, req: TickRequest) -> TickReply:
         t0 = time.perf_counter()
@@ -110,32 +106,31 @@ class Compute:
             self.controller.reset()
             self._estimate = None
         self._record_requests(req)
-        frame = self.camera.latest()
+        frame = self.frames.latest()
         timing: dict[str, float] = {}
         new_frame = frame is not None and frame.index != self._last_frame_index
         est = self._estimate
         if frame is not None and new_frame:
-            est = self.tracker.step(frame.image, frame.t_mono_s, self._commands_in_force)
+            est = self.tracker.step(frame.image, frame.t_mono_s, req.commands_in_force)
             self._estimate = est
             self._last_frame_index = frame.index
             timing.update({f"tracker_{k}": v for k, v in est.timing_s.items()})
             if self.recorder is not None:
                 t_rec = time.perf_counter()
                 # The commands in force while this frame was captured: replay feeds them back the same way.
-                self.recorder.add(frame.image, frame.t_mono_s, self._commands_in_force, est)
+                self.recorder.add(frame.image, frame.t_mono_s, req.commands_in_force, est)
                 timing["record"] = time.perf_counter() - t_rec
         t1 = time.perf_counter()
-        state, commands = self._control(frame is not None, est, req)
-        self._commands_in_force = commands
+        state, commands = self._control(frame is not None, est, req.setpoint)
         timing["control"] = time.perf_counter() - t1
         timing["compute"] = time.perf_counter() - t0
         jpeg = None
         if req.want_view and frame is not None:
-            jpeg = self.view.render(frame.image, est, self.tracker, req.setpoint)
+            jpeg = self.view.render(frame.image, est, req.setpoint)
         frame_t = frame.t_mono_s if frame is not None else None
         recording = None if self.recorder is None else self.recorder.status()
         return TickReply(
-            state, est, commands, new_frame, frame_t, self.camera_state(), timing, jpeg, recording
+            state, est, commands, new_frame, frame_t, self.frames.health(), timing, jpeg, recording
         )
 
     def _record_requests(self, req: TickRequest) -> None:
@@ -144,38 +139,35 @@ class Compute:
         if req.record_start is not None:
             if self.recorder is not None:
                 self.recorder.stop("a new recording started")
+            spec = self.spec
             try:
                 self.recorder = Recorder(
-                    req.record_start, self.camera_model, self.layout, self.max_record_bytes, time.monotonic()
+                    req.record_start, spec.camera_model, spec.layout, spec.max_record_bytes, time.monotonic()
                 )
             except OSError as err:
                 log.warning("cannot start recording in %s: %s", req.record_start, err)
 
-    def _control(
-        self, have_frame: bool, est: Estimate | None, req: TickRequest
-    ) -> tuple[str, ModuleCommands]:
+    def _control(self, have_frame: bool, est: Estimate | None, sp: Setpoint) -> tuple[str, ModuleCommands]:
         if not have_frame:
             return "camera_lost", self.controller.stop()
-        if est is None or est.status != "tracking":
+        if est is None or not est.tracking:
             return "tracking_lost", self.controller.stop()
-        sp = req.setpoint
-        outline = self.tracker.outline_m()
-        if req.estopped or sp.mode == "idle" or sp.pose is None or outline is None:
+        if sp.mode == "idle" or sp.pose is None or est.outline_m is None:
             return "tracking", self.controller.stop()
-        twist = self.controller.plan_twist(est.pose, sp.pose, self.period_s)
-        return "tracking", self.controller.module_commands(est.pose, twist, outline)
+        twist = self.controller.plan_twist(est.pose, sp.pose, self.spec.period_s)
+        return "tracking", self.controller.module_commands(est.pose, twist, est.outline_m)
 
 
-def serve_compute(conn: Connection, cfg: Config, camera_model: CameraModel) -> None:
+def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
     """The compute process's main: answer TickRequests until None arrives or the pipe closes."""
     # Signals are the daemon's to handle: it stops the modules, then tells this process to finish
     # (a terminal's Ctrl-C or systemd's stop reach the whole process group).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    start_taichi(cfg.taichi.arch)
+    start_taichi(spec.taichi_arch)
     cv2.setNumThreads(1)
-    compute = Compute(cfg, camera_model)
+    compute = Compute(spec, spec.frame_source())
     compute.start()
     conn.send("ready")
     try:

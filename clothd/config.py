@@ -6,13 +6,23 @@ names the key and the bound it broke.
 
 from __future__ import annotations
 
+import ipaddress
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from clothd.errors import ConfigError
+
+
+def is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
 
 
 class _Strict(BaseModel):
@@ -120,6 +130,10 @@ class TrackerConfig(_Strict):
 class LoopConfig(_Strict):
     tick_hz: float = Field(30.0, ge=15, le=30, description="the fixed control tick")
 
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.tick_hz
+
 
 class CameraSourceConfig(_Strict):
     """Where frames come from: a device index ("0"), a device path, a video file, a stream URL or a
@@ -172,6 +186,16 @@ class ApiConfig(_Strict):
     token: str | None = Field(None, min_length=16, max_length=256, description="required off loopback")
     view_fps: float = Field(10.0, gt=0, le=30, description="the annotated MJPEG view's rate")
 
+    @model_validator(mode="after")
+    def _token_off_loopback(self) -> ApiConfig:
+        """Off loopback, the API needs a token: refuse to start without one."""
+        if not is_loopback(self.host) and self.token is None:
+            raise ValueError(
+                f"api.host: {self.host} is reachable from other machines; set api.token (16+ characters) "
+                "so that changes need Authorization: Bearer <token>, or bind to 127.0.0.1"
+            )
+        return self
+
 
 class RecordingConfig(_Strict):
     dir: Path = Field(Path("recordings"), description="where POST /record/start puts sessions by default")
@@ -208,14 +232,32 @@ def parse_config(data: object, source: str = "<config>") -> Config:
         raise ConfigError(_describe(err, source)) from None
 
 
-def load_config(path: Path | None) -> Config:
-    """The configuration in `path`, or every default when path is None."""
-    if path is None:
-        return Config()
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as err:
-        raise ConfigError(f"{path}: cannot read: {err.strerror}") from None
-    except yaml.YAMLError as err:
-        raise ConfigError(f"{path}: not valid YAML: {err}") from None
-    return parse_config(data, str(path))
+def _merged(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in overrides.items():
+        out[key] = (
+            _merged(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+        )
+    return out
+
+
+def load_config(path: Path | None, overrides: dict[str, Any] | None = None) -> Config:
+    """The configuration in `path` (every default when None) with `overrides` (a nested mapping, e.g.
+    from command-line flags) laid over it, validated once, as a whole."""
+    data: object = {}
+    if path is not None:
+        try:
+            data = yaml.safe_load(path.read_text())
+        except OSError as err:
+            raise ConfigError(f"{path}: cannot read: {err.strerror}") from None
+        except yaml.YAMLError as err:
+            raise ConfigError(f"{path}: not valid YAML: {err}") from None
+    source = str(path) if path is not None else "<defaults>"
+    if overrides and isinstance(data, dict | None):
+        data = _merged(data or {}, overrides)
+    return parse_config(data, source)
+
+
+def with_overrides(cfg: Config, overrides: dict[str, Any]) -> Config:
+    """cfg with `overrides` laid over it, validated again as a whole."""
+    return parse_config(_merged(cfg.model_dump(), overrides), "<overrides>")

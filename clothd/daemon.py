@@ -15,72 +15,76 @@ controller's watchdog stops them.
 from __future__ import annotations
 
 import asyncio
-import contextlib
-import json
 import logging
-import multiprocessing
-import os
 import time
-from collections import deque
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import NoReturn
 
 import numpy as np
 
-from clothd.api.stream import StreamHub
-from clothd.compute import CameraState, TickReply, TickRequest, layout_of, serve_compute
-from clothd.config import Config
-from clothd.core.camera_model import CameraModel
+from clothd.compute import TickReply, TickRequest
+from clothd.compute_process import ComputeProcess
 from clothd.core.control import Mode, Setpoint
 from clothd.core.messages import ModuleCommands
-from clothd.drivers.stepper_link import StepperLink
-from clothd.drivers.wire import Fault
+from clothd.drivers.ports import FrameSourceHealth, ModuleLink
 from clothd.errors import HardwareError, RequestError
 from clothd.loop_stats import LoopStats
 from clothd.notify import SystemdNotifier
-from clothd.status import build_status
+from clothd.status import Status, build_status
 
 log = logging.getLogger(__name__)
 
 WATCHDOG_NOTIFY_S = 1.0
 OVERRUN_LOG_S = 1.0
-COMPUTE_START_TIMEOUT_S = 120.0
 SEND_MARGIN_S = 0.003  # a tick's commands go out this long before the next deadline at the latest
 
 
+@dataclass(frozen=True)
+class DaemonSettings:
+    period_s: float  # the fixed tick
+    n_modules: int
+    view_period_s: float  # the annotated view's frame interval
+    recording_dir: Path  # where recordings go by default
+    camera_source: str  # as shown in the status
+    link_port: str
+
+
 class Daemon:
+    """The loop, and the one owner of the shell's state: the setpoint, the commands sent, the status.
+
+    `link` is the stepper controller (ModuleLink) and `compute` the compute process; both are given, not
+    built here. API handlers call the request methods on the event loop; none of them waits on a tick.
+    `on_status` receives each new status (the API's fan-out)."""
+
     def __init__(
-        self, cfg: Config, camera_model: CameraModel, notifier: SystemdNotifier | None = None
+        self,
+        settings: DaemonSettings,
+        link: ModuleLink,
+        compute: ComputeProcess,
+        notifier: SystemdNotifier | None = None,
+        on_status: Callable[[Status], None] | None = None,
     ) -> None:
-        self.cfg = cfg
-        self.layout = layout_of(cfg)
-        self.camera_model = camera_model
-        self.link = StepperLink(cfg.stepper, self.layout.n_modules, on_fault=self._on_fault)
+        self.settings = settings
+        self.link = link
+        self.compute = compute
         self.notifier = notifier or SystemdNotifier()
+        self.on_status = on_status
         self.stats = LoopStats()
-        self.hub = StreamHub()
         self.setpoint = Setpoint("idle", None)
-        self.estopped = False
         self.state = "starting"
-        self.camera = CameraState("connecting", False, None, 0)
-        self.faults: deque[dict[str, object]] = deque(maxlen=20)
+        self.camera = FrameSourceHealth("connecting", False, None, 0)
         self.latest: TickReply | None = None
-        self.status: dict[str, object] = {}
-        self.status_json = b"{}"
+        self.status: Status | None = None
         self.viewers = 0
         self.view_jpeg: bytes | None = None
         self.view_index = 0
-        self.view_period_s = 1.0 / cfg.api.view_fps
-        self.sim_truth_url: str | None = None  # hwsim's ground truth, when running against it
         self._last_view_s = -np.inf
-        self._period_s = 1.0 / cfg.loop.tick_hz
-        self._conn: Any = None
-        self._process: Any = None
-        self._receiver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute-reply")
         self._pending: asyncio.Future[TickReply] | None = None  # the compute in flight
         self._unsent_frame_t_s: float | None = None  # capture time behind commands not yet sent
-        self._commands = ModuleCommands(np.zeros(self.layout.n_modules), np.zeros(self.layout.n_modules))
+        self._commands = ModuleCommands.all_stop(settings.n_modules)  # the newest from the compute
+        self._in_force = self._commands  # what the modules were last told: the model's input
         self._reset_requested = False
         self._record_start: Path | None = None
         self._record_stop = False
@@ -93,13 +97,13 @@ class Daemon:
     # -- requests from the API (event loop thread) --------------------------------------------------
 
     def set_setpoint(self, mode: Mode, pose: np.ndarray | None) -> None:
-        if self.estopped and mode != "idle":
+        if self.link.estopped and mode != "idle":
             raise RequestError("the emergency stop is latched: clear it before moving the cloth")
         if mode == "move" and pose is None:
             raise RequestError("move needs x_m, y_m and theta_rad")
         if mode == "hold":
             est = self.latest.estimate if self.latest else None
-            if est is None or est.status != "tracking":
+            if est is None or not est.tracking:
                 raise RequestError("hold needs a tracked cloth, and the cloth is not tracked now")
             pose = est.pose.copy()
         self.setpoint = Setpoint(mode, None if mode == "idle" else pose)
@@ -108,23 +112,21 @@ class Daemon:
     def estop(self) -> None:
         """Stop every module now, bypassing the loop; latched until estop_clear."""
         self.link.estop()
-        self.estopped = True
         self.setpoint = Setpoint("idle", None)
         log.warning("emergency stop")
         self.publish()
 
     def estop_clear(self) -> None:
         self.link.estop_clear()
-        self.estopped = False
         self.publish()
 
     def start_recording(self, out_dir: Path | None) -> Path:
         """Record from the next frame into out_dir (a new directory; by default a timestamped one under
-        recording.dir). Returns the directory."""
+        the recording directory). Returns the directory."""
         rec = self.latest.recording if self.latest else None
         if rec is not None and rec.active:
             raise RequestError(f"already recording into {rec.dir}: stop it first")
-        path = out_dir or self.cfg.recording.dir / time.strftime("%Y%m%d-%H%M%S")
+        path = out_dir or self.settings.recording_dir / time.strftime("%Y%m%d-%H%M%S")
         try:
             exists = path.exists()
         except OSError as err:
@@ -148,60 +150,31 @@ class Daemon:
     # -- lifecycle ------------------------------------------------------------------------------------
 
     async def run(self) -> None:
-        """Run the loop until stop() is called."""
-        await self._start_compute()
+        """Run the loop until stop() is called; whatever ends it, shutdown() runs."""
+        await self.compute.start()
         link_task = asyncio.create_task(self.link.run())
         try:
             await self._loop()
         finally:
             await self.shutdown("loop ended")
             link_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await link_task
+            await asyncio.gather(link_task, return_exceptions=True)
 
     def stop(self) -> None:
         self._stopping = True
 
     async def shutdown(self, reason: str) -> None:
-        """Stop the modules first, then everything else."""
+        """The one way out: stop the modules first, then the compute process."""
         self._stopping = True
         log.info("shutting down: %s", reason)
         self.notifier.stopping()
         await self.link.stop()
-        if self._process is not None:
-            with contextlib.suppress(OSError, ValueError):
-                self._conn.send(None)
-            await asyncio.get_running_loop().run_in_executor(None, self._process.join, 10)
-            if self._process.is_alive():
-                self._process.kill()
-        self._receiver.shutdown(wait=False, cancel_futures=True)
-
-    async def _start_compute(self) -> None:
-        # One thread for BLAS and OpenCV in the compute process: their pools, sized to every core, only
-        # contend with hwsim or the camera here, and the matrices are small (set before it imports them).
-        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-            os.environ.setdefault(var, "1")
-        ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no inherited threads or Taichi
-        self._conn, child = ctx.Pipe()
-        self._process = ctx.Process(
-            target=serve_compute,
-            args=(child, self.cfg, self.camera_model),
-            name="clothd-compute",
-            daemon=True,
-        )
-        self._process.start()
-        child.close()
-        loop = asyncio.get_running_loop()
-        ready = await asyncio.wait_for(
-            loop.run_in_executor(self._receiver, self._conn.recv), COMPUTE_START_TIMEOUT_S
-        )
-        if ready != "ready":
-            raise HardwareError(f"the compute process did not start: {ready!r}")
+        await self.compute.stop()
 
     # -- the loop ------------------------------------------------------------------------------------
 
     async def _loop(self) -> None:
-        period = self._period_s
+        period = self.settings.period_s
         next_t = time.monotonic() + period
         while not self._stopping:
             delay = next_t - time.monotonic()
@@ -223,21 +196,12 @@ class Daemon:
         before the next deadline; if it takes longer, this tick repeats the last commands (counted as a
         compute overrun) and the first tick after the reply arrives uses it and asks again. The tick
         rate never depends on the compute."""
-        loop = asyncio.get_running_loop()
         now = time.monotonic()
         if self._pending is not None and self._pending.done():  # last tick's compute came in late
             self._use(self._pending, now)
             self._pending = None
         if self._pending is None:
-            want_view = self.viewers > 0 and now - self._last_view_s >= self.view_period_s
-            reset, self._reset_requested = self._reset_requested, False
-            start, self._record_start = self._record_start, None
-            stop, self._record_stop = self._record_stop, False
-            try:
-                self._conn.send(TickRequest(self.setpoint, self.estopped, reset, want_view, start, stop))
-            except OSError as err:
-                self._compute_died(err)
-            self._pending = asyncio.ensure_future(loop.run_in_executor(self._receiver, self._conn.recv))
+            self._pending = self._request(now)
         budget_s = next_deadline_s - time.monotonic() - SEND_MARGIN_S
         done, _ = await asyncio.wait({self._pending}, timeout=max(0.0, budget_s))
         if done:
@@ -245,17 +209,29 @@ class Daemon:
             self._pending = None
         else:
             self.stats.compute_overruns += 1
-        if not self.estopped:
-            self.link.send_commands(self._commands.speed_m_s, self._commands.heading_rad)
+        sent = self.link.send_commands(self._commands)
+        # A link that is down or e-stopped moves nothing: the controller's watchdog or e-stop holds them.
+        self._in_force = self._commands if sent else ModuleCommands.all_stop(self.settings.n_modules)
         self.stats.ticks += 1
         if self._unsent_frame_t_s is not None:
             self.stats.latency.add_s(time.monotonic() - self._unsent_frame_t_s)
             self._unsent_frame_t_s = None
         self.publish()
 
+    def _request(self, now: float) -> asyncio.Future[TickReply]:
+        want_view = self.viewers > 0 and now - self._last_view_s >= self.settings.view_period_s
+        reset, self._reset_requested = self._reset_requested, False
+        start, self._record_start = self._record_start, None
+        stop, self._record_stop = self._record_stop, False
+        req = TickRequest(self.setpoint, self._in_force, reset, want_view, start, stop)
+        try:
+            return self.compute.request(req)
+        except OSError as err:
+            self._compute_died(err)
+
     def _compute_died(self, err: BaseException) -> NoReturn:
         """Stop the modules, say so, and end the loop (systemd restarts the service)."""
-        self.link.send_commands(np.zeros(self.layout.n_modules), np.zeros(self.layout.n_modules))
+        self.link.send_commands(ModuleCommands.all_stop(self.settings.n_modules))
         self.state = "fault"
         self.publish()
         raise HardwareError(
@@ -284,15 +260,21 @@ class Daemon:
     # -- publishing ------------------------------------------------------------------------------------
 
     def publish(self) -> None:
-        """Build the status once, serialise it once, and hand it to every stream subscriber."""
-        self.status = build_status(self)
-        self.status_json = _dumps(self.status)
-        self.hub.publish(self.status_json)
-
-    def _on_fault(self, fault: Fault) -> None:
-        self.faults.append(
-            {"t_unix_s": time.time(), "code": fault.code, "module": fault.module, "text": fault.text}
+        """Build the status once and hand it on (the API serialises it once for every reader)."""
+        s = self.settings
+        self.status = build_status(
+            state=self.state,
+            setpoint=self.setpoint,
+            estimate=self.latest.estimate if self.latest else None,
+            timing=self.stats.cached_summary(),
+            camera=self.camera,
+            camera_source=s.camera_source,
+            link=self.link,
+            link_port=s.link_port,
+            recording=self.latest.recording if self.latest else None,
         )
+        if self.on_status is not None:
+            self.on_status(self.status)
 
     def _notify_systemd(self, now_s: float, result: TickReply) -> None:
         healthy = result.state == "tracking" and self.link.connected
@@ -309,13 +291,3 @@ class Daemon:
         if now - self._last_overrun_log_s >= OVERRUN_LOG_S:
             log.warning("tick overran by %.1f ms: skipped %d tick(s)", late_s * 1e3, missed)
             self._last_overrun_log_s = now
-
-
-def _dumps(obj: object) -> bytes:
-    return json.dumps(obj, separators=(",", ":"), allow_nan=False, default=_json_default).encode()
-
-
-def _json_default(value: object) -> object:
-    if isinstance(value, np.generic):
-        return value.item()
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

@@ -15,12 +15,9 @@ loop goes on either way.
 
 from __future__ import annotations
 
-import csv
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
 
 import cv2
 import numpy as np
@@ -28,7 +25,7 @@ import numpy as np
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import Estimate, ModuleCommands
-from clothd.replay import write_estimates
+from clothd.formats import RecordingLog, write_camera, write_estimates, write_layout
 
 log = logging.getLogger(__name__)
 _PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
@@ -56,24 +53,10 @@ class Recorder:
         self.active = True
         self.stopped_reason: str | None = None
         self._estimates: list[Estimate] = []
-        self._last_cmd: ModuleCommands | None = None
         (out_dir / "frames").mkdir(parents=True, exist_ok=False)
-        _write_json(out_dir / "camera.json", camera.to_json())
-        centres = layout.centres_m.tolist()
-        _write_json(
-            out_dir / "table.json",
-            {
-                "modules_x": layout.modules_x,
-                "modules_y": layout.modules_y,
-                "pitch_m": layout.pitch_m,
-                "module_size_m": layout.belt_size_m,
-                "centres_m": centres,
-            },
-        )
-        self._times: IO[str] = (out_dir / "frames.csv").open("w", newline="")
-        self._times.write("index,t_s\n")
-        self._commands: IO[str] = (out_dir / "commands.csv").open("w", newline="")
-        self._commands.write("t_s,module,speed_m_s,heading_rad\n")
+        write_camera(out_dir / "camera.json", camera)
+        write_layout(out_dir / "table.json", layout)
+        self._log = RecordingLog(out_dir)
 
     def status(self) -> RecordingStatus:
         return RecordingStatus(
@@ -94,9 +77,7 @@ class Recorder:
             return
         try:
             (self.dir / "frames" / f"{self.frames:06d}.png").write_bytes(png.tobytes())
-            self._times.write(f"{self.frames},{t_s:.6f}\n")
-            self._times.flush()
-            self._write_commands(t_s, commands)
+            self._log.add_frame(self.frames, t_s, commands)
         except OSError as err:
             self.stop(f"write failed: {err.strerror or err}")
             return
@@ -112,30 +93,10 @@ class Recorder:
         self.active = False
         self.stopped_reason = reason
         log.info("recording %s stopped: %s (%d frames)", self.dir, reason, self.frames)
-        for f in (self._times, self._commands):
-            try:
-                f.close()
-            except OSError as err:
-                log.warning("recording: closing %s failed: %s", f.name, err)
+        for error in self._log.close():
+            log.warning("recording: %s", error)
         if self._estimates:
             try:
                 write_estimates(self.dir / "estimates.npz", self._estimates)
             except OSError as err:  # the disk is full: the frames and commands stay replayable
                 self.stopped_reason = f"{reason}; estimates not written: {err.strerror or err}"
-
-    def _write_commands(self, t_s: float, cmd: ModuleCommands) -> None:
-        last = self._last_cmd
-        changed = (
-            np.ones(len(cmd.speed_m_s), bool)
-            if last is None
-            else (cmd.speed_m_s != last.speed_m_s) | (cmd.heading_rad != last.heading_rad)
-        )
-        w = csv.writer(self._commands)
-        for m in np.flatnonzero(changed):
-            w.writerow([f"{t_s:.6f}", int(m), f"{cmd.speed_m_s[m]:.6f}", f"{cmd.heading_rad[m]:.6f}"])
-        self._commands.flush()
-        self._last_cmd = cmd
-
-
-def _write_json(path: Path, obj: Any) -> None:
-    path.write_text(json.dumps(obj, indent=2) + "\n")

@@ -1,4 +1,7 @@
-"""`clothd run`: the daemon with its API server, optionally against a simulated cell started as a child.
+"""`clothd run`, the composition root: the configuration is loaded, overridden and validated once, the
+camera model, module layout and tick period are derived once, and each part is built here and handed
+only what it needs: the daemon its settings, the stepper link (a ModuleLink) and the compute process;
+the compute process its spec, with the camera (a FrameSource) as a factory it opens itself.
 
 Order on the way out, whatever the cause (signal, error, end): the modules stop first (the daemon's
 shutdown), then the API server, then the hwsim child.
@@ -8,9 +11,8 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import ipaddress
+import functools
 import json
-import logging
 import select
 import signal
 import subprocess
@@ -24,31 +26,19 @@ from pathlib import Path
 import uvicorn
 
 from clothd.api.app import create_app
-from clothd.config import Config
+from clothd.api.stream import StreamHub
+from clothd.compute import ComputeSpec
+from clothd.compute_process import ComputeProcess
+from clothd.config import Config, with_overrides
 from clothd.core.camera_model import CameraModel
-from clothd.daemon import Daemon
-from clothd.errors import ConfigError, HardwareError
+from clothd.core.conveyor import ConveyorLayout
+from clothd.daemon import Daemon, DaemonSettings
+from clothd.drivers.camera import VideoCaptureSource
+from clothd.drivers.stepper_link import StepperLink
+from clothd.errors import HardwareError
+from clothd.formats import read_camera
 
-log = logging.getLogger("clothd")
 SIM_START_TIMEOUT_S = 120.0
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
-def check_exposure(cfg: Config) -> None:
-    """Off loopback, the API needs a token: refuse to start without one."""
-    if not is_loopback(cfg.api.host) and cfg.api.token is None:
-        raise ConfigError(
-            f"api.host: {cfg.api.host} is reachable from other machines; set api.token (16+ characters) "
-            "so that changes need Authorization: Bearer <token>, or bind to 127.0.0.1"
-        )
 
 
 @dataclass
@@ -91,18 +81,56 @@ def start_sim(scenario: str) -> SimCell:
 
 def sim_config(cfg: Config, ready: dict[str, object]) -> Config:
     """Point the camera and the stepper link at the simulated cell."""
-    camera = cfg.camera.model_copy(
-        update={"source": str(ready["video_url"]), "calibration": Path(str(ready["camera_json"]))}
+    return with_overrides(
+        cfg,
+        {
+            "camera": {"source": str(ready["video_url"]), "calibration": str(ready["camera_json"])},
+            "stepper": {"port": str(ready["serial"])},
+        },
     )
-    stepper = cfg.stepper.model_copy(update={"port": str(ready["serial"])})
-    return cfg.model_copy(update={"camera": camera, "stepper": stepper})
 
 
 def camera_model_for(cfg: Config) -> CameraModel:
     if cfg.camera.calibration is not None:
-        return CameraModel.load(cfg.camera.calibration)
+        return read_camera(cfg.camera.calibration)
     c = cfg.tracker.camera
     return CameraModel.ideal(c.width_px, c.height_px, c.f_px, c.distance_m)
+
+
+@dataclass
+class Parts:
+    daemon: Daemon
+    hub: StreamHub
+    camera_model: CameraModel
+
+
+def build(cfg: Config) -> Parts:
+    """Every part of the daemon, built once from the validated configuration; nothing is started."""
+    camera_model = camera_model_for(cfg)
+    layout = ConveyorLayout.of_cell(cfg.cell)
+    spec = ComputeSpec(
+        tracker=cfg.tracker,
+        control=cfg.control,
+        cell=cfg.cell,
+        layout=layout,
+        camera_model=camera_model,
+        period_s=cfg.loop.period_s,
+        taichi_arch=cfg.taichi.arch,
+        max_record_bytes=cfg.recording.max_bytes,
+        frame_source=functools.partial(VideoCaptureSource, cfg.camera),
+    )
+    settings = DaemonSettings(
+        period_s=cfg.loop.period_s,
+        n_modules=layout.n_modules,
+        view_period_s=1.0 / cfg.api.view_fps,
+        recording_dir=cfg.recording.dir,
+        camera_source=cfg.camera.source,
+        link_port=cfg.stepper.port,
+    )
+    hub = StreamHub()
+    link = StepperLink(cfg.stepper, layout.n_modules)
+    daemon = Daemon(settings, link, ComputeProcess(spec), on_status=hub.publish)
+    return Parts(daemon, hub, camera_model)
 
 
 class _Server(uvicorn.Server):
@@ -116,11 +144,11 @@ class _Server(uvicorn.Server):
 async def serve(
     cfg: Config, on_ready: str | None = None, sim_truth_url: str | None = None, record_dir: Path | None = None
 ) -> None:
-    daemon = Daemon(cfg, camera_model_for(cfg))
-    daemon.sim_truth_url = sim_truth_url
+    parts = build(cfg)
+    daemon = parts.daemon
     if record_dir is not None:
         daemon.start_recording(record_dir)
-    app = create_app(daemon, cfg.api.token)
+    app = create_app(daemon, parts.hub, parts.camera_model, cfg.api.token, sim_truth_url)
     server = _Server(uvicorn.Config(app, host=cfg.api.host, port=cfg.api.port, log_level="warning"))
     loop = asyncio.get_running_loop()
 
@@ -146,7 +174,8 @@ async def serve(
 
 
 def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -> int:
-    check_exposure(cfg)
+    """Run the daemon with `cfg` (loaded and validated by the caller), against hwsim when sim_scenario
+    names a scenario."""
     sim = start_sim(sim_scenario) if sim_scenario is not None else None
     try:
         if sim is not None:

@@ -1,77 +1,181 @@
-"""The daemon's status as one JSON-ready dict: what GET /api/v1/status returns and /stream pushes.
-Its shape is declared for the API in clothd/api/schemas.py (StatusResponse)."""
+"""The daemon's status: what GET /api/v1/status returns and the WebSocket pushes, as typed models.
+
+These models are the status's one definition: the daemon builds a `Status` once per tick and serialises
+it once (non-finite numbers become null), and the API documents the same models in its OpenAPI schema.
+"""
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import asdict
-from typing import TYPE_CHECKING, Any
+from typing import Literal
 
 import numpy as np
+from pydantic import BaseModel, Field
 
-if TYPE_CHECKING:
-    from clothd.daemon import Daemon
+from clothd.core.control import Setpoint
+from clothd.core.messages import Estimate
+from clothd.drivers.ports import FrameSourceHealth, ModuleLink
+from clothd.recorder import RecordingStatus
 
-
-def _num(x: float) -> float | None:
-    return float(x) if math.isfinite(x) else None
-
-
-def _pose(p: np.ndarray | None) -> dict[str, float | None] | None:
-    if p is None:
-        return None
-    return {"x_m": _num(p[0]), "y_m": _num(p[1]), "theta_rad": _num(p[2])}
+NODE_DECIMALS = 5  # 10 µm: the status carries the mesh, not the filter's noise
 
 
-def build_status(d: Daemon) -> dict[str, Any]:
-    est = d.latest.estimate if d.latest else None
-    tracking = est is not None and est.status == "tracking"
-    pose = None
-    mesh = None
-    features = 0
-    rejected = 0
-    residual: dict[str, float | None] = {"mean_px": None, "worst_px": None}
-    if est is not None and tracking:
-        cov = [[_num(v) for v in row] for row in est.pose_cov.tolist()]
-        pose = {**(_pose(est.pose) or {}), "cov": cov}
+class Pose(BaseModel):
+    x_m: float | None
+    y_m: float | None
+    theta_rad: float | None
+
+    @classmethod
+    def of(cls, pose: np.ndarray) -> Pose:
+        return cls(x_m=pose[0], y_m=pose[1], theta_rad=pose[2])
+
+
+class PoseWithCovariance(Pose):
+    cov: list[list[float | None]] = Field(description="3 x 3 over (x_m, y_m, theta_rad)")
+
+
+class Mesh(BaseModel):
+    nx: int
+    ny: int
+    nodes_m: list[list[float]] = Field(description="ny*nx rows of [x, y, z], row by row, world frame")
+
+
+class Residual(BaseModel):
+    mean_px: float | None
+    worst_px: float | None
+
+
+class Window(BaseModel):
+    mean_ms: float | None
+    p50_ms: float | None
+    p99_ms: float | None
+    max_ms: float | None
+
+
+class Timing(BaseModel):
+    ticks: int
+    missed_ticks: int
+    missed_pct: float
+    compute_overruns: int = Field(description="ticks sent with the previous commands: compute not done")
+    stages: dict[str, Window]
+    jitter: Window
+    frame_to_command: Window
+
+
+class CameraState(BaseModel):
+    state: str
+    healthy: bool
+    source: str
+    last_error: str | None
+    reconnects: int
+
+
+class LinkCounters(BaseModel):
+    sent: int
+    retransmitted: int
+    acked: int
+    invalid: int
+    nacked: int
+    faults: int
+    reconnects: int
+    rtt_p50_ms: float | None
+    rtt_p99_ms: float | None
+
+
+class LinkState(BaseModel):
+    state: str
+    port: str
+    firmware: str | None
+    last_error: str | None
+    controller_estop: bool
+    counters: LinkCounters
+
+
+class FaultReport(BaseModel):
+    t_unix_s: float
+    code: int
+    module: int
+    text: str
+
+
+class Recording(BaseModel):
+    active: bool
+    dir: str | None
+    frames: int
+    bytes: int
+    max_bytes: int
+    stopped_reason: str | None = Field(description="why it stopped: a request, the size limit, a full disk")
+
+
+class Status(BaseModel):
+    t_unix_s: float
+    state: str = Field(description="starting | tracking | tracking_lost | camera_lost | fault")
+    mode: Literal["idle", "hold", "move"]
+    setpoint: Pose | None
+    estop: bool
+    pose: PoseWithCovariance | None
+    mesh: Mesh | None
+    features: int = Field(description="features measured and accepted in the last frame")
+    rejected_features: int = Field(description="rejected by the filter's gate in the last frame")
+    residual: Residual
+    timing: Timing
+    camera: CameraState
+    link: LinkState
+    faults: list[FaultReport]
+    recording: Recording | None
+
+
+def build_status(
+    *,
+    state: str,
+    setpoint: Setpoint,
+    estimate: Estimate | None,
+    timing: dict[str, object],
+    camera: FrameSourceHealth,
+    camera_source: str,
+    link: ModuleLink,
+    link_port: str,
+    recording: RecordingStatus | None,
+) -> Status:
+    """The status from the parts the daemon holds; the estimate counts only while it is tracking."""
+    est = estimate if estimate is not None and estimate.tracking else None
+    pose = mesh = None
+    features = rejected = 0
+    residual = Residual(mean_px=None, worst_px=None)
+    if est is not None:
+        pose = PoseWithCovariance(
+            x_m=est.pose[0], y_m=est.pose[1], theta_rad=est.pose[2], cov=est.pose_cov.tolist()
+        )
         if est.nodes_m is not None:
             ny, nx = est.nodes_m.shape[:2]
-            mesh = {"nx": nx, "ny": ny, "nodes_m": np.round(est.nodes_m.reshape(-1, 3), 5).tolist()}
+            mesh = Mesh(nx=nx, ny=ny, nodes_m=np.round(est.nodes_m.reshape(-1, 3), NODE_DECIMALS).tolist())
         features = int((~np.isnan(est.meas_px[:, 0])).sum()) if len(est.meas_px) else 0
         rejected = est.stats.rejected
         r = est.residual_px
         if len(r):
-            residual = {"mean_px": float(r.mean()), "worst_px": float(r.max())}
-    link = d.link
-    cam = d.camera
-    return {
-        "t_unix_s": time.time(),
-        "state": d.state,
-        "mode": d.setpoint.mode,
-        "setpoint": _pose(d.setpoint.pose),
-        "estop": d.estopped,
-        "pose": pose,
-        "mesh": mesh,
-        "features": features,
-        "rejected_features": rejected,
-        "residual": residual,
-        "timing": d.stats.cached_summary(),
-        "camera": {
-            "state": cam.state,
-            "healthy": cam.healthy,
-            "source": d.cfg.camera.source,
-            "last_error": cam.last_error,
-            "reconnects": cam.reconnects,
-        },
-        "link": {
-            "state": link.state,
-            "port": d.cfg.stepper.port,
-            "firmware": link.firmware,
-            "last_error": link.last_error,
-            "controller_estop": link.controller_estopped,
-            "counters": link.counters.snapshot(),
-        },
-        "faults": list(d.faults),
-        "recording": None if d.latest is None or d.latest.recording is None else asdict(d.latest.recording),
-    }
+            residual = Residual(mean_px=float(r.mean()), worst_px=float(r.max()))
+    return Status(
+        t_unix_s=time.time(),
+        state=state,
+        mode=setpoint.mode,
+        setpoint=None if setpoint.pose is None else Pose.of(setpoint.pose),
+        estop=link.estopped,
+        pose=pose,
+        mesh=mesh,
+        features=features,
+        rejected_features=rejected,
+        residual=residual,
+        timing=Timing.model_validate(timing),
+        camera=CameraState(source=camera_source, **asdict(camera)),
+        link=LinkState(
+            state=link.state,
+            port=link_port,
+            firmware=link.firmware,
+            last_error=link.last_error,
+            controller_estop=link.controller_estopped,
+            counters=LinkCounters.model_validate(link.counters.snapshot()),
+        ),
+        faults=[FaultReport(**asdict(f)) for f in link.faults],
+        recording=None if recording is None else Recording(**asdict(recording)),
+    )

@@ -1,6 +1,9 @@
-"""The annotated live view (GET /api/v1/view.mjpg): the camera frame with what the tracker believes, in
-the original's figure style (clothd/overlay.py), plus the pose arrow and the setpoint as a ghost
-outline. Drawn in the compute process, only on ticks when someone watches, at `api.view_fps`."""
+"""Drawing what the tracker believes over a frame, in the original report's figure style: predicted
+features as green crosses, measured ones red, a yellow line between each pair, and the mesh.
+
+`draw_estimate` serves `clothd replay`'s overlay video; `ViewRenderer` the live annotated view
+(GET /api/v1/view.mjpg), which adds the pose arrow and the setpoint as a ghost outline. The live view is
+drawn in the compute process, only on ticks when someone watches, at `api.view_fps`."""
 
 from __future__ import annotations
 
@@ -12,34 +15,67 @@ import numpy as np
 from clothd.core.camera_model import CameraModel
 from clothd.core.control import Setpoint
 from clothd.core.messages import Estimate
-from clothd.core.tracker import Tracker
-from clothd.overlay import draw_estimate
 
+GREEN, RED, YELLOW, MESH_BGR = (0, 220, 0), (0, 0, 255), (0, 230, 255), (255, 160, 40)
 ARROW_BGR, GHOST_BGR = (255, 255, 255), (200, 120, 255)
 ARROW_M = 0.08
 JPEG_QUALITY = 80
+_SHIFT = 2  # fractional bits for sub-pixel drawing
+_CROSS_PX = 3
+
+
+def _fixed(px: np.ndarray) -> np.ndarray:
+    return np.round(np.asarray(px) * (1 << _SHIFT)).astype(np.int32)
+
+
+def _segments(img: np.ndarray, starts: np.ndarray, ends: np.ndarray, colour: tuple[int, int, int]) -> None:
+    """Draw n line segments (n, 2) -> (n, 2) in one call (OpenCV draws them without the GIL)."""
+    if len(starts):
+        segments = list(np.stack([_fixed(starts), _fixed(ends)], axis=1))
+        cv2.polylines(img, segments, False, colour, 1, cv2.LINE_AA, _SHIFT)
+
+
+def _crosses(img: np.ndarray, px: np.ndarray, colour: tuple[int, int, int]) -> None:
+    p = px[~np.isnan(px[:, 0])] if len(px) else px
+    d = np.array([_CROSS_PX, _CROSS_PX], float)
+    _segments(img, np.concatenate([p - d, p + d * [-1, 1]]), np.concatenate([p + d, p + d * [1, -1]]), colour)
+
+
+def draw_estimate(image: np.ndarray, est: Estimate, camera_model: CameraModel) -> np.ndarray:
+    """A copy of `image` (BGR) with the estimate drawn on, the mesh projected through camera_model."""
+    img = image.copy()
+    if est.nodes_m is not None:
+        ny, nx = est.nodes_m.shape[:2]
+        g = _fixed(camera_model.project(est.nodes_m.reshape(-1, 3)).reshape(ny, nx, 2))
+        lines = [np.ascontiguousarray(g[j]) for j in range(ny)]
+        lines += [np.ascontiguousarray(g[:, i]) for i in range(nx)]
+        cv2.polylines(img, lines, False, MESH_BGR, 1, cv2.LINE_AA, _SHIFT)
+    ok = ~np.isnan(est.meas_px[:, 0]) if len(est.meas_px) else np.zeros(0, bool)
+    _segments(img, est.meas_px[ok], est.pred_px[ok], YELLOW)
+    _crosses(img, est.meas_px[ok], RED)
+    _crosses(img, est.pred_px, GREEN)
+    label = f"t {est.frame_t_s:6.2f} s  {est.status}  features {len(est.feature_id)}"
+    cv2.putText(img, label, (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    return img
 
 
 class ViewRenderer:
-    def __init__(self, camera: CameraModel) -> None:
-        self.camera = camera
+    def __init__(self, camera_model: CameraModel) -> None:
+        self.camera_model = camera_model
 
-    def render(
-        self, image: np.ndarray, est: Estimate | None, tracker: Tracker, setpoint: Setpoint
-    ) -> bytes | None:
-        if est is not None and est.status == "tracking":
-            node_px = None if est.nodes_m is None else self.camera.project(est.nodes_m.reshape(-1, 3))
-            img = draw_estimate(image, est, tracker.mesh_shape, node_px)
+    def render(self, image: np.ndarray, est: Estimate | None, setpoint: Setpoint) -> bytes | None:
+        if est is not None and est.tracking:
+            img = draw_estimate(image, est, self.camera_model)
             self._arrow(img, est.pose)
         else:
             img = image.copy()
-        if setpoint.pose is not None and tracker.mesh is not None:
-            self._ghost(img, setpoint.pose, tracker.mesh.width_m, tracker.mesh.height_m)
+        if setpoint.pose is not None and est is not None and est.cloth_size_m is not None:
+            self._ghost(img, setpoint.pose, *est.cloth_size_m)
         ok, jpeg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         return jpeg.tobytes() if ok else None
 
     def _project(self, xy: np.ndarray) -> np.ndarray:
-        return self.camera.project(np.column_stack([xy, np.zeros(len(xy))]))
+        return self.camera_model.project(np.column_stack([xy, np.zeros(len(xy))]))
 
     def _arrow(self, img: np.ndarray, pose: np.ndarray) -> None:
         tip = pose[:2] + ARROW_M * np.array([math.cos(pose[2]), math.sin(pose[2])])

@@ -8,24 +8,26 @@ import hypothesis
 import numpy as np
 import pytest
 import schemathesis
+from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
 from clothd.api.app import create_app
-from clothd.config import ApiConfig, Config
+from clothd.api.stream import Subscriber
+from clothd.config import ApiConfig, Config, parse_config
 from clothd.core.camera_model import CameraModel
-from clothd.daemon import Daemon
 from clothd.errors import ConfigError
-from clothd.run import check_exposure
+from clothd.run import build
 
 TOKEN = "s3cret-token-for-tests"
 
 
-def _daemon() -> Daemon:
-    cfg = Config()
-    return Daemon(cfg, CameraModel.ideal(640, 480, 900.0, 1.0))
+def _app(token: str | None = None) -> FastAPI:
+    """The app over a daemon built as `clothd run` builds it (ideal camera), never started."""
+    parts = build(Config())
+    return create_app(parts.daemon, parts.hub, parts.camera_model, token)
 
 
-schema = schemathesis.openapi.from_asgi("/openapi.json", create_app(_daemon()))
+schema = schemathesis.openapi.from_asgi("/openapi.json", _app())
 
 
 # The MJPEG view never ends, and /healthz answers 503 by design while nothing runs (tested below).
@@ -38,7 +40,7 @@ def test_api_conforms_to_its_schema(case: schemathesis.Case) -> None:
 
 @pytest.fixture
 def client() -> TestClient:
-    return TestClient(create_app(_daemon()))
+    return TestClient(_app())
 
 
 def test_status_reports_every_section(client: TestClient) -> None:
@@ -75,7 +77,7 @@ def test_estop_latches_and_refuses_moves_until_cleared(client: TestClient) -> No
 
 
 def test_token_guards_changes_but_not_reads() -> None:
-    c = TestClient(create_app(_daemon(), token=TOKEN))
+    c = TestClient(_app(token=TOKEN))
     assert c.get("/api/v1/status").status_code == 200
     assert c.post("/api/v1/estop").status_code == 401
     assert c.post("/api/v1/estop", headers={"Authorization": "Bearer wrong-token-xxxxxxx"}).status_code == 401
@@ -83,10 +85,10 @@ def test_token_guards_changes_but_not_reads() -> None:
 
 
 def test_binding_off_loopback_needs_a_token() -> None:
-    with pytest.raises(ConfigError, match=r"api\.token"):
-        check_exposure(Config(api=ApiConfig(host="0.0.0.0")))
-    check_exposure(Config(api=ApiConfig(host="0.0.0.0", token=TOKEN)))
-    check_exposure(Config(api=ApiConfig(host="::1")))
+    with pytest.raises(ConfigError, match=r"api: .*api\.token"):
+        parse_config({"api": {"host": "0.0.0.0"}})
+    assert parse_config({"api": {"host": "0.0.0.0", "token": TOKEN}}).api.token == TOKEN
+    assert ApiConfig(host="::1").token is None
 
 
 def test_metrics_and_health(client: TestClient) -> None:
@@ -102,10 +104,9 @@ def test_stream_sends_the_status_at_once(client: TestClient) -> None:
 
 
 def test_slow_subscriber_drops_instead_of_queueing() -> None:
-    d = _daemon()
-    sub = d.hub.subscribe(0.0)
+    sub = Subscriber(0.0)
     for k in range(5):
-        d.hub.publish(str(k).encode())
+        sub.offer(str(k).encode())
     assert sub.dropped == 4
     assert np.isclose(float(sub._slot or b"nan"), 4.0)
 

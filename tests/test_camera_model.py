@@ -12,6 +12,7 @@ import pytest
 
 from clothd.core.camera_model import CameraModel
 from clothd.errors import InputError
+from clothd.formats import read_camera
 
 DIST = np.array([-0.12, 0.03, 0.001, -0.0015, 0.002])
 
@@ -115,7 +116,7 @@ def test_load_reads_camera_json(tmp_path: Path) -> None:
         "T_cam_world": cam.T_cam_world.tolist(),
     }
     (tmp_path / "camera.json").write_text(json.dumps(d))
-    back = CameraModel.load(tmp_path / "camera.json")
+    back = read_camera(tmp_path / "camera.json")
     np.testing.assert_array_equal(back.K, cam.K)
     np.testing.assert_array_equal(back.dist, cam.dist)
     np.testing.assert_array_equal(back.T_cam_world, cam.T_cam_world)
@@ -136,16 +137,16 @@ def test_load_names_a_missing_key_and_the_file(tmp_path: Path, key: str) -> None
     path = tmp_path / "camera.json"
     path.write_text(json.dumps(d))
     with pytest.raises(InputError, match=key) as info:
-        CameraModel.load(path)
+        read_camera(path)
     assert str(path) in str(info.value)
 
 
 def test_load_refuses_unreadable_files(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="cannot read"):
-        CameraModel.load(tmp_path / "absent.json")
+        read_camera(tmp_path / "absent.json")
     (tmp_path / "bad.json").write_text("{not json")
     with pytest.raises(InputError, match="not valid JSON"):
-        CameraModel.load(tmp_path / "bad.json")
+        read_camera(tmp_path / "bad.json")
     (tmp_path / "shape.json").write_text(
         json.dumps(
             {
@@ -158,4 +159,4 @@ def test_load_refuses_unreadable_files(tmp_path: Path) -> None:
         )
     )
     with pytest.raises(InputError, match="K"):
-        CameraModel.load(tmp_path / "shape.json")
+        read_camera(tmp_path / "shape.json")

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from clothd.config import CameraSourceConfig
-from clothd.drivers.camera import CameraSource
+from clothd.drivers.camera import VideoCaptureSource
 
 
 def _wait(check: object, timeout_s: float = 5.0) -> None:
@@ -24,7 +24,7 @@ def test_an_image_directory_plays_as_a_camera(tmp_path: Path) -> None:
     rng = np.random.default_rng(5)
     for k in (1, 2, 10):
         cv2.imwrite(str(tmp_path / f"img_{k}.png"), rng.integers(0, 255, (48, 64, 3), dtype=np.uint8))
-    cam = CameraSource(CameraSourceConfig(source=str(tmp_path)))
+    cam = VideoCaptureSource(CameraSourceConfig(source=str(tmp_path)))
     cam.start()
     try:
         _wait(lambda: cam.latest() is not None)
@@ -40,7 +40,7 @@ def test_an_image_directory_plays_as_a_camera(tmp_path: Path) -> None:
 
 def test_a_missing_source_is_reported_and_retried(tmp_path: Path) -> None:
     cfg = CameraSourceConfig(source=str(tmp_path / "nope.mp4"), reconnect_initial_s=0.05, reconnect_max_s=0.1)
-    cam = CameraSource(cfg)
+    cam = VideoCaptureSource(cfg)
     cam.start()
     try:
         _wait(lambda: cam.reconnects >= 2)

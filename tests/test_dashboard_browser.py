@@ -15,7 +15,7 @@ import pytest
 from live_cell import wait
 from playwright.sync_api import Browser, Page, sync_playwright
 
-from clothd.bench_loop import DaemonProcess, free_port
+from clothd.tools.bench_loop import DaemonProcess, free_port
 
 pytestmark = pytest.mark.slow
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"

@@ -11,7 +11,7 @@ from clothd.cli import main
 Recorder = Callable[[str], Path]
 
 
-@pytest.mark.parametrize(("model", "flags"), [("mesh", []), ("rigid", ["--no-input"])])
+@pytest.mark.parametrize(("model", "flags"), [("mesh", []), ("rigid", ["--no-input"]), ("none", [])])
 def test_replay_writes_estimates_summary_and_overlay(
     short_recording: Recorder, tmp_path: Path, model: str, flags: list[str]
 ) -> None:
@@ -24,12 +24,12 @@ def test_replay_writes_estimates_summary_and_overlay(
         n = len(z["feature_id"])
         assert z["meas_px"].shape == (n_frames, n, 2) and z["pred_px"].shape == (n_frames, n, 2)
         alive_per_frame = (~np.isnan(z["pred_px"][:, :, 0])).sum(axis=1)
-        if model == "mesh":
-            assert z["nodes_m"].shape == (n_frames, 12, 12, 3)
-        else:
+        if model == "none":  # no model, no nodes; the rigid model's are its rest mesh moved rigidly
             assert "nodes_m" not in z
+        else:
+            assert z["nodes_m"].shape == (n_frames, 12, 12, 3)
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["model"] == model and summary["use_input"] is (model == "mesh")
+    assert summary["model"] == model and summary["use_input"] is not bool(flags)
     assert summary["steady_realtime_factor"] > 0
     assert len(summary["per_frame"]) == n_frames
     # NaN exactly where a feature is not alive: the counts match what the tracker reported per frame.

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from clothd.config import StepperConfig
+from clothd.core.messages import ModuleCommands
 from clothd.drivers import wire
 from clothd.drivers.stepper_link import StepperLink
 from hwsim.firmware import FAULT_WATCHDOG, Firmware
@@ -23,6 +24,11 @@ from hwsim.scenario import TableSpec
 from hwsim.table import Table
 
 N = 48
+
+
+def _forward(speed_m_s: float) -> ModuleCommands:
+    """Every module at speed_m_s along world +x."""
+    return ModuleCommands(np.full(N, speed_m_s), np.zeros(N))
 
 
 def test_frames_round_trip_and_corruption_is_caught() -> None:
@@ -82,14 +88,14 @@ def test_commands_reach_the_modules_and_are_acknowledged(tmp_path: Path) -> None
             assert link.firmware and link.firmware.startswith("hwsim-fw")
             heading = np.linspace(-3, 3, N)
             for _ in range(5):
-                assert link.send_commands(np.full(N, 0.05), heading)
+                assert link.send_commands(ModuleCommands(np.full(N, 0.05), heading))
                 await asyncio.sleep(0.02)
             await _until(lambda: link.counters.acked >= 5)
             np.testing.assert_allclose(table.cmd_speed_m_s, 0.05, atol=1e-4)
             np.testing.assert_allclose(table.cmd_heading_rad, heading, atol=2e-4)
             assert link.counters.snapshot()["rtt_p50_ms"] is not None
             # A negative speed is the same motion with the belt turned half round.
-            link.send_commands(np.full(N, -0.02), np.zeros(N))
+            link.send_commands(_forward(-0.02))
             await _until(lambda: abs(table.cmd_speed_m_s[0] - 0.02) < 1e-4)
             assert abs(abs(table.cmd_heading_rad[0]) - np.pi) < 1e-3
             await link.stop()
@@ -101,17 +107,20 @@ def test_estop_cuts_the_drives_and_refuses_commands_until_cleared(tmp_path: Path
     async def body(fw: Firmware, table: Table) -> None:
         async with _running(_link(fw.link_path)) as link:
             await _until(lambda: link.connected)
-            link.send_commands(np.full(N, 0.1), np.zeros(N))
+            link.send_commands(_forward(0.1))
             await _until(lambda: table.cmd_speed_m_s[0] > 0)
             table.speed_m_s[:] = 0.1  # the modules are running
             link.estop()
             await _until(lambda: link.controller_estopped)
             assert fw.estopped and not table.speed_m_s.any() and not table.cmd_speed_m_s.any()
-            assert not link.send_commands(np.full(N, 0.1), np.zeros(N))  # the host holds back too
+            assert not link.send_commands(_forward(0.1))  # the host holds back too
             link.estop_clear()
             await _until(lambda: not fw.estopped)
             await _until(
-                lambda: link.send_commands(np.full(N, 0.03), np.zeros(N)) and table.cmd_speed_m_s[0] > 0
+                lambda: (
+                    link.send_commands(ModuleCommands(np.full(N, 0.03), np.zeros(N)))
+                    and table.cmd_speed_m_s[0] > 0
+                )
             )
             await link.stop()
 
@@ -119,20 +128,17 @@ def test_estop_cuts_the_drives_and_refuses_commands_until_cleared(tmp_path: Path
 
 
 def test_watchdog_stops_the_modules_when_the_host_goes_silent(tmp_path: Path) -> None:
-    faults: list[wire.Fault] = []
-
     async def body(fw: Firmware, table: Table) -> None:
         link = _link(fw.link_path)
-        link.on_fault = faults.append
         async with _running(link):
             await _until(lambda: link.connected)
-            link.send_commands(np.full(N, 0.1), np.zeros(N))
+            link.send_commands(_forward(0.1))
             await _until(lambda: table.cmd_speed_m_s[0] > 0)
             # The host stops talking (a hung or killed daemon): within the watchdog the modules stop.
             await _until(lambda: fw.watchdog_tripped, timeout_s=1.0)
             assert not table.cmd_speed_m_s.any()
-            await _until(lambda: bool(faults))
-            assert faults[0].code == FAULT_WATCHDOG
+            await _until(lambda: bool(link.faults))
+            assert link.faults[0].code == FAULT_WATCHDOG
 
     _with_firmware(tmp_path, body)
 

@@ -7,12 +7,13 @@ import numpy as np
 import pytest
 
 from clothd.config import TrackerConfig
-from clothd.core.camera_model import CameraModel
-from clothd.core.conveyor import ConveyorLayout
+from clothd.core.messages import Estimate
 from clothd.core.tracker import Tracker
-from clothd.drivers.footage import CommandSchedule, open_footage
-from clothd.grading import material_coordinates, true_positions
+from clothd.drivers.footage import open_footage
+from clothd.formats import read_camera
 from clothd.taichi_runtime import start_taichi
+from clothd.tools.grading import material_coordinates, true_positions
+from clothd.tools.offline import OfflineTracking
 from hwsim.truth import Truth
 
 Recorder = Callable[[str], Path]
@@ -23,17 +24,19 @@ def _taichi() -> None:
     start_taichi("cpu")
 
 
-def _run(rec: Path, cfg: TrackerConfig) -> tuple[Tracker, list]:  # type: ignore[type-arg]
-    footage = open_footage(rec)
-    conveyor = ConveyorLayout.load(rec / "table.json")
-    sched = CommandSchedule(rec / "commands.csv", conveyor.n_modules)
-    tracker = Tracker(cfg, CameraModel.load(rec / "camera.json"), conveyor)
-    return tracker, [tracker.step(img, t, sched.at(t)) for t, img in footage.frames()]
+def _run(rec: Path, cfg: TrackerConfig) -> list[Estimate]:
+    return [est for _, _, est in OfflineTracking(rec, cfg)]
+
+
+def _rest_xy(ests: list[Estimate]) -> np.ndarray:
+    """Where the nodes lay at initialisation (the first estimate): their material points."""
+    assert ests[0].nodes_m is not None
+    return ests[0].nodes_m[..., :2].reshape(-1, 2)
 
 
 def test_rigid_tracks_the_translating_cloth(short_recording: Recorder) -> None:
     rec = short_recording("translate")
-    _, ests = _run(rec, TrackerConfig(model="rigid"))
+    ests = _run(rec, TrackerConfig(model="rigid"))
     truth = Truth.load(rec)
     assert all(e.status == "tracking" for e in ests)
     centre_true = truth.nodes_m[:, ..., :2].mean(axis=(1, 2))
@@ -47,10 +50,10 @@ def test_rigid_tracks_the_translating_cloth(short_recording: Recorder) -> None:
 
 def test_mesh_nodes_follow_the_material_points(short_recording: Recorder) -> None:
     rec = short_recording("translate")
-    tracker, ests = _run(rec, TrackerConfig(model="mesh"))
+    ests = _run(rec, TrackerConfig(model="mesh"))
     truth = Truth.load(rec)
-    assert tracker.mesh is not None and ests[-1].nodes_m is not None
-    st = material_coordinates(truth, tracker.mesh.rest_nodes_m().reshape(-1, 2))
+    assert ests[-1].nodes_m is not None
+    st = material_coordinates(truth, _rest_xy(ests))
     true_last = true_positions(truth, st, np.array([len(ests) - 1]))[0]
     err_mm = np.linalg.norm(ests[-1].nodes_m.reshape(-1, 3) - true_last, axis=1) * 1e3
     assert np.sqrt(np.mean(err_mm**2)) < 2.0
@@ -62,10 +65,10 @@ def test_mesh_follows_the_cloth_into_a_fold(short_recording: Recorder, use_input
     """compress: the two halves are pushed together and the middle buckles up. The mesh follows the
     halves and lifts its middle nodes by inextensibility (the camera barely sees height)."""
     rec = short_recording("compress")
-    tracker, ests = _run(rec, TrackerConfig(model="mesh", use_input=use_input))
+    ests = _run(rec, TrackerConfig(model="mesh", use_input=use_input))
     truth = Truth.load(rec)
-    assert tracker.mesh is not None and all(e.status == "tracking" for e in ests)
-    st = material_coordinates(truth, tracker.mesh.rest_nodes_m().reshape(-1, 2))
+    assert all(e.status == "tracking" for e in ests)
+    st = material_coordinates(truth, _rest_xy(ests))
     true_nodes = true_positions(truth, st, np.arange(len(ests)))
     est_nodes = np.array([e.nodes_m.reshape(-1, 3) for e in ests if e.nodes_m is not None])
     err_mm = np.linalg.norm(est_nodes - true_nodes, axis=2) * 1e3
@@ -78,7 +81,7 @@ def test_mesh_follows_the_cloth_into_a_fold(short_recording: Recorder, use_input
 
 def test_features_keep_their_identity_and_are_resampled(short_recording: Recorder) -> None:
     rec = short_recording("occlude")
-    _, ests = _run(rec, TrackerConfig(model="mesh"))
+    ests = _run(rec, TrackerConfig(model="mesh"))
     first = set(ests[0].feature_id.tolist())
     assert len(first) == len(ests[0].feature_id)  # unique
     # While the arm covers part of the cloth, features there are dropped; new ones appear elsewhere.
@@ -89,7 +92,7 @@ def test_features_keep_their_identity_and_are_resampled(short_recording: Recorde
 
 def test_predict_mode_moves_with_the_belts_without_correction(short_recording: Recorder) -> None:
     rec = short_recording("translate")
-    _, ests = _run(rec, TrackerConfig(model="predict"))
+    ests = _run(rec, TrackerConfig(model="predict"))
     assert all(e.stats.nis == 0.0 for e in ests)
     dy = ests[-1].pose[1] - ests[0].pose[1]
     assert 0.01 < dy < 0.03  # the belts carried the model about 24 mm
@@ -97,7 +100,7 @@ def test_predict_mode_moves_with_the_belts_without_correction(short_recording: R
 
 def test_none_mode_reports_raw_features(short_recording: Recorder) -> None:
     rec = short_recording("translate")
-    _, ests = _run(rec, TrackerConfig(model="none"))
+    ests = _run(rec, TrackerConfig(model="none"))
     last = ests[-1]
     ok = ~np.isnan(last.meas_px[:, 0])
     np.testing.assert_array_equal(last.meas_px[ok], last.pred_px[ok])
@@ -108,7 +111,7 @@ def test_lost_cloth_is_reported_and_tracking_reinitialises(short_recording: Reco
     rec = short_recording("translate")
     footage = open_footage(rec)
     frames = list(footage.frames())
-    tracker = Tracker(TrackerConfig(model="rigid"), CameraModel.load(rec / "camera.json"), None)
+    tracker = Tracker(TrackerConfig(model="rigid"), read_camera(rec / "camera.json"), None)
     assert tracker.step(frames[0][1], 0.0, None).status == "tracking"
     blank = np.full_like(frames[1][1], 70)
     assert tracker.step(blank, frames[1][0], None).status == "lost"

@@ -22,17 +22,12 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.websockets import WebSocketDisconnect
 
 from clothd.api.metrics import registry_for
-from clothd.api.schemas import (
-    CameraInfo,
-    ErrorResponse,
-    MoveSetpoint,
-    Ok,
-    RecordStart,
-    SetpointRequest,
-    StatusResponse,
-)
+from clothd.api.schemas import CameraInfo, ErrorResponse, MoveSetpoint, Ok, RecordStart, SetpointRequest
+from clothd.api.stream import StreamHub
+from clothd.core.camera_model import CameraModel
 from clothd.daemon import Daemon
 from clothd.errors import ClothdError, HardwareError, RequestError
+from clothd.status import Status
 
 ERROR_DOC: dict[int | str, dict[str, Any]] = {
     400: {"model": ErrorResponse, "description": "a body that is not JSON"},
@@ -41,11 +36,19 @@ ERROR_DOC: dict[int | str, dict[str, Any]] = {
 }
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 STATUS_DOC: dict[int | str, dict[str, Any]] = {
-    200: {"model": StatusResponse, "description": "the state published by the last tick"}
+    200: {"model": Status, "description": "the state published by the last tick"}
 }
 
 
-def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
+def create_app(
+    daemon: Daemon,
+    hub: StreamHub,
+    camera_model: CameraModel,
+    token: str | None = None,
+    sim_truth_url: str | None = None,
+) -> FastAPI:
+    """The app over a daemon whose statuses `hub` receives. sim_truth_url: hwsim's ground truth, relayed
+    for the dashboard when running against the simulated cell."""
     registry = registry_for(daemon)
     app = FastAPI(title="clothd", version="1", description="Real-time cloth tracking and control")
 
@@ -73,7 +76,7 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
     async def status() -> Response:
         """Mode and setpoint, pose with covariance and mesh, features and residuals, tick timing,
         camera and link state."""
-        return Response(daemon.status_json, media_type="application/json")
+        return Response(hub.status_json, media_type="application/json")
 
     @api.put("/setpoint", dependencies=guarded, responses=ERROR_DOC)
     async def setpoint(body: SetpointRequest) -> Ok:
@@ -116,18 +119,18 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
     @api.get("/camera", response_model=CameraInfo)
     async def camera() -> CameraInfo:
         """The image size and the table plane's homography to pixels, for picking poses on the view."""
-        cam = daemon.camera_model
+        cam = camera_model
         return CameraInfo(width=cam.width, height=cam.height, table_to_pixel=cam.table_homography().tolist())
 
     @api.get("/sim/truth", responses={404: {"model": ErrorResponse}})
     async def sim_truth() -> JSONResponse:
         """hwsim's ground truth (pose, module states, cloth nodes), relayed for the dashboard's truth
         overlay; 404 unless the daemon runs against the simulated cell."""
-        if daemon.sim_truth_url is None:
+        if sim_truth_url is None:
             return JSONResponse({"detail": "not running against hwsim (clothd run --sim)"}, status_code=404)
         try:
             async with httpx.AsyncClient(timeout=1.0) as client:
-                r = await client.get(daemon.sim_truth_url, params={"nodes": 1})
+                r = await client.get(sim_truth_url, params={"nodes": 1})
             return JSONResponse(r.json())
         except (httpx.HTTPError, ValueError) as err:
             raise HardwareError(f"hwsim's truth is not answering: {err}") from err
@@ -141,9 +144,9 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
     async def stream(ws: WebSocket, hz: Annotated[float | None, Query(gt=0, le=30)] = None) -> None:
         """The status every tick, or at most `hz` times a second. A slow client misses messages."""
         await ws.accept()
-        sub = daemon.hub.subscribe(1.0 / hz if hz else 0.0)
+        sub = hub.subscribe(1.0 / hz if hz else 0.0)
         try:
-            await ws.send_text(daemon.status_json.decode())
+            await ws.send_text(hub.status_json.decode())
             next_s = time.monotonic()
             while True:
                 if sub.min_interval_s:
@@ -154,7 +157,7 @@ def create_app(daemon: Daemon, token: str | None = None) -> FastAPI:
         except (WebSocketDisconnect, RuntimeError):
             pass
         finally:
-            daemon.hub.unsubscribe(sub)
+            hub.unsubscribe(sub)
 
     app.include_router(api)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
@@ -192,7 +195,7 @@ async def _mjpeg(daemon: Daemon) -> AsyncIterator[bytes]:
         while True:
             jpeg, index = daemon.view_jpeg, daemon.view_index
             if jpeg is None or index == last:
-                await asyncio.sleep(daemon.view_period_s / 2)
+                await asyncio.sleep(daemon.settings.view_period_s / 2)
                 continue
             last = index
             head = f"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n"

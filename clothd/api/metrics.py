@@ -47,7 +47,7 @@ class DaemonCollector(Collector):
         for name in ("starting", "tracking", "tracking_lost", "camera_lost", "fault"):
             state.add_metric([name], 1.0 if d.state == name else 0.0)
         yield state
-        yield GaugeMetricFamily("clothd_estop", "Emergency stop latched", value=float(d.estopped))
+        yield GaugeMetricFamily("clothd_estop", "Emergency stop latched", value=float(d.link.estopped))
         yield GaugeMetricFamily(
             "clothd_camera_up", "Camera delivering fresh frames", value=float(d.camera.healthy)
         )
@@ -65,8 +65,8 @@ class DaemonCollector(Collector):
             yield CounterMetricFamily(
                 f"clothd_link_{name}", f"Stepper link frames/events: {name}", value=value
             )
-        features = d.status.get("features", 0)
-        yield GaugeMetricFamily("clothd_features", "Features tracked", value=float(str(features)))
+        features = d.status.features if d.status is not None else 0
+        yield GaugeMetricFamily("clothd_features", "Features tracked", value=float(features))
 
 
 def registry_for(daemon: Daemon) -> CollectorRegistry:

@@ -1,4 +1,6 @@
-"""Fan-out of the per-tick status to WebSocket clients.
+"""Fan-out of the per-tick status to GET /status and the WebSocket clients.
+
+The status is serialised once per tick, here; every reader gets the same bytes.
 
 Each client has a latest-value slot: publishing overwrites it (counting a drop if the client had not
 taken the previous value) and never waits. Each client's sender takes the slot when it is ready, so a
@@ -8,6 +10,8 @@ slow or stalled client loses messages and never delays the loop or another clien
 from __future__ import annotations
 
 import asyncio
+
+from clothd.status import Status
 
 
 class Subscriber:
@@ -35,6 +39,8 @@ class Subscriber:
 class StreamHub:
     def __init__(self) -> None:
         self.subscribers: set[Subscriber] = set()
+        self.status: Status | None = None
+        self.status_json = b"{}"
 
     def subscribe(self, min_interval_s: float) -> Subscriber:
         sub = Subscriber(min_interval_s)
@@ -44,6 +50,9 @@ class StreamHub:
     def unsubscribe(self, sub: Subscriber) -> None:
         self.subscribers.discard(sub)
 
-    def publish(self, data: bytes) -> None:
+    def publish(self, status: Status) -> None:
+        """Serialise the status (non-finite numbers as null) and offer it to every subscriber."""
+        self.status = status
+        self.status_json = data = status.model_dump_json().encode()
         for sub in self.subscribers:
             sub.offer(data)

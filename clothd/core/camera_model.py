@@ -14,16 +14,11 @@ which is cv2.projectPoints (that ignores a skew s; so does hwsim's camera only w
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-from clothd.errors import InputError
-
-_KEYS = ("K", "dist", "T_cam_world", "width", "height")
 # Camera looking straight down: its x along world +x, its y along world -y, its z along world -z.
 _LOOK_DOWN = np.diag([1.0, -1.0, -1.0])
 
@@ -56,41 +51,6 @@ class CameraModel:
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "dist", dist)
         object.__setattr__(self, "T_cam_world", T)
-
-    def to_json(self) -> dict[str, object]:
-        """camera.json's content (the keys load() reads)."""
-        return {
-            "K": self.K.tolist(),
-            "dist": self.dist.tolist(),
-            "T_cam_world": self.T_cam_world.tolist(),
-            "width": self.width,
-            "height": self.height,
-        }
-
-    @classmethod
-    def load(cls, path: Path) -> CameraModel:
-        """Read camera.json (keys K, dist, T_cam_world, width, height). Any problem -> InputError."""
-        try:
-            d = json.loads(Path(path).read_text())
-        except OSError as err:
-            raise InputError(f"{path}: cannot read: {err.strerror}") from None
-        except json.JSONDecodeError as err:
-            raise InputError(f"{path}: not valid JSON: {err}") from None
-        if not isinstance(d, dict):
-            raise InputError(f"{path}: expected a JSON object with keys {', '.join(_KEYS)}")
-        for key in _KEYS:
-            if key not in d:
-                raise InputError(f"{path}: missing key '{key}'")
-        try:
-            return cls(
-                np.asarray(d["K"], dtype=float),
-                np.asarray(d["dist"], dtype=float),
-                np.asarray(d["T_cam_world"], dtype=float),
-                int(d["width"]),
-                int(d["height"]),
-            )
-        except (TypeError, ValueError) as err:
-            raise InputError(f"{path}: {err}") from None
 
     @classmethod
     def ideal(cls, width: int, height: int, f_px: float, distance_m: float) -> CameraModel:

@@ -2,20 +2,18 @@
 
 The module commands are the filter's control input u. A module (col, row) sits at
 ((col - (mx-1)/2)·pitch, (row - (my-1)/2)·pitch) in the world (table plane, metres); its belt is a
-square of side `belt_size_m` turned to its heading, on a turntable of diameter `pitch_m`. Module
+square of side `module_size_m` turned to its heading, on a turntable of diameter `pitch_m`. Module
 id = row·mx + col. This mirrors docs/recording-format.md; it is the tracker's own reading of the
 layout, not the simulator's code.
 """
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from clothd.errors import InputError
+from clothd.config import CellConfig
 
 
 @dataclass(frozen=True)
@@ -23,18 +21,11 @@ class ConveyorLayout:
     modules_x: int
     modules_y: int
     pitch_m: float
-    belt_size_m: float
+    module_size_m: float  # the side of a module's square belt
 
     @classmethod
-    def load(cls, path: Path) -> ConveyorLayout:
-        """table.json of a recording."""
-        try:
-            d = json.loads(path.read_text())
-            return cls(
-                int(d["modules_x"]), int(d["modules_y"]), float(d["pitch_m"]), float(d["module_size_m"])
-            )
-        except (OSError, KeyError, ValueError, TypeError) as err:
-            raise InputError(f"{path}: not a usable table layout ({err})") from None
+    def of_cell(cls, cell: CellConfig) -> ConveyorLayout:
+        return cls(cell.modules_x, cell.modules_y, cell.pitch_m, cell.module_size_m)
 
     @property
     def n_modules(self) -> int:
@@ -69,7 +60,7 @@ class ConveyorLayout:
         c, s = np.cos(heading_rad[m]), np.sin(heading_rad[m])
         along = c * rel[:, 0] + s * rel[:, 1]
         across = -s * rel[:, 0] + c * rel[:, 1]
-        half = self.belt_size_m / 2.0
+        half = self.module_size_m / 2.0
         on_belt = (
             on_table
             & (np.abs(along) <= half)
@@ -78,6 +69,24 @@ class ConveyorLayout:
         )
         vel = np.where(on_belt[:, None], (speed_m_s[m])[:, None] * np.stack([c, s], axis=1), 0.0)
         return vel, on_belt
+
+
+@dataclass(frozen=True)
+class BeltField:
+    """The control input u over one tick: what the modules are doing (signed speed, heading, (n_modules,)),
+    and so the belts' surface velocity under any point of the table."""
+
+    layout: ConveyorLayout
+    speed_m_s: np.ndarray
+    heading_rad: np.ndarray
+
+    def velocity_at(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Belt velocity (n, 2) under world points (n, 2 or 3), and whether a belt is there (n,) bool."""
+        return self.layout.belt_velocity(points_m, self.speed_m_s, self.heading_rad)
+
+    def stopped(self) -> BeltField:
+        """The same modules standing still: belts where they are, moving nowhere."""
+        return BeltField(self.layout, np.zeros_like(self.speed_m_s), self.heading_rad)
 
 
 def _wrap(a: np.ndarray) -> np.ndarray:

@@ -16,22 +16,52 @@ class ModuleCommands:
     speed_m_s: np.ndarray
     heading_rad: np.ndarray
 
+    @classmethod
+    def all_stop(cls, n_modules: int, heading_rad: np.ndarray | None = None) -> ModuleCommands:
+        """Every module stopped. A stopped module keeps `heading_rad` (default 0): turning it back to
+        zero would only wear the steering."""
+        heading = np.zeros(n_modules) if heading_rad is None else np.array(heading_rad, dtype=float)
+        return cls(np.zeros(n_modules), heading)
+
+    @property
+    def n_modules(self) -> int:
+        return len(self.speed_m_s)
+
 
 @dataclass(frozen=True)
 class Estimate:
-    """What the tracker believes after a tick. Feature arrays are indexed like feature_id; pred_px is
-    where the estimate places each feature, meas_px where LK measured it this tick (NaN if not)."""
+    """What the tracker believes after one frame. Everything a consumer needs is here, so that nothing
+    reaches into the tracker.
 
-    t_s: float
+    frame_t_s: the frame's capture time in its source's clock (host monotonic live, footage time offline).
+    pose (3,) [X_m, Y_m, theta_rad] and pose_cov (3, 3); NaN when lost.
+    nodes_m (ny, nx, 3): the mesh nodes in the world, z the height above the table; the rigid model gives
+    its rest mesh moved rigidly; None without a model. outline_m (k, 2): the cloth's outline on the table,
+    in order around it; None without a model. cloth_size_m: the cloth's (width, height) at rest.
+    Feature arrays are indexed like feature_id: pred_px is where the estimate places each feature,
+    meas_px where LK measured it this frame (NaN if not)."""
+
+    frame_t_s: float
     status: str  # "tracking" or "lost"
-    pose: np.ndarray  # (3,) X_m, Y_m, theta_rad; NaN when lost
-    pose_cov: np.ndarray  # (3, 3)
-    nodes_m: np.ndarray | None  # (ny, nx, 3) for the mesh-based modes
+    pose: np.ndarray
+    pose_cov: np.ndarray
+    nodes_m: np.ndarray | None
+    outline_m: np.ndarray | None
+    cloth_size_m: tuple[float, float] | None
     feature_id: np.ndarray  # (n,)
     meas_px: np.ndarray  # (n, 2)
     pred_px: np.ndarray  # (n, 2)
     stats: UpdateStats
     timing_s: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def tracking(self) -> bool:
+        return self.status == "tracking"
+
+    @property
+    def mesh_shape(self) -> tuple[int, int] | None:
+        """(ny, nx) of the mesh, when there is one."""
+        return None if self.nodes_m is None else (self.nodes_m.shape[0], self.nodes_m.shape[1])
 
     @property
     def residual_px(self) -> np.ndarray:

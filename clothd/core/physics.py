@@ -36,7 +36,13 @@ GRAVITY_M_S2 = 9.81
 CONTACT_HEIGHT_M = 1e-4
 vec3d = ti.types.vector(3, ti.f64)
 _Material = ti.types.struct(
-    mu=ti.f64, stick_speed=ti.f64, damping=ti.f64, strain_limit=ti.f64, slack=ti.f64, compression_ratio=ti.f64
+    mass=ti.f64,
+    mu=ti.f64,
+    stick_speed=ti.f64,
+    damping=ti.f64,
+    strain_limit=ti.f64,
+    slack=ti.f64,
+    compression_ratio=ti.f64,
 )
 
 
@@ -62,16 +68,18 @@ def spring_pairs(nx: int, ny: int) -> dict[str, np.ndarray]:
 
 @ti.data_oriented
 class MassSpring:
-    """Mass–spring cloth on a rest mesh. rest_xy_m (ny, nx, 2): node positions in cloth space."""
+    """Mass–spring cloth on an nx x ny mesh. The Taichi fields are allocated once, for the mesh's shape;
+    `set_rest` lays a new rest mesh into them, so re-initialising tracking allocates nothing and
+    compiles nothing."""
 
-    def __init__(self, cfg: PhysicsConfig, rest_xy_m: np.ndarray) -> None:
+    def __init__(self, cfg: PhysicsConfig, nx: int, ny: int) -> None:
+        if ti.lang.impl.get_runtime().prog is None:
+            raise RuntimeError("Taichi is not started: call clothd.taichi_runtime.start_taichi first")
         self.cfg = cfg
-        ny, nx = rest_xy_m.shape[:2]
         self.n = nx * ny
-        rest = rest_xy_m.reshape(-1, 2)
         families = spring_pairs(nx, ny)
-        pairs = np.concatenate(list(families.values()))
-        stiffness = np.concatenate(
+        self._pairs = np.concatenate(list(families.values()))
+        self._stiffness = np.concatenate(
             [
                 np.full(len(families["structural"]), cfg.stretch_k_n_m),
                 np.full(len(families["shear"]), cfg.shear_k_n_m),
@@ -79,19 +87,32 @@ class MassSpring:
             ]
         )
         self.n_limited = len(families["structural"]) + len(families["shear"])  # Provot limits these
-        lengths = np.linalg.norm(rest[pairs[:, 0]] - rest[pairs[:, 1]], axis=1)
-        # Lumped mass: the cloth's area shared equally (the mesh covers the whole cloth).
-        area_m2 = _polygon_area(rest_xy_m)
-        self.mass_kg = cfg.areal_density_kg_m2 * area_m2 / self.n
         self.x = ti.Vector.field(3, ti.f64, shape=self.n)
         self.v = ti.Vector.field(3, ti.f64, shape=self.n)
         self.belt = ti.Vector.field(3, ti.f64, shape=self.n)  # vx, vy, on_belt
-        self.pair = ti.Vector.field(2, ti.i32, shape=len(pairs))
-        self.rest = ti.field(ti.f64, shape=len(pairs))
-        self.k = ti.field(ti.f64, shape=len(pairs))
+        self.pair = ti.Vector.field(2, ti.i32, shape=len(self._pairs))
+        self.rest = ti.field(ti.f64, shape=len(self._pairs))
+        self.k = ti.field(ti.f64, shape=len(self._pairs))
         self.force = ti.Vector.field(3, ti.f64, shape=self.n)
         self.material = _Material.field(shape=())
+        self.pair.from_numpy(self._pairs.astype(np.int32))
+        self.k.from_numpy(self._stiffness)
+        self.mass_kg = 0.0
+        self.omega_max_rad_s = 0.0
+        # The state crosses into the kernel as one array, [x, v, belt vx, belt vy, on belt] per node: one
+        # kernel launch per tick, where a field copy in and out cost a launch each.
+        self._io = np.zeros((self.n, 9))
+
+    def set_rest(self, rest_xy_m: np.ndarray) -> None:
+        """Lay the rest mesh rest_xy_m (ny, nx, 2) (node positions in cloth space) into the model."""
+        cfg = self.cfg
+        rest = rest_xy_m.reshape(-1, 2)
+        pairs = self._pairs
+        lengths = np.linalg.norm(rest[pairs[:, 0]] - rest[pairs[:, 1]], axis=1)
+        # Lumped mass: the cloth's area shared equally (the mesh covers the whole cloth).
+        self.mass_kg = cfg.areal_density_kg_m2 * _polygon_area(rest_xy_m) / self.n
         self.material[None] = _Material(
+            mass=self.mass_kg,
             mu=cfg.friction_mu,
             stick_speed=cfg.stick_speed_m_s,
             damping=cfg.damping_1_s,
@@ -101,15 +122,9 @@ class MassSpring:
         )
         # Symplectic Euler is stable for h < 2/ω; the stiffest node (all 12 springs) sets ω. Substeps are
         # raised to keep h <= 1/ω, a factor 2 of margin.
-        per_node = np.bincount(pairs.ravel(), weights=np.repeat(stiffness, 2), minlength=self.n)
+        per_node = np.bincount(pairs.ravel(), weights=np.repeat(self._stiffness, 2), minlength=self.n)
         self.omega_max_rad_s = float(np.sqrt(per_node.max() / self.mass_kg))
-        self.pair.from_numpy(pairs.astype(np.int32))
         self.rest.from_numpy(lengths)
-        self.k.from_numpy(stiffness)
-
-        # The state crosses into the kernel as one array, [x, v, belt vx, belt vy, on belt] per node: one
-        # kernel launch per tick, where a field copy in and out cost a launch each.
-        self._io = np.zeros((self.n, 9))
 
     def set_state(self, x_m: np.ndarray, v_m_s: np.ndarray) -> None:
         """x_m, v_m_s: (n, 3)."""
@@ -176,7 +191,7 @@ class MassSpring:
                 self.force[a] += f
                 self.force[b] -= f
         for i in range(self.n):
-            v = self.v[i] + h * self.force[i] / self.mass_kg
+            v = self.v[i] + h * self.force[i] / m.mass
             v[0] *= 1.0 / (1.0 + h * m.damping)
             v[1] *= 1.0 / (1.0 + h * m.damping)
             v[2] = 0.0  # height is kinematic

@@ -11,7 +11,6 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -19,26 +18,20 @@ import numpy as np
 
 from clothd.config import CameraSourceConfig
 from clothd.drivers.footage import DEFAULT_FPS, IMAGE_SUFFIXES, natural_key
+from clothd.drivers.ports import CameraFrame, FrameSourceHealth
 
 log = logging.getLogger(__name__)
 
 
-@dataclass(frozen=True)
-class Frame:
-    index: int  # counts frames since the daemon started, across reconnects
-    t_mono_s: float  # host monotonic time of capture
-    image: np.ndarray  # BGR
-
-
-class CameraSource:
-    """`latest()` never blocks; the capture runs on its own thread."""
+class VideoCaptureSource:
+    """The FrameSource of a live camera; `latest()` never blocks, the capture runs on its own thread."""
 
     def __init__(self, cfg: CameraSourceConfig) -> None:
         self.cfg = cfg
         self.state = "connecting"  # connecting | streaming | lost
         self.last_error: str | None = None
         self.reconnects = 0
-        self._frame: Frame | None = None
+        self._frame: CameraFrame | None = None
         self._count = 0
         self._lock = threading.Lock()
         self._stop = threading.Event()
@@ -51,7 +44,7 @@ class CameraSource:
         self._stop.set()
         self._thread.join(timeout=3)
 
-    def latest(self) -> Frame | None:
+    def latest(self) -> CameraFrame | None:
         """The newest frame, or None when there is none or it is older than `stale_after_s`."""
         with self._lock:
             frame = self._frame
@@ -62,6 +55,9 @@ class CameraSource:
     @property
     def healthy(self) -> bool:
         return self.latest() is not None
+
+    def health(self) -> FrameSourceHealth:
+        return FrameSourceHealth(self.state, self.healthy, self.last_error, self.reconnects)
 
     # -- capture ----------------------------------------------------------------------------------
 
@@ -137,7 +133,7 @@ class CameraSource:
     def _publish(self, image: np.ndarray) -> None:
         now = time.monotonic()
         with self._lock:
-            self._frame = Frame(self._count, now, image)
+            self._frame = CameraFrame(self._count, now, image)
             self._count += 1
         if self.state != "streaming":
             log.info("camera streaming from %s", self.cfg.source)

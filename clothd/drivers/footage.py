@@ -7,7 +7,6 @@ truth.npz is never opened here.
 
 from __future__ import annotations
 
-import csv
 import re
 from collections import deque
 from collections.abc import Iterator
@@ -21,6 +20,7 @@ import yaml
 
 from clothd.core.messages import ModuleCommands
 from clothd.errors import InputError
+from clothd.formats import read_commands, read_frame_times
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp"}
 DEFAULT_FPS = 30.0
@@ -95,7 +95,7 @@ def open_footage(source: Path) -> Footage:
         frames_dir = source / "frames"
         if frames_dir.is_dir():
             images = _images_in(frames_dir)
-            times = _frame_times(source / "frames.csv")
+            times = read_frame_times(source / "frames.csv")
             if times is not None:  # cut short: only frames with a capture time count
                 images, times = images[: len(times)], times[: len(images)]
             return Footage(
@@ -129,18 +129,6 @@ def _images_in(directory: Path) -> tuple[Path, ...]:
     return tuple(images)
 
 
-def _frame_times(path: Path) -> tuple[float, ...] | None:
-    """frames.csv (index, t_s) of a live recording; None when there is none."""
-    if not path.exists():
-        return None
-    try:
-        with path.open(newline="") as f:
-            times = tuple(float(r["t_s"]) for r in csv.DictReader(f))
-    except (OSError, KeyError, ValueError) as err:
-        raise InputError(f"{path}: not a usable frame-time file ({err})") from None
-    return times
-
-
 def _recording_fps(recording: Path) -> float:
     scenario = recording / "scenario.yaml"
     if scenario.exists():
@@ -155,19 +143,7 @@ class CommandSchedule:
     last command; modules never commanded stand still."""
 
     def __init__(self, path: Path, n_modules: int) -> None:
-        rows: list[tuple[float, int, float, float]] = []
-        try:
-            with path.open(newline="") as f:
-                for r in csv.DictReader(f):
-                    rows.append(
-                        (float(r["t_s"]), int(r["module"]), float(r["speed_m_s"]), float(r["heading_rad"]))
-                    )
-        except (OSError, KeyError, ValueError) as err:
-            raise InputError(f"{path}: not a usable commands file ({err})") from None
-        bad = [m for _, m, _, _ in rows if not 0 <= m < n_modules]
-        if bad:
-            raise InputError(f"{path}: module ids {sorted(set(bad))[:5]} outside 0..{n_modules - 1}")
-        self._rows = sorted(rows)
+        self._rows = read_commands(path, n_modules)
         self._next = 0
         self._speed = np.zeros(n_modules)
         self._heading = np.zeros(n_modules)

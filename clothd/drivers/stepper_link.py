@@ -15,44 +15,20 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-import numpy as np
 import serial_asyncio_fast
 
 from clothd.config import StepperConfig
+from clothd.core.messages import ModuleCommands
 from clothd.drivers import wire
+from clothd.drivers.ports import ControllerFault, LinkCounters
 from clothd.errors import HardwareError
 
 log = logging.getLogger(__name__)
 
 ESTOP_REPEAT_S = 0.02
-
-
-@dataclass
-class LinkCounters:
-    sent: int = 0
-    retransmitted: int = 0
-    acked: int = 0
-    invalid: int = 0
-    nacked: int = 0
-    faults: int = 0
-    reconnects: int = 0
-    rtt_ms: deque[float] = field(default_factory=lambda: deque(maxlen=256))
-
-    def snapshot(self) -> dict[str, float | int | None]:
-        rtt = np.asarray(self.rtt_ms) if self.rtt_ms else None
-        return {
-            "sent": self.sent,
-            "retransmitted": self.retransmitted,
-            "acked": self.acked,
-            "invalid": self.invalid,
-            "nacked": self.nacked,
-            "faults": self.faults,
-            "reconnects": self.reconnects,
-            "rtt_p50_ms": None if rtt is None else float(np.median(rtt)),
-            "rtt_p99_ms": None if rtt is None else float(np.percentile(rtt, 99)),
-        }
+FAULTS_KEPT = 20
 
 
 @dataclass
@@ -65,29 +41,28 @@ class _Pending:
 
 
 class StepperLink:
-    """Owns the serial port. `run()` is the connection task; the other methods never block."""
+    """The ModuleLink on a serial port. `run()` is the connection task; the other methods never block."""
 
     def __init__(
         self,
         cfg: StepperConfig,
         n_modules: int,
-        on_fault: Callable[[wire.Fault], None] | None = None,
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self.cfg = cfg
         self.n_modules = n_modules
-        self.on_fault = on_fault
         self.clock = clock
         self.counters = LinkCounters()
+        self.faults: deque[ControllerFault] = deque(maxlen=FAULTS_KEPT)
         self.state = "disconnected"  # disconnected | connecting | connected
         self.last_error: str | None = None
         self.firmware: str | None = None
         self.controller_flags = 0
-        self.estop_requested = False
+        self._estop_latched = False
         self._writer: asyncio.StreamWriter | None = None
         self._seq = 0
         self._pending: _Pending | None = None  # the newest unacknowledged COMMAND
-        self._waiters: dict[int, asyncio.Future[wire.Frame]] = {}
+        self._waiters: dict[int, asyncio.Future[wire.Message]] = {}
         self._lost = asyncio.Event()
         self._stopping = False
 
@@ -98,16 +73,22 @@ class StepperLink:
         return self.state == "connected"
 
     @property
+    def estopped(self) -> bool:
+        """The e-stop is latched: nothing moves until estop_clear()."""
+        return self._estop_latched
+
+    @property
     def controller_estopped(self) -> bool:
         return bool(self.controller_flags & wire.FLAG_ESTOP)
 
-    def send_commands(self, speed_m_s: np.ndarray, heading_rad: np.ndarray) -> bool:
+    def send_commands(self, commands: ModuleCommands) -> bool:
         """Send this tick's module commands; False when the link is down (the controller's watchdog then
-        stops the modules)."""
-        if not self.connected or self.estop_requested:
+        stops the modules) or the e-stop is latched."""
+        if not self.connected or self._estop_latched:
             return False
         seq = self._next_seq()
-        packet = wire.encode(wire.MsgType.COMMAND, seq, wire.command_payload(speed_m_s, heading_rad))
+        payload = wire.command_payload(commands.speed_m_s, commands.heading_rad)
+        packet = wire.encode(wire.MsgType.COMMAND, seq, payload)
         now = self.clock()
         self._pending = _Pending(seq, packet, now, now)
         self._write(packet)
@@ -115,12 +96,12 @@ class StepperLink:
 
     def estop(self) -> None:
         """Stop every module now: written ahead of anything else, repeated until acknowledged."""
-        self.estop_requested = True
+        self._estop_latched = True
         self._pending = None
         self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()))
 
     def estop_clear(self) -> None:
-        self.estop_requested = False
+        self._estop_latched = False
         if self.connected:
             self._write(wire.encode(wire.MsgType.ESTOP_CLEAR, self._next_seq()))
 
@@ -128,7 +109,9 @@ class StepperLink:
         """Stop the modules, then close the port."""
         self._stopping = True
         if self.connected:
-            self._write(wire.encode(wire.MsgType.COMMAND, self._next_seq(), self._zero_payload()))
+            stop = ModuleCommands.all_stop(self.n_modules)
+            payload = wire.command_payload(stop.speed_m_s, stop.heading_rad)
+            self._write(wire.encode(wire.MsgType.COMMAND, self._next_seq(), payload))
             with contextlib.suppress(Exception):
                 assert self._writer is not None
                 await asyncio.wait_for(self._writer.drain(), 0.2)
@@ -181,7 +164,7 @@ class StepperLink:
     async def _handshake(self) -> None:
         for _ in range(3):
             seq = self._next_seq()
-            waiter: asyncio.Future[wire.Frame] = asyncio.get_running_loop().create_future()
+            waiter: asyncio.Future[wire.Message] = asyncio.get_running_loop().create_future()
             self._waiters[seq] = waiter
             self._write(wire.encode(wire.MsgType.HELLO, seq, wire.hello_payload()))
             try:
@@ -206,7 +189,7 @@ class StepperLink:
                     f"the configured cell has {self.n_modules} (cell.modules_x x cell.modules_y)"
                 )
             self.firmware = hello.firmware
-            if self.estop_requested:
+            if self._estop_latched:
                 self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()))
             return
         if self.counters.invalid:
@@ -233,7 +216,7 @@ class StepperLink:
         except OSError as err:
             self._lose(f"serial read failed: {err.strerror or err}")
 
-    def _dispatch(self, frame: wire.Frame) -> None:
+    def _dispatch(self, frame: wire.Message) -> None:
         waiter = self._waiters.get(frame.seq)
         if waiter is not None and not waiter.done():
             waiter.set_result(frame)
@@ -252,8 +235,7 @@ class StepperLink:
             fault = wire.parse_fault(frame.payload)
             self.counters.faults += 1
             log.warning("controller fault %d on module %d: %s", fault.code, fault.module, fault.text)
-            if self.on_fault is not None:
-                self.on_fault(fault)
+            self.faults.append(ControllerFault(time.time(), fault.code, fault.module, fault.text))
 
     async def _supervise(self) -> None:
         """Retransmit the newest unacknowledged command; repeat an unacknowledged e-stop."""
@@ -261,7 +243,7 @@ class StepperLink:
         while True:
             await asyncio.sleep(min(period, ESTOP_REPEAT_S))
             now = self.clock()
-            if self.estop_requested and not self.controller_estopped:
+            if self._estop_latched and not self.controller_estopped:
                 self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()))
             p = self._pending
             if p is None or now - p.sent_t_s < self.cfg.ack_timeout_s:
@@ -292,10 +274,6 @@ class StepperLink:
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) & 0xFFFF
         return self._seq
-
-    def _zero_payload(self) -> bytes:
-        zeros = np.zeros(self.n_modules)
-        return wire.command_payload(zeros, zeros)
 
     def _lose(self, reason: str) -> None:
         if self.state == "connected":

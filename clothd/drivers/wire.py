@@ -58,7 +58,7 @@ class WireError(ValueError):
 
 
 @dataclass(frozen=True)
-class Frame:
+class Message:
     type: int
     seq: int
     payload: bytes
@@ -73,7 +73,7 @@ def encode(msg_type: int, seq: int, payload: bytes = b"") -> bytes:
     return cobs.encode(body + struct.pack("<H", crc16(body))) + b"\x00"
 
 
-def decode(packet: bytes) -> Frame:
+def decode(packet: bytes) -> Message:
     """One frame from the bytes between two delimiters (without them)."""
     try:
         raw = cobs.decode(packet)
@@ -85,7 +85,7 @@ def decode(packet: bytes) -> Frame:
     if crc16(body) != crc:
         raise WireError("CRC mismatch")
     msg_type, seq = struct.unpack("<BH", body[:3])
-    return Frame(msg_type, seq, body[3:])
+    return Message(msg_type, seq, body[3:])
 
 
 class FrameSplitter:

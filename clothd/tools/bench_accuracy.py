@@ -7,7 +7,7 @@
   Over the sequence: the mean of the per-frame means and the largest per-frame worst; the original
   report's cost is mean + 2 x worst.
 - Node error (mm): a mesh node is the material point under it at initialisation; error = 3-D distance
-  to that point's true position (for the rigid model, the nodes of its rigidly moved rest mesh).
+  to that point's true position (the rigid model's nodes are its rest mesh moved rigidly).
 """
 
 from __future__ import annotations
@@ -21,13 +21,10 @@ import numpy as np
 from clothd.config import TrackerConfig
 from clothd.core.binding import cloth_coordinates
 from clothd.core.camera_model import CameraModel
-from clothd.core.conveyor import ConveyorLayout
 from clothd.core.mesh import QuadMesh
 from clothd.core.messages import Estimate
-from clothd.core.rigid import rotation
-from clothd.core.tracker import Tracker
-from clothd.drivers.footage import CommandSchedule, open_footage
-from clothd.grading import material_coordinates, true_positions
+from clothd.tools.grading import material_coordinates, true_positions
+from clothd.tools.offline import OfflineTracking
 from hwsim.truth import Truth
 
 MODES: tuple[tuple[str, str, bool], ...] = (
@@ -92,39 +89,32 @@ def _feature_truth_pixels(truth: Truth, camera: CameraModel, ests: list[Estimate
     return out
 
 
-def _node_errors_mm(truth: Truth, tracker: Tracker, ests: list[Estimate]) -> np.ndarray | None:
-    """(F', n) node errors over the frames the tracker was tracking, or None in the model-free mode."""
-    mesh = tracker.mesh
-    if mesh is None or tracker.cfg.model == "none":
-        return None
-    rest = mesh.rest_nodes_m().reshape(-1, 2)
-    truth_pts = true_positions(truth, material_coordinates(truth, rest))  # (F, n, 3)
+def _node_errors_mm(truth: Truth, ests: list[Estimate]) -> np.ndarray | None:
+    """(F', n) node errors over the frames the tracker was tracking, or None without a model. A node is
+    the material point under it when the tracker (re)initialised: the first tracked frame of a run."""
     errs = []
+    truth_pts = None
+    was_tracking = False
     for k, e in enumerate(ests):
-        if e.status != "tracking":
+        if not e.tracking or e.nodes_m is None:
+            was_tracking = False
             continue
-        if e.nodes_m is not None:
-            est = e.nodes_m.reshape(-1, 3)
-        else:  # rigid: the rest mesh moved by the pose change since initialisation
-            p0 = tracker.pose0
-            moved = (rest - p0[:2]) @ rotation(float(e.pose[2] - p0[2])).T + e.pose[:2]
-            est = np.column_stack([moved, np.zeros(len(moved))])
-        errs.append(np.linalg.norm(est - truth_pts[k], axis=1) * 1e3)
-    return np.asarray(errs)
+        nodes = e.nodes_m.reshape(-1, 3)
+        if not was_tracking:
+            truth_pts = true_positions(truth, material_coordinates(truth, nodes[:, :2], frame=k))
+            was_tracking = True
+        assert truth_pts is not None
+        errs.append(np.linalg.norm(nodes - truth_pts[k], axis=1) * 1e3)
+    return np.asarray(errs) if errs else None
 
 
 def grade(recording: Path, scenario: str, mode: str, cfg: TrackerConfig) -> Graded:
     truth = Truth.load(recording)
-    camera = CameraModel.load(recording / "camera.json")
-    conveyor = ConveyorLayout.load(recording / "table.json")
-    schedule = CommandSchedule(recording / "commands.csv", conveyor.n_modules)
-    tracker = Tracker(cfg, camera, conveyor)
+    run = OfflineTracking(recording, cfg, read_ahead=False)
     start = time.perf_counter()
-    ests = [
-        tracker.step(img, t, schedule.at(t)) for t, img in open_footage(recording).frames(read_ahead=False)
-    ]
+    ests = [est for _, _, est in run]
     wall = time.perf_counter() - start
-    true_px = _feature_truth_pixels(truth, camera, ests)
+    true_px = _feature_truth_pixels(truth, run.camera_model, ests)
     means, worsts = np.full(len(ests), np.nan), np.full(len(ests), np.nan)
     for k, e in enumerate(ests):
         errs = [
@@ -134,7 +124,7 @@ def grade(recording: Path, scenario: str, mode: str, cfg: TrackerConfig) -> Grad
         ]
         if errs:
             means[k], worsts[k] = float(np.mean(errs)), float(np.max(errs))
-    nodes = _node_errors_mm(truth, tracker, ests)
+    nodes = _node_errors_mm(truth, ests)
     feat_mean, feat_worst = float(np.nanmean(means)), float(np.nanmax(worsts))
     row = AccuracyRow(
         scenario,
@@ -144,7 +134,7 @@ def grade(recording: Path, scenario: str, mode: str, cfg: TrackerConfig) -> Grad
         feat_mean + 2 * feat_worst,
         None if nodes is None else float(np.sqrt(np.mean(nodes**2))),
         None if nodes is None else float(nodes.max()),
-        sum(e.status != "tracking" for e in ests),
+        sum(not e.tracking for e in ests),
         (len(ests) / float(1.0 / (truth.t_s[1] - truth.t_s[0]))) / wall,
     )
     return Graded(row, means, worsts)

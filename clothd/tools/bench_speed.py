@@ -17,10 +17,8 @@ import numpy as np
 
 from clothd.config import FeatureConfig, MeshConfig, TrackerConfig
 from clothd.core.camera_model import CameraModel
-from clothd.core.conveyor import ConveyorLayout
 from clothd.core.mesh import QuadMesh, measurement_jacobian
-from clothd.core.tracker import Tracker
-from clothd.drivers.footage import CommandSchedule, open_footage
+from clothd.tools.offline import OfflineTracking
 
 STAGES = ("klt", "predict", "update", "tick")
 WARMUP_TICKS = 3
@@ -49,20 +47,15 @@ def clothd_rows(recording: Path, budget: int, mesh: tuple[int, int], frames: int
     cfg = TrackerConfig(
         model="mesh", mesh=MeshConfig(nodes_x=mesh[0], nodes_y=mesh[1]), features=_feature_config(budget)
     )
-    footage = open_footage(recording)
-    conveyor = ConveyorLayout.load(recording / "table.json")
-    schedule = CommandSchedule(recording / "commands.csv", conveyor.n_modules)
-    tracker = Tracker(cfg, CameraModel.load(recording / "camera.json"), conveyor, clock=time.perf_counter)
     timings: dict[str, list[float]] = {s: [] for s in STAGES}
     counts = []
-    for k, (t_s, image) in enumerate(footage.frames(read_ahead=False)):
-        if k >= frames:
-            break
-        est = tracker.step(image, t_s, schedule.at(t_s))
+    for k, (_, _, est) in enumerate(OfflineTracking(recording, cfg, read_ahead=False)):
         if k > WARMUP_TICKS:
             counts.append(len(est.feature_id))
             for s in STAGES:
                 timings[s].append(est.timing_s[s])
+        if k + 1 >= frames:
+            break
     name = f"{mesh[0]}x{mesh[1]}"
     tracked = int(np.median(counts))
     return [

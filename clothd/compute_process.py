@@ -1,0 +1,60 @@
+"""The daemon's end of the compute process (clothd/compute.py): start it, send a tick's request, take
+its reply without blocking the event loop, and stop it."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import multiprocessing
+import os
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+from clothd.compute import ComputeSpec, TickReply, TickRequest, serve_compute
+from clothd.errors import HardwareError
+
+START_TIMEOUT_S = 120.0
+JOIN_TIMEOUT_S = 10.0
+
+
+class ComputeProcess:
+    def __init__(self, spec: ComputeSpec) -> None:
+        self.spec = spec
+        self._conn: Any = None
+        self._process: Any = None
+        # One thread blocks on the pipe, so the event loop never does.
+        self._receiver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute-reply")
+
+    async def start(self) -> None:
+        # One thread for BLAS and OpenCV in the compute process: their pools, sized to every core, only
+        # contend with hwsim or the camera here, and the matrices are small (set before it imports them).
+        for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+            os.environ.setdefault(var, "1")
+        ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no inherited threads or Taichi
+        self._conn, child = ctx.Pipe()
+        self._process = ctx.Process(
+            target=serve_compute, args=(child, self.spec), name="clothd-compute", daemon=True
+        )
+        self._process.start()
+        child.close()
+        loop = asyncio.get_running_loop()
+        ready = await asyncio.wait_for(loop.run_in_executor(self._receiver, self._conn.recv), START_TIMEOUT_S)
+        if ready != "ready":
+            raise HardwareError(f"the compute process did not start: {ready!r}")
+
+    def request(self, req: TickRequest) -> asyncio.Future[TickReply]:
+        """Send one tick's request; the future holds the reply. OSError or EOFError: the process died."""
+        self._conn.send(req)
+        return asyncio.ensure_future(
+            asyncio.get_running_loop().run_in_executor(self._receiver, self._conn.recv)
+        )
+
+    async def stop(self) -> None:
+        """Ask the process to finish (it stops the camera and any recording), then make sure it has."""
+        if self._process is not None:
+            with contextlib.suppress(OSError, ValueError):
+                self._conn.send(None)
+            await asyncio.get_running_loop().run_in_executor(None, self._process.join, JOIN_TIMEOUT_S)
+            if self._process.is_alive():
+                self._process.kill()
+        self._receiver.shutdown(wait=False, cancel_futures=True)

@@ -1,0 +1,152 @@
+"""The mesh EKF (clothd/core/mesh_ekf.py): every node's position and velocity, predicted by the Taichi
+mass–spring driven by the belts under it, corrected by the features through the FEM shape functions.
+
+With `corrects=False` it is the report's predict-only mode: the model driven by the conveyors, never
+corrected. Without the input (`use_input=False`) the model takes the modules as stopped: the cloth rests
+on still belts, and friction holds the mesh where the features last put it.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from clothd.config import EkfConfig, MeshConfig, PhysicsConfig
+from clothd.core.binding import cloth_coordinates
+from clothd.core.camera_model import CameraModel
+from clothd.core.conveyor import BeltField
+from clothd.core.ekf import UpdateStats
+from clothd.core.estimators.base import Measurements, StateEstimate, boundary, uncorrected
+from clothd.core.feature_set import FeatureSet
+from clothd.core.folds import fold_heights_m
+from clothd.core.mesh import QuadMesh, blend, measurement_jacobian
+from clothd.core.mesh_ekf import NodeBelief
+from clothd.core.physics import CONTACT_HEIGHT_M, MassSpring
+
+
+class MeshEstimator:
+    def __init__(
+        self,
+        camera_model: CameraModel,
+        mesh_cfg: MeshConfig,
+        physics: PhysicsConfig,
+        ekf: EkfConfig,
+        use_input: bool,
+        corrects: bool = True,
+    ) -> None:
+        self.camera_model = camera_model
+        self.mesh_cfg = mesh_cfg
+        self.ekf = ekf
+        self.use_input = use_input
+        self.corrects = corrects
+        self.sim = MassSpring(physics, mesh_cfg.nodes_x, mesh_cfg.nodes_y)
+        n = mesh_cfg.nodes_x * mesh_cfg.nodes_y
+        self._P0 = np.diag([ekf.initial_pos_sigma_m**2] * 3 + [ekf.initial_vel_sigma_m_s**2] * 3)
+        Q = np.diag([ekf.process_pos_sigma_m**2] * 3 + [ekf.process_vel_sigma_m_s**2] * 3)
+        self._Q = np.tile(Q, (n, 1, 1))
+        self.mesh: QuadMesh | None = None
+        self.belief: NodeBelief | None = None
+
+    def start(self, mesh: QuadMesh, pose0: np.ndarray) -> None:
+        self.mesh = mesh
+        rest = mesh.rest_nodes_m()
+        self.sim.set_rest(rest)
+        nodes = np.column_stack([rest.reshape(-1, 2), np.zeros(mesh.n_nodes)])
+        self.belief = NodeBelief(
+            np.column_stack([nodes, np.zeros_like(nodes)]),
+            np.tile(self._P0, (mesh.n_nodes, 1, 1)),
+            mesh.quad_nodes(),
+        )
+
+    def _started(self) -> tuple[QuadMesh, NodeBelief]:
+        assert self.mesh is not None and self.belief is not None, "start() comes first"
+        return self.mesh, self.belief
+
+    def predict(self, u: BeltField | None, dt_s: float) -> None:
+        _, belief = self._started()
+        pos, vel = belief.x[:, :3], belief.x[:, 3:]
+        if u is None:
+            belt_v, on_belt = np.zeros((len(pos), 2)), np.zeros(len(pos), bool)
+        else:
+            belt_v, on_belt = (u if self.use_input else u.stopped()).velocity_at(pos)
+        self.sim.set_state(pos, vel)
+        self.sim.step(dt_s, belt_v, on_belt)
+        x_new, v_new = self.sim.state()
+        in_contact = on_belt & (x_new[:, 2] <= CONTACT_HEIGHT_M)
+        F = self.sim.transition_blocks(dt_s, in_contact)
+        belief.predict(np.column_stack([x_new, v_new]), F, self._Q)
+
+    def feature_pixels(self, features: FeatureSet) -> np.ndarray | None:
+        _, belief = self._started()
+        return self.camera_model.project(blend(belief.positions_m, features.binding))
+
+    def correct(self, m: Measurements) -> tuple[UpdateStats, np.ndarray]:
+        if not self.corrects:
+            return uncorrected(m)
+        _, belief = self._started()
+        e = self.ekf
+        accepted = np.ones(len(m.ok), bool)
+        idx = np.flatnonzero(m.ok)
+        sub = m.features.binding.subset(idx)
+        pred, J = measurement_jacobian(self.camera_model, belief.positions_m, sub)
+        # The camera corrects the nodes on the table plane only. From above, height barely moves a pixel,
+        # and a filter free to use it explained in-plane model error with it: nodes floated 15-20 mm up
+        # on flat cloth. Height comes from inextensibility instead (_lift_folds).
+        J[..., 2] = 0.0
+        stats, inside = belief.correct(
+            sub.quad, sub.nodes, J, m.px[idx] - pred, e.meas_sigma_px**2, e.gate_chi2, e.smoothness_sigma_m
+        )
+        accepted[idx[~inside]] = False
+        self._lift_folds()
+        return stats, accepted
+
+    def _lift_folds(self) -> None:
+        """Set the node heights from how much shorter the cloth is on the table than at rest."""
+        mesh, belief = self._started()
+        z = fold_heights_m(
+            belief.positions_m[:, :2].reshape(mesh.ny, mesh.nx, 2),
+            mesh.rest_nodes_m(),
+            self.mesh_cfg.fold_tolerance_strain,
+        )
+        belief.set_heights(z.ravel(), self.ekf.initial_pos_sigma_m, self.ekf.initial_vel_sigma_m_s)
+
+    def cloth_coordinates(self, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        mesh, belief = self._started()
+        return cloth_coordinates(mesh, self.camera_model.project(belief.positions_m), px)
+
+    def outline_px(self) -> np.ndarray | None:
+        mesh, belief = self._started()
+        return boundary(self.camera_model.project(belief.positions_m).reshape(mesh.ny, mesh.nx, 2))
+
+    def estimate(self) -> StateEstimate:
+        mesh, belief = self._started()
+        nodes = belief.positions_m
+        return StateEstimate(
+            _best_fit_pose(mesh, nodes),
+            _best_fit_pose_cov(nodes, belief.P),
+            nodes.reshape(mesh.ny, mesh.nx, 3).copy(),
+            boundary(nodes[:, :2].reshape(mesh.ny, mesh.nx, 2)),
+        )
+
+
+def _best_fit_pose(mesh: QuadMesh, nodes_m: np.ndarray) -> np.ndarray:
+    """The rigid pose [X, Y, θ] that best maps the rest mesh onto the nodes' x, y (Kabsch in 2-D)."""
+    rest = mesh.rest_nodes_m().reshape(-1, 2)
+    cur = nodes_m[:, :2]
+    rc, cc = rest.mean(axis=0), cur.mean(axis=0)
+    M = (rest - rc).T @ (cur - cc)
+    rot = math.atan2(M[0, 1] - M[1, 0], M[0, 0] + M[1, 1])
+    return np.array([cc[0], cc[1], math.remainder(mesh.theta_rad + rot, 2 * math.pi)])
+
+
+def _best_fit_pose_cov(nodes_m: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """Covariance (3, 3) of the best-fit pose under the filter's independent node blocks P (n, 6, 6):
+    the centre is the mean of the nodes, and a small rotation moves node i by θ ẑ × r_i, so to first
+    order θ = Σ (r_i × Δp_i) / Σ |r_i|²."""
+    r = nodes_m[:, :2] - nodes_m[:, :2].mean(axis=0)
+    n = len(r)
+    J = np.zeros((n, 3, 2))  # d pose / d p_i,xy
+    J[:, 0, 0] = J[:, 1, 1] = 1.0 / n
+    J[:, 2, :] = np.stack([-r[:, 1], r[:, 0]], axis=1) / float((r**2).sum())
+    return np.asarray(np.einsum("nij,njk,nlk->il", J, P[:, :2, :2], J))

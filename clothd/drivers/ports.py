@@ -1,0 +1,112 @@
+"""The ports the daemon's shell talks to hardware through. The real drivers (camera.py, stepper_link.py)
+implement them; tests and tools may plug in anything that does the same.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from clothd.core.messages import ModuleCommands
+
+
+@dataclass(frozen=True)
+class CameraFrame:
+    index: int  # counts frames since the source started, across reconnects
+    t_mono_s: float  # host monotonic time of capture
+    image: np.ndarray  # BGR
+
+
+@dataclass(frozen=True)
+class FrameSourceHealth:
+    state: str  # connecting | streaming | lost
+    healthy: bool  # a frame fresher than the source's stale limit is there
+    last_error: str | None
+    reconnects: int
+
+
+class FrameSource(Protocol):
+    """A camera: frames arrive on their own; `latest` hands out the newest and never blocks."""
+
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def latest(self) -> CameraFrame | None:
+        """The newest frame, or None when there is none fresh enough."""
+
+    def health(self) -> FrameSourceHealth: ...
+
+
+@dataclass(frozen=True)
+class ControllerFault:
+    """A fault the controller reported, stamped with the host's wall clock when it arrived."""
+
+    t_unix_s: float
+    code: int
+    module: int
+    text: str
+
+
+@dataclass
+class LinkCounters:
+    sent: int = 0
+    retransmitted: int = 0
+    acked: int = 0
+    invalid: int = 0
+    nacked: int = 0
+    faults: int = 0
+    reconnects: int = 0
+    rtt_ms: deque[float] = field(default_factory=lambda: deque(maxlen=256))
+
+    def snapshot(self) -> dict[str, float | int | None]:
+        rtt = np.asarray(self.rtt_ms) if self.rtt_ms else None
+        return {
+            "sent": self.sent,
+            "retransmitted": self.retransmitted,
+            "acked": self.acked,
+            "invalid": self.invalid,
+            "nacked": self.nacked,
+            "faults": self.faults,
+            "reconnects": self.reconnects,
+            "rtt_p50_ms": None if rtt is None else float(np.median(rtt)),
+            "rtt_p99_ms": None if rtt is None else float(np.percentile(rtt, 99)),
+        }
+
+
+class ModuleLink(Protocol):
+    """The stepper controller. `run` is the connection task; every other method returns at once.
+
+    The emergency stop is latched here, in one place: `estopped` is true from `estop()` until
+    `estop_clear()`, and no command goes out meanwhile."""
+
+    state: str  # disconnected | connecting | connected
+    last_error: str | None
+    firmware: str | None
+    counters: LinkCounters
+    faults: deque[ControllerFault]  # the newest few, oldest first
+
+    @property
+    def connected(self) -> bool: ...
+
+    @property
+    def estopped(self) -> bool: ...
+
+    @property
+    def controller_estopped(self) -> bool:
+        """The controller says its own e-stop is set."""
+
+    def send_commands(self, commands: ModuleCommands) -> bool:
+        """Send one tick's commands; False when they could not go out (down, or e-stopped)."""
+
+    def estop(self) -> None: ...
+
+    def estop_clear(self) -> None: ...
+
+    async def run(self) -> None: ...
+
+    async def stop(self) -> None:
+        """Stop every module, then close."""

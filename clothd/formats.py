@@ -1,0 +1,210 @@
+"""clothd's files, read and written in one place (docs/recording-format.md, docs/replay-format.md).
+
+- camera.json: the camera model (K, dist, T_cam_world, width, height);
+- table.json: the module layout;
+- frames.csv and commands.csv: a recording's capture times and the commands sent as they changed;
+- estimates.npz: what the tracker believed, frame by frame.
+
+The core never opens a file: footage, the recorder, replay and the composition root go through here and
+hand the core objects. Any problem reading is an InputError that names the file and what is wrong.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+from clothd.core.camera_model import CameraModel
+from clothd.core.conveyor import ConveyorLayout
+from clothd.core.messages import Estimate, ModuleCommands
+from clothd.errors import InputError
+
+CAMERA_KEYS = ("K", "dist", "T_cam_world", "width", "height")
+FRAMES_CSV_HEADER = "index,t_s\n"
+COMMANDS_CSV_HEADER = "t_s,module,speed_m_s,heading_rad\n"
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(Path(path).read_text())
+    except OSError as err:
+        raise InputError(f"{path}: cannot read: {err.strerror}") from None
+    except json.JSONDecodeError as err:
+        raise InputError(f"{path}: not valid JSON: {err}") from None
+
+
+def _write_json(path: Path, obj: Any) -> None:
+    path.write_text(json.dumps(obj, indent=2) + "\n")
+
+
+# -- camera.json -----------------------------------------------------------------------------------
+
+
+def read_camera(path: Path) -> CameraModel:
+    """camera.json -> CameraModel. Any problem -> InputError."""
+    d = _read_json(path)
+    if not isinstance(d, dict):
+        raise InputError(f"{path}: expected a JSON object with keys {', '.join(CAMERA_KEYS)}")
+    for key in CAMERA_KEYS:
+        if key not in d:
+            raise InputError(f"{path}: missing key '{key}'")
+    try:
+        return CameraModel(
+            np.asarray(d["K"], dtype=float),
+            np.asarray(d["dist"], dtype=float),
+            np.asarray(d["T_cam_world"], dtype=float),
+            int(d["width"]),
+            int(d["height"]),
+        )
+    except (TypeError, ValueError) as err:
+        raise InputError(f"{path}: {err}") from None
+
+
+def camera_dict(camera: CameraModel) -> dict[str, object]:
+    """camera.json's content (the keys read_camera reads)."""
+    return {
+        "K": camera.K.tolist(),
+        "dist": camera.dist.tolist(),
+        "T_cam_world": camera.T_cam_world.tolist(),
+        "width": camera.width,
+        "height": camera.height,
+    }
+
+
+def write_camera(path: Path, camera: CameraModel) -> None:
+    _write_json(path, camera_dict(camera))
+
+
+# -- table.json ------------------------------------------------------------------------------------
+
+
+def read_layout(path: Path) -> ConveyorLayout:
+    """table.json -> ConveyorLayout. Any problem -> InputError."""
+    d = _read_json(path)
+    try:
+        return ConveyorLayout(
+            int(d["modules_x"]), int(d["modules_y"]), float(d["pitch_m"]), float(d["module_size_m"])
+        )
+    except (KeyError, ValueError, TypeError) as err:
+        raise InputError(f"{path}: not a usable table layout ({err})") from None
+
+
+def write_layout(path: Path, layout: ConveyorLayout) -> None:
+    _write_json(
+        path,
+        {
+            "modules_x": layout.modules_x,
+            "modules_y": layout.modules_y,
+            "pitch_m": layout.pitch_m,
+            "module_size_m": layout.module_size_m,
+            "centres_m": layout.centres_m.tolist(),
+        },
+    )
+
+
+# -- frames.csv and commands.csv ---------------------------------------------------------------------
+
+
+def read_frame_times(path: Path) -> tuple[float, ...] | None:
+    """frames.csv (index, t_s) of a live recording; None when there is none."""
+    if not path.exists():
+        return None
+    try:
+        with path.open(newline="") as f:
+            return tuple(float(r["t_s"]) for r in csv.DictReader(f))
+    except (OSError, KeyError, ValueError) as err:
+        raise InputError(f"{path}: not a usable frame-time file ({err})") from None
+
+
+def read_commands(path: Path, n_modules: int) -> list[tuple[float, int, float, float]]:
+    """commands.csv rows (t_s, module, speed_m_s, heading_rad), sorted by time."""
+    rows: list[tuple[float, int, float, float]] = []
+    try:
+        with path.open(newline="") as f:
+            for r in csv.DictReader(f):
+                rows.append(
+                    (float(r["t_s"]), int(r["module"]), float(r["speed_m_s"]), float(r["heading_rad"]))
+                )
+    except (OSError, KeyError, ValueError) as err:
+        raise InputError(f"{path}: not a usable commands file ({err})") from None
+    bad = [m for _, m, _, _ in rows if not 0 <= m < n_modules]
+    if bad:
+        raise InputError(f"{path}: module ids {sorted(set(bad))[:5]} outside 0..{n_modules - 1}")
+    return sorted(rows)
+
+
+class RecordingLog:
+    """A recording's two growing CSV files, flushed row by row so that a recording cut short replays up
+    to its last complete frame: frames.csv (a frame's capture time) and commands.csv (each module's
+    command whenever it changes)."""
+
+    def __init__(self, directory: Path) -> None:
+        self._times: IO[str] = (directory / "frames.csv").open("w", newline="")
+        self._times.write(FRAMES_CSV_HEADER)
+        self._commands: IO[str] = (directory / "commands.csv").open("w", newline="")
+        self._commands.write(COMMANDS_CSV_HEADER)
+        self._last: ModuleCommands | None = None
+
+    def add_frame(self, index: int, t_s: float, commands: ModuleCommands) -> None:
+        """Frame `index` captured at t_s with `commands` in force. OSError on a failed write."""
+        self._times.write(f"{index},{t_s:.6f}\n")
+        self._times.flush()
+        last = self._last
+        changed = (
+            np.ones(commands.n_modules, bool)
+            if last is None
+            else (commands.speed_m_s != last.speed_m_s) | (commands.heading_rad != last.heading_rad)
+        )
+        w = csv.writer(self._commands)
+        for m in np.flatnonzero(changed):
+            w.writerow(
+                [f"{t_s:.6f}", int(m), f"{commands.speed_m_s[m]:.6f}", f"{commands.heading_rad[m]:.6f}"]
+            )
+        self._commands.flush()
+        self._last = commands
+
+    def close(self) -> list[str]:
+        """Close both files; the errors met, as text (a full disk fails on close too)."""
+        errors = []
+        for f in (self._times, self._commands):
+            try:
+                f.close()
+            except OSError as err:
+                errors.append(f"closing {f.name} failed: {err}")
+        return errors
+
+
+# -- estimates.npz ---------------------------------------------------------------------------------
+
+
+def write_estimates(path: Path, estimates: list[Estimate]) -> None:
+    """t_s (F,), pose (F, 3), feature_id (n,), meas_px and pred_px (F, n, 2) (NaN where a feature is not
+    alive), and nodes_m (F, ny, nx, 3) when every estimate with nodes has the same mesh."""
+    ids = np.unique(np.concatenate([e.feature_id for e in estimates])) if estimates else np.zeros(0, np.int64)
+    col = {int(i): k for k, i in enumerate(ids)}
+    F, n = len(estimates), len(ids)
+    meas = np.full((F, n, 2), np.nan, np.float32)
+    pred = np.full((F, n, 2), np.nan, np.float32)
+    for f, e in enumerate(estimates):
+        cols = np.array([col[int(i)] for i in e.feature_id], dtype=np.int64)
+        if len(cols):
+            meas[f, cols] = e.meas_px
+            pred[f, cols] = e.pred_px
+    arrays: dict[str, np.ndarray] = {
+        "t_s": np.array([e.frame_t_s for e in estimates]),
+        "pose": np.array([e.pose for e in estimates]),
+        "feature_id": ids,
+        "meas_px": meas,
+        "pred_px": pred,
+    }
+    shapes = {e.nodes_m.shape for e in estimates if e.nodes_m is not None}
+    if len(shapes) == 1:
+        shape = shapes.pop()
+        arrays["nodes_m"] = np.array(
+            [e.nodes_m if e.nodes_m is not None else np.full(shape, np.nan) for e in estimates], np.float32
+        )
+    np.savez_compressed(path, allow_pickle=False, **arrays)

@@ -1,0 +1,65 @@
+"""The offline tracking loop, written once: recorded footage through the tracker, frame by frame, with the
+recording's camera, module layout and commands, as the daemon would have tracked it live. Replay and the
+benchmarks all track through this."""
+
+from __future__ import annotations
+
+import itertools
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from clothd.config import TrackerConfig
+from clothd.core.camera_model import CameraModel
+from clothd.core.messages import Estimate
+from clothd.core.tracker import Clock, Tracker
+from clothd.drivers.footage import CommandSchedule, open_footage
+from clothd.errors import InputError
+from clothd.formats import read_camera, read_layout
+
+
+class OfflineTracking:
+    """Iterate to get (frame_t_s, BGR image, estimate) for every frame of `source` (a video, an image
+    directory or a recording).
+
+    camera_json / commands_csv override the recording's own; without any camera.json the camera is ideal
+    (tracker.camera in the config) at the footage's image size. read_ahead decodes frames on a second
+    thread (benchmarks that time the tracker's stages turn it off, to keep a core to the tracker)."""
+
+    def __init__(
+        self,
+        source: Path,
+        cfg: TrackerConfig,
+        camera_json: Path | None = None,
+        commands_csv: Path | None = None,
+        roi: str = "auto",
+        read_ahead: bool = True,
+        clock: Clock = time.perf_counter,
+    ) -> None:
+        self.footage = open_footage(source)
+        self._frames = self.footage.frames(read_ahead=read_ahead)
+        try:
+            self._first = next(self._frames)
+        except StopIteration:
+            raise InputError(f"{source}: no frames") from None
+        self.frame_shape = self._first[1].shape[:2]
+        self.camera_model = self._camera_model(camera_json, cfg)
+        table = self.footage.table_json
+        self.layout = read_layout(table) if table else None
+        commands = commands_csv or self.footage.commands_csv
+        self.schedule = CommandSchedule(commands, self.layout.n_modules) if commands and self.layout else None
+        self.tracker = Tracker(cfg, self.camera_model, self.layout, roi=roi, clock=clock)
+
+    def _camera_model(self, override: Path | None, cfg: TrackerConfig) -> CameraModel:
+        path = override or self.footage.camera_json
+        if path is not None:
+            return read_camera(path)
+        h, w = self.frame_shape
+        return CameraModel.ideal(w, h, cfg.camera.f_px, cfg.camera.distance_m)
+
+    def __iter__(self) -> Iterator[tuple[float, np.ndarray, Estimate]]:
+        for t_s, image in itertools.chain([self._first], self._frames):
+            commands = self.schedule.at(t_s) if self.schedule else None
+            yield t_s, image, self.tracker.step(image, t_s, commands)
