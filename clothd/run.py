@@ -39,6 +39,8 @@ from clothd.errors import HardwareError
 from clothd.formats import read_camera
 
 SIM_START_TIMEOUT_S = 120.0
+POLL_S = 0.05  # how often start-up checks whether the API server listens
+SIM_READ_POLL_S = 0.5
 
 
 @dataclass
@@ -68,7 +70,7 @@ def start_sim(scenario: str) -> SimCell:
     while time.monotonic() < deadline:
         if proc.poll() is not None:
             raise HardwareError(f"hwsim serve exited with code {proc.returncode} before it was ready")
-        ready, _, _ = select.select([proc.stdout], [], [], 0.5)
+        ready, _, _ = select.select([proc.stdout], [], [], SIM_READ_POLL_S)
         if ready:
             line = proc.stdout.readline()
             with contextlib.suppress(json.JSONDecodeError):
@@ -161,7 +163,7 @@ async def serve(
     loop_task = asyncio.create_task(daemon.run())
     server_task = asyncio.create_task(server.serve())
     while not server.started and not server_task.done():
-        await asyncio.sleep(0.05)
+        await asyncio.sleep(POLL_S)
     if server.started and on_ready:
         print(on_ready, flush=True)
     done, _ = await asyncio.wait({loop_task, server_task}, return_when=asyncio.FIRST_COMPLETED)

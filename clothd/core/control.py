@@ -28,6 +28,7 @@ from clothd.config import CellConfig, ControlConfig
 from clothd.core.messages import ModuleCommands
 
 Mode = Literal["idle", "hold", "move"]
+STILL_SPEED_M_S = 1e-6  # slower than this a module is stopped and keeps its heading
 
 
 @dataclass(frozen=True)
@@ -41,6 +42,11 @@ def _approach_speed(distance: float, v_max: float, a_max: float, gain: float) ->
 
 
 class PoseController:
+    """Plans the cloth's rigid twist towards a target pose and turns it into module commands.
+
+    module_centres_m (n_modules, 2): where each module sits, indexed by module id. `plan_twist` keeps the
+    twist of the last tick (the acceleration limit acts across ticks); `stop` and `reset` zero it."""
+
     def __init__(self, cfg: ControlConfig, cell: CellConfig, module_centres_m: np.ndarray) -> None:
         self.cfg = cfg
         self.cell = cell
@@ -88,13 +94,13 @@ class PoseController:
         if fastest > self.cell.max_speed_m_s:
             v *= self.cell.max_speed_m_s / fastest
             speed *= self.cell.max_speed_m_s / fastest
-        moving = speed > 1e-6
+        moving = speed > STILL_SPEED_M_S
         self.heading_rad = np.where(moving, np.arctan2(v[:, 1], v[:, 0]), self.heading_rad)
         return ModuleCommands(speed, self.heading_rad.copy())
 
     def stop(self) -> ModuleCommands:
         self.twist = np.zeros(3)
-        return ModuleCommands(np.zeros(len(self.centres_m)), self.heading_rad.copy())
+        return ModuleCommands.all_stop(len(self.centres_m), self.heading_rad)
 
     def modules_under(self, outline_xy: np.ndarray) -> np.ndarray:
         """(n_modules,) bool: the module's centre lies at least `under_cloth_margin_m` inside the outline."""

@@ -36,9 +36,6 @@ from clothd.config import FeatureConfig
 _MAX_SUBPIX_SHIFT_PX = 1.0
 # Ask Shi–Tomasi for this many more corners than wanted: spares for those the exact spacing check drops.
 _SPARE_FRACTION = 0.125
-# A patch that is still itself one frame later correlates >= 0.75 in hwsim footage, across the
-# compress fold's shading and the random scenario's motion blur (median ~0.96); a patch replaced by
-# noise correlates <= 0.5.
 # A grid cell counts as cloth when more than this fraction of its in-image pixels are in the mask.
 _CELL_INSIDE_FRACTION = 0.5
 

@@ -25,6 +25,7 @@ from clothd.formats import read_commands, read_frame_times
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp"}
 DEFAULT_FPS = 30.0
 _READ_AHEAD = 3
+_SAME_TIME_S = 1e-9  # a command stamped with a frame's time holds for that frame, whatever the rounding
 
 
 def natural_key(path: Path) -> list[object]:
@@ -150,7 +151,7 @@ class CommandSchedule:
 
     def at(self, t_s: float) -> ModuleCommands:
         """Commands in force at t_s; call with non-decreasing times."""
-        while self._next < len(self._rows) and self._rows[self._next][0] <= t_s + 1e-9:
+        while self._next < len(self._rows) and self._rows[self._next][0] <= t_s + _SAME_TIME_S:
             _, m, speed, heading = self._rows[self._next]
             self._speed[m], self._heading[m] = speed, heading
             self._next += 1

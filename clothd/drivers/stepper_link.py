@@ -28,6 +28,7 @@ from clothd.errors import HardwareError
 log = logging.getLogger(__name__)
 
 ESTOP_REPEAT_S = 0.02
+STOP_DRAIN_TIMEOUT_S = 0.2  # on the way out, wait this long for the all-stop to leave the port
 FAULTS_KEPT = 20
 
 
@@ -114,7 +115,7 @@ class StepperLink:
             self._write(wire.encode(wire.MsgType.COMMAND, self._next_seq(), payload))
             with contextlib.suppress(Exception):
                 assert self._writer is not None
-                await asyncio.wait_for(self._writer.drain(), 0.2)
+                await asyncio.wait_for(self._writer.drain(), STOP_DRAIN_TIMEOUT_S)
         self._close()
 
     async def run(self) -> None:

@@ -26,6 +26,9 @@ from clothd.core.physics import CONTACT_HEIGHT_M, MassSpring
 
 
 class MeshEstimator:
+    """The Estimator of the cloth as a mesh of nodes: NodeBelief (x (n, 6), node-block P (n, 6, 6)),
+    predicted by the MassSpring allocated here once, corrected sparsely, heights from folds.py."""
+
     def __init__(
         self,
         camera_model: CameraModel,

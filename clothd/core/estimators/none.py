@@ -14,6 +14,8 @@ from clothd.core.mesh import QuadMesh
 
 
 class NoModel:
+    """The Estimator with no state: no prediction, no correction, the pose where the cloth was found."""
+
     def __init__(self, camera_model: CameraModel) -> None:
         self.camera_model = camera_model
         self.pose0 = np.zeros(3)

@@ -22,6 +22,8 @@ from clothd.core.physics import stick_time_s
 
 
 class RigidEstimator:
+    """The Estimator of a flat rigid plate: x (6,) and P (6, 6), corrected in information form."""
+
     def __init__(
         self, camera_model: CameraModel, ekf: EkfConfig, physics: PhysicsConfig, use_input: bool
     ) -> None:

@@ -1,0 +1,135 @@
+"""The package's layering, read from the source: core <- drivers <- daemon/compute <- api <- run/cli, with
+the tools beside. A module imports only from its own layer or the ones below, nothing imports in a
+circle, only the tools import hwsim, and hwsim never imports clothd."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# Lowest first. A module belongs to the first entry whose prefix it starts with.
+LAYERS: list[tuple[str, tuple[str, ...]]] = [
+    ("base", ("clothd.errors", "clothd.config", "clothd.__init__")),
+    ("core", ("clothd.core",)),
+    ("formats", ("clothd.formats", "clothd.taichi_runtime")),
+    ("drivers", ("clothd.drivers",)),
+    (
+        "shell",
+        (
+            "clothd.daemon",
+            "clothd.compute",
+            "clothd.compute_process",
+            "clothd.recorder",
+            "clothd.view",
+            "clothd.status",
+            "clothd.loop_stats",
+            "clothd.notify",
+        ),
+    ),
+    ("tools", ("clothd.tools",)),
+    ("api", ("clothd.api",)),
+    ("entry", ("clothd.run", "clothd.cli")),
+]
+RANK = {name: k for k, (name, _) in enumerate(LAYERS)}
+
+
+def _module_name(path: Path) -> str:
+    return ".".join(path.relative_to(ROOT).with_suffix("").parts)
+
+
+def _layer(module: str) -> str:
+    for name, prefixes in LAYERS:
+        if any(module == p or module.startswith(p + ".") for p in prefixes):
+            return name
+    raise AssertionError(f"{module} is in no layer: add it to tests/test_layers.py")
+
+
+def _imports(source: str) -> set[str]:
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            found.add(node.module)
+            found.update(f"{node.module}.{alias.name}" for alias in node.names)
+    return found
+
+
+def _graph(package: str) -> dict[str, set[str]]:
+    files = {_module_name(p): p for p in (ROOT / package).rglob("*.py")}
+    modules = set(files) | {m.removesuffix(".__init__") for m in files}
+    graph = {}
+    for mod, path in files.items():
+        name = mod.removesuffix(".__init__")
+        graph[name] = {i for i in _imports(path.read_text()) if i in modules and i != name}
+    return graph
+
+
+def _upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    """Imports of a higher layer; the CLI may run the tools, and nothing but the tools imports them."""
+    wrong = []
+    for mod, deps in graph.items():
+        for dep in deps:
+            up = RANK[_layer(dep)] > RANK[_layer(mod)] and not (
+                _layer(mod) == "entry" and _layer(dep) == "tools"
+            )
+            into_tools = _layer(dep) == "tools" and _layer(mod) not in ("tools", "entry")
+            if up or into_tools:
+                wrong.append(f"{mod} ({_layer(mod)}) imports {dep} ({_layer(dep)})")
+    return wrong
+
+
+def _circle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import circle, or None."""
+    state: dict[str, int] = {}  # 1: on the current path, 2: done
+
+    def visit(mod: str, path: list[str]) -> list[str] | None:
+        state[mod] = 1
+        for dep in sorted(graph.get(mod, ())):
+            if state.get(dep) == 1:
+                return [*path[path.index(dep) :], dep]
+            if dep not in state and (found := visit(dep, [*path, dep])):
+                return found
+        state[mod] = 2
+        return None
+
+    for mod in sorted(graph):
+        if mod not in state and (found := visit(mod, [mod])):
+            return found
+    return None
+
+
+def test_every_import_points_down_or_sideways() -> None:
+    wrong = _upward_imports(_graph("clothd"))
+    assert not wrong, "\n".join(wrong)
+
+
+def test_no_import_circle() -> None:
+    circle = _circle(_graph("clothd"))
+    assert circle is None, "import circle: " + " -> ".join(circle or [])
+
+
+def test_the_checks_catch_what_they_are_for() -> None:
+    bad = {
+        "clothd.core.tracker": {"clothd.daemon"},  # up a layer
+        "clothd.daemon": {"clothd.status"},
+        "clothd.status": {"clothd.daemon"},  # the old circle
+        "clothd.api.app": {"clothd.tools.replay"},  # the API reaching into the tools
+    }
+    assert len(_upward_imports(bad)) == 2
+    assert _circle(bad) == ["clothd.daemon", "clothd.status", "clothd.daemon"]
+
+
+@pytest.mark.parametrize(("package", "forbidden"), [("clothd", "hwsim"), ("hwsim", "clothd")])
+def test_hwsim_and_the_daemon_stay_apart(package: str, forbidden: str) -> None:
+    offenders = [
+        _module_name(p)
+        for p in (ROOT / package).rglob("*.py")
+        if any(i == forbidden or i.startswith(forbidden + ".") for i in _imports(p.read_text()))
+        and not _module_name(p).startswith("clothd.tools.")
+    ]
+    assert not offenders, f"{offenders} import {forbidden}"
