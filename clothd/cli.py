@@ -37,6 +37,18 @@ def _cmd_bench_loop(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_faults(args: argparse.Namespace) -> int:
+    import json
+
+    from clothd.tools.bench_faults import format_result, run_bench
+
+    result = run_bench(resets=args.resets)
+    print(format_result(result))
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=2) + "\n")
+    return 0
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from clothd.taichi_runtime import start_taichi
     from clothd.tools.replay import replay
@@ -162,6 +174,12 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--load-seconds", type=float, default=30.0, help="how long to load the API")
     bl.add_argument("--json", type=Path, help="also write the figures as JSON")
     bl.set_defaults(func=_cmd_bench_loop)
+    bf = bsub.add_parser(
+        "faults", help="faults injected into a live simulated cell: detection, stop, no restart; reset memory"
+    )
+    bf.add_argument("--resets", type=int, default=500, help="POST /reset this many times (10 a second)")
+    bf.add_argument("--json", type=Path, help="also write the figures as JSON")
+    bf.set_defaults(func=_cmd_bench_faults)
     return p
 
 

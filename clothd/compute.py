@@ -28,6 +28,7 @@ from clothd.core.control import PoseController, Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.tracker import Tracker
+from clothd.core.workspace import Workspace
 from clothd.drivers.ports import FrameSource, FrameSourceHealth
 from clothd.recorder import Recorder, RecordingStatus
 from clothd.taichi_runtime import start_taichi
@@ -57,6 +58,7 @@ class TickReply:
     timing_s: dict[str, float] = field(default_factory=dict)
     view_jpeg: bytes | None = None
     recording: RecordingStatus | None = None
+    halt_reason: str | None = None  # the commands stopped the modules for a fault of this tick
 
 
 @dataclass(frozen=True)
@@ -70,6 +72,7 @@ class ComputeSpec:
     layout: ConveyorLayout
     camera_model: CameraModel
     period_s: float
+    workspace: Workspace
     taichi_arch: str
     max_record_bytes: int
     frame_source: Callable[[], FrameSource]
@@ -97,7 +100,15 @@ class Compute:
         self.frames.stop()
 
     def stop_reply(self, state: str) -> TickReply:
-        return TickReply(state, None, self.controller.stop(), False, None, self.frames.health())
+        return TickReply(
+            state,
+            None,
+            self.controller.stop(),
+            False,
+            None,
+            self.frames.health(),
+            halt_reason=f"the compute failed ({state})",
+        )
 
     def tick(self, req: TickRequest) -> TickReply:
         t0 = time.perf_counter()
@@ -121,7 +132,7 @@ class Compute:
                 self.recorder.add(frame.image, frame.t_mono_s, req.commands_in_force, est)
                 timing["record"] = time.perf_counter() - t_rec
         t1 = time.perf_counter()
-        state, commands = self._control(frame is not None, est, req.setpoint)
+        state, commands, halt = self._control(frame is not None, est, req.setpoint)
         timing["control"] = time.perf_counter() - t1
         timing["compute"] = time.perf_counter() - t0
         jpeg = None
@@ -130,7 +141,7 @@ class Compute:
         frame_t = frame.t_mono_s if frame is not None else None
         recording = None if self.recorder is None else self.recorder.status()
         return TickReply(
-            state, est, commands, new_frame, frame_t, self.frames.health(), timing, jpeg, recording
+            state, est, commands, new_frame, frame_t, self.frames.health(), timing, jpeg, recording, halt
         )
 
     def _record_requests(self, req: TickRequest) -> None:
@@ -147,15 +158,21 @@ class Compute:
             except OSError as err:
                 log.warning("cannot start recording in %s: %s", req.record_start, err)
 
-    def _control(self, have_frame: bool, est: Estimate | None, sp: Setpoint) -> tuple[str, ModuleCommands]:
+    def _control(
+        self, have_frame: bool, est: Estimate | None, sp: Setpoint
+    ) -> tuple[str, ModuleCommands, str | None]:
+        """The state, the commands, and why they stop a hold or move (None when they do not)."""
         if not have_frame:
-            return "camera_lost", self.controller.stop()
+            return "camera_lost", self.controller.stop(), "the camera is lost"
         if est is None or not est.tracking:
-            return "tracking_lost", self.controller.stop()
+            return "tracking_lost", self.controller.stop(), "the cloth is not tracked"
         if sp.mode == "idle" or sp.pose is None or est.outline_m is None:
-            return "tracking", self.controller.stop()
+            return "tracking", self.controller.stop(), None
+        off_limits = self.spec.workspace.leaves(est.outline_m)
+        if off_limits is not None:
+            return "tracking", self.controller.stop(), f"at the workspace's edge: {off_limits}"
         twist = self.controller.plan_twist(est.pose, sp.pose, self.spec.period_s)
-        return "tracking", self.controller.module_commands(est.pose, twist, est.outline_m)
+        return "tracking", self.controller.module_commands(est.pose, twist, est.outline_m), None
 
 
 def serve_compute(conn: Connection, spec: ComputeSpec) -> None:

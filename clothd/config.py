@@ -132,6 +132,9 @@ class TrackerConfig(_Strict):
 
 class LoopConfig(_Strict):
     tick_hz: float = Field(30.0, ge=15, le=30, description="the fixed control tick")
+    max_stale_ticks: int = Field(
+        3, ge=1, le=30, description="ticks in a row without the compute's answer before the modules stop"
+    )
 
     @property
     def period_s(self) -> float:
@@ -153,10 +156,27 @@ class StepperConfig(_Strict):
     port: str = Field("/dev/ttyACM0", min_length=1, max_length=1024)
     baud: int = Field(921600, ge=1200, le=12_000_000)
     ack_timeout_s: float = Field(0.05, gt=0.001, le=1, description="retransmit an unacknowledged command")
-    max_retransmits: int = Field(3, ge=0, le=20, description="then the link is lost and reopened")
+    # Unanswered for ack_timeout_s x (max_retransmits + 1), 150 ms by default, the link is lost: well inside
+    # the controller's 250 ms watchdog, so the host knows first.
+    max_retransmits: int = Field(2, ge=0, le=20, description="then the link is lost and reopened")
     handshake_timeout_s: float = Field(0.5, gt=0.01, le=10)
     reconnect_initial_s: float = Field(0.2, gt=0, le=60)
     reconnect_max_s: float = Field(5.0, gt=0, le=600)
+
+
+class AreaConfig(_Strict):
+    """An axis-aligned rectangle of the table, world frame, metres."""
+
+    x_min_m: float = Field(ge=-10, le=10)
+    x_max_m: float = Field(ge=-10, le=10)
+    y_min_m: float = Field(ge=-10, le=10)
+    y_max_m: float = Field(ge=-10, le=10)
+
+    @model_validator(mode="after")
+    def _not_empty(self) -> AreaConfig:
+        if self.x_min_m >= self.x_max_m or self.y_min_m >= self.y_max_m:
+            raise ValueError("x_min_m must be below x_max_m, and y_min_m below y_max_m")
+        return self
 
 
 class CellConfig(_Strict):
@@ -167,6 +187,12 @@ class CellConfig(_Strict):
     pitch_m: float = Field(0.075, gt=0.01, le=0.5)
     module_size_m: float = Field(0.065, gt=0.005, le=0.5)
     max_speed_m_s: float = Field(0.2, gt=0, le=2)
+    workspace: AreaConfig | None = Field(
+        None, description="where the cloth may be while it is moved; default: the belts less the margin"
+    )
+    workspace_margin_m: float = Field(
+        0.02, ge=0, le=0.5, description="the default workspace keeps this far inside the outer belts' edges"
+    )
 
 
 class ControlConfig(_Strict):
@@ -188,6 +214,17 @@ class ApiConfig(_Strict):
     port: int = Field(8080, ge=1, le=65535)
     token: str | None = Field(None, min_length=16, max_length=256, description="required off loopback")
     view_fps: float = Field(10.0, gt=0, le=30, description="the annotated MJPEG view's rate")
+    allowed_hosts: tuple[str, ...] = Field(
+        (), max_length=32, description="host names the API answers to besides 127.0.0.1, localhost and [::1]"
+    )
+    allowed_origins: tuple[str, ...] = Field(
+        (),
+        max_length=32,
+        description="web origins (scheme://host[:port]) that may change things, besides its own",
+    )
+    max_body_bytes: int = Field(
+        4096, ge=256, le=1_000_000, description="a larger request body is refused (413)"
+    )
 
     @model_validator(mode="after")
     def _token_off_loopback(self) -> ApiConfig:

@@ -28,8 +28,9 @@ from clothd.compute import TickReply, TickRequest
 from clothd.compute_process import ComputeProcess
 from clothd.core.control import Mode, Setpoint
 from clothd.core.messages import ModuleCommands
+from clothd.core.workspace import Workspace, cloth_corners_m
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
-from clothd.errors import HardwareError, RequestError
+from clothd.errors import HardwareError, RequestError, UnreachableTargetError
 from clothd.loop_stats import LoopStats
 from clothd.notify import SystemdNotifier
 from clothd.status import Status, build_status
@@ -44,7 +45,9 @@ SEND_MARGIN_S = 0.003  # a tick's commands go out this long before the next dead
 @dataclass(frozen=True)
 class DaemonSettings:
     period_s: float  # the fixed tick
+    max_stale_ticks: int  # ticks in a row without the compute's answer before the modules stop
     n_modules: int
+    workspace: Workspace
     view_period_s: float  # the annotated view's frame interval
     recording_dir: Path  # where recordings go by default
     camera_source: str  # as shown in the status
@@ -73,6 +76,7 @@ class Daemon:
         self.on_status = on_status
         self.stats = LoopStats()
         self.setpoint = Setpoint("idle", None)
+        self.halt_reason: str | None = None  # why a move last stopped by itself; cleared by a new setpoint
         self.state = "starting"
         self.camera = FrameSourceHealth("connecting", False, None, 0)
         self.latest: TickReply | None = None
@@ -82,6 +86,7 @@ class Daemon:
         self.view_index = 0
         self._last_view_s = -np.inf
         self._pending: asyncio.Future[TickReply] | None = None  # the compute in flight
+        self._stale_ticks = 0  # ticks in a row the compute has not answered in time
         self._unsent_frame_t_s: float | None = None  # capture time behind commands not yet sent
         self._commands = ModuleCommands.all_stop(settings.n_modules)  # the newest from the compute
         self._in_force = self._commands  # what the modules were last told: the model's input
@@ -97,17 +102,33 @@ class Daemon:
     # -- requests from the API (event loop thread) --------------------------------------------------
 
     def set_setpoint(self, mode: Mode, pose: np.ndarray | None) -> None:
-        if self.link.estopped and mode != "idle":
-            raise RequestError("the emergency stop is latched: clear it before moving the cloth")
-        if mode == "move" and pose is None:
-            raise RequestError("move needs x_m, y_m and theta_rad")
+        """The one way the modules start moving: hold or move needs the e-stop clear, the link up and the
+        cloth tracked; a move's target must keep the whole cloth inside the workspace."""
+        if mode != "idle":
+            self._check_can_move()
+        est = self.latest.estimate if self.latest else None
+        if mode == "move":
+            if pose is None:
+                raise RequestError("move needs x_m, y_m and theta_rad")
+            assert est is not None and est.cloth_size_m is not None  # tracked: _check_can_move
+            reason = self.settings.workspace.leaves(cloth_corners_m(pose, est.cloth_size_m))
+            if reason is not None:
+                raise UnreachableTargetError(f"target x_m {pose[0]:g}, y_m {pose[1]:g}: {reason}")
         if mode == "hold":
-            est = self.latest.estimate if self.latest else None
-            if est is None or not est.tracking:
-                raise RequestError("hold needs a tracked cloth, and the cloth is not tracked now")
+            assert est is not None
             pose = est.pose.copy()
         self.setpoint = Setpoint(mode, None if mode == "idle" else pose)
+        self.halt_reason = None
         self.publish()
+
+    def _check_can_move(self) -> None:
+        if self.link.estopped:
+            raise RequestError("the emergency stop is latched: clear it before moving the cloth")
+        if not self.link.connected:
+            raise RequestError("the stepper link is not connected: the modules cannot be moved now")
+        est = self.latest.estimate if self.latest else None
+        if self.state != "tracking" or est is None or not est.tracking:
+            raise RequestError(f"the cloth is not tracked now (state {self.state}): nothing to move")
 
     def estop(self) -> None:
         """Stop every module now, bypassing the loop; latched until estop_clear."""
@@ -207,8 +228,15 @@ class Daemon:
         if done:
             self._use(self._pending, now)
             self._pending = None
+            self._stale_ticks = 0
         else:
             self.stats.compute_overruns += 1
+            self._stale_ticks += 1
+            if self._stale_ticks >= self.settings.max_stale_ticks:  # commands this old steer blind
+                self._commands = ModuleCommands.all_stop(self.settings.n_modules)
+                self._halt(f"the compute has not answered for {self._stale_ticks} ticks")
+        if not self.link.connected:
+            self._halt("the stepper link is down")
         sent = self.link.send_commands(self._commands)
         # A link that is down or e-stopped moves nothing: the controller's watchdog or e-stop holds them.
         self._in_force = self._commands if sent else ModuleCommands.all_stop(self.settings.n_modules)
@@ -253,9 +281,20 @@ class Daemon:
         if reply.state != self.state:
             log.info("state: %s -> %s", self.state, reply.state)
         self.state = reply.state
+        if reply.halt_reason is not None:
+            self._halt(reply.halt_reason)
         self.camera = reply.camera
         self.latest = reply
         self._notify_systemd(time.monotonic(), reply)
+
+    def _halt(self, reason: str) -> None:
+        """A fault stopped the modules: drop the move, so that nothing restarts until a supervisor sends a
+        new setpoint (no unexpected start-up, IEC 60204-1)."""
+        if self.setpoint.mode == "idle":
+            return
+        log.warning("%s stopped: %s; idle until a new setpoint", self.setpoint.mode, reason)
+        self.setpoint = Setpoint("idle", None)
+        self.halt_reason = reason
 
     # -- publishing ------------------------------------------------------------------------------------
 
@@ -265,6 +304,7 @@ class Daemon:
         self.status = build_status(
             state=self.state,
             setpoint=self.setpoint,
+            halt_reason=self.halt_reason,
             estimate=self.latest.estimate if self.latest else None,
             timing=self.stats.cached_summary(),
             camera=self.camera,

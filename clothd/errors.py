@@ -19,3 +19,7 @@ class HardwareError(ClothdError):
 
 class RequestError(ClothdError):
     """An API request that cannot be carried out in the daemon's current state (HTTP 409)."""
+
+
+class UnreachableTargetError(RequestError):
+    """A setpoint that can never be carried out as given, such as a target off the workspace (HTTP 422)."""

@@ -32,6 +32,7 @@ from clothd.compute_process import ComputeProcess
 from clothd.config import Config, with_overrides
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
+from clothd.core.workspace import Workspace
 from clothd.daemon import Daemon, DaemonSettings
 from clothd.drivers.camera import VideoCaptureSource
 from clothd.drivers.stepper_link import StepperLink
@@ -110,6 +111,7 @@ def build(cfg: Config) -> Parts:
     """Every part of the daemon, built once from the validated configuration; nothing is started."""
     camera_model = camera_model_for(cfg)
     layout = ConveyorLayout.of_cell(cfg.cell)
+    workspace = Workspace.of_cell(cfg.cell)
     spec = ComputeSpec(
         tracker=cfg.tracker,
         control=cfg.control,
@@ -117,13 +119,16 @@ def build(cfg: Config) -> Parts:
         layout=layout,
         camera_model=camera_model,
         period_s=cfg.loop.period_s,
+        workspace=workspace,
         taichi_arch=cfg.taichi.arch,
         max_record_bytes=cfg.recording.max_bytes,
         frame_source=functools.partial(VideoCaptureSource, cfg.camera),
     )
     settings = DaemonSettings(
         period_s=cfg.loop.period_s,
+        max_stale_ticks=cfg.loop.max_stale_ticks,
         n_modules=layout.n_modules,
+        workspace=workspace,
         view_period_s=1.0 / cfg.api.view_fps,
         recording_dir=cfg.recording.dir,
         camera_source=cfg.camera.source,
@@ -150,7 +155,7 @@ async def serve(
     daemon = parts.daemon
     if record_dir is not None:
         daemon.start_recording(record_dir)
-    app = create_app(daemon, parts.hub, parts.camera_model, cfg.api.token, sim_truth_url)
+    app = create_app(daemon, parts.hub, parts.camera_model, cfg.api, sim_truth_url)
     server = _Server(uvicorn.Config(app, host=cfg.api.host, port=cfg.api.port, log_level="warning"))
     loop = asyncio.get_running_loop()
 

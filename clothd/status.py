@@ -79,6 +79,7 @@ class LinkCounters(BaseModel):
     nacked: int
     faults: int
     reconnects: int
+    losses: int
     rtt_p50_ms: float | None
     rtt_p99_ms: float | None
 
@@ -113,6 +114,9 @@ class Status(BaseModel):
     state: str = Field(description="starting | tracking | tracking_lost | camera_lost | fault")
     mode: Literal["idle", "hold", "move"]
     setpoint: Pose | None
+    halt_reason: str | None = Field(
+        description="why the last hold or move stopped by itself (a fault); null after a new setpoint"
+    )
     estop: bool
     pose: PoseWithCovariance | None
     mesh: Mesh | None
@@ -130,6 +134,7 @@ def build_status(
     *,
     state: str,
     setpoint: Setpoint,
+    halt_reason: str | None,
     estimate: Estimate | None,
     timing: dict[str, object],
     camera: FrameSourceHealth,
@@ -160,6 +165,7 @@ def build_status(
         state=state,
         mode=setpoint.mode,
         setpoint=None if setpoint.pose is None else Pose.of(setpoint.pose),
+        halt_reason=halt_reason,
         estop=link.estopped,
         pose=pose,
         mesh=mesh,

@@ -15,6 +15,7 @@ import numpy as np
 from clothd.core.camera_model import CameraModel
 from clothd.core.control import Setpoint
 from clothd.core.messages import Estimate
+from clothd.core.workspace import cloth_corners_m
 
 GREEN, RED, YELLOW, MESH_BGR = (0, 220, 0), (0, 0, 255), (0, 230, 255), (255, 160, 40)
 ARROW_BGR, GHOST_BGR = (255, 255, 255), (200, 120, 255)
@@ -70,7 +71,7 @@ class ViewRenderer:
         else:
             img = image.copy()
         if setpoint.pose is not None and est is not None and est.cloth_size_m is not None:
-            self._ghost(img, setpoint.pose, *est.cloth_size_m)
+            self._ghost(img, setpoint.pose, est.cloth_size_m)
         ok, jpeg = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         return jpeg.tobytes() if ok else None
 
@@ -83,10 +84,6 @@ class ViewRenderer:
         start, end = (int(a[0]), int(a[1])), (int(b[0]), int(b[1]))
         cv2.arrowedLine(img, start, end, ARROW_BGR, 2, cv2.LINE_AA, 0, 0.25)
 
-    def _ghost(self, img: np.ndarray, pose: np.ndarray, width_m: float, height_m: float) -> None:
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        w, h = width_m / 2, height_m / 2
-        body = np.array([[-w, -h], [w, -h], [w, h], [-w, h]])
-        world = body @ np.array([[c, s], [-s, c]]) + pose[:2]
-        px = self._project(world).round().astype(np.int32)
+    def _ghost(self, img: np.ndarray, pose: np.ndarray, size_m: tuple[float, float]) -> None:
+        px = self._project(cloth_corners_m(pose, size_m)).round().astype(np.int32)
         cv2.polylines(img, [px.reshape(-1, 1, 2)], True, GHOST_BGR, 2, cv2.LINE_AA)

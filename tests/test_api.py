@@ -10,6 +10,7 @@ import pytest
 import schemathesis
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
+from starlette.websockets import WebSocketDisconnect
 
 from clothd.api.app import create_app
 from clothd.api.stream import Subscriber
@@ -21,13 +22,19 @@ from clothd.run import build
 TOKEN = "s3cret-token-for-tests"
 
 
-def _app(token: str | None = None) -> FastAPI:
+BASE = "http://127.0.0.1:8080"  # the daemon's own name and port: the guard refuses any other Host
+WS_OWN = {"Host": "127.0.0.1:8080"}  # the test client's WebSocket ignores base_url
+
+
+def _app(token: str | None = None, allowed_hosts: tuple[str, ...] = ()) -> FastAPI:
     """The app over a daemon built as `clothd run` builds it (ideal camera), never started."""
     parts = build(Config())
-    return create_app(parts.daemon, parts.hub, parts.camera_model, token)
+    api = ApiConfig(token=token, allowed_hosts=allowed_hosts)
+    return create_app(parts.daemon, parts.hub, parts.camera_model, api)
 
 
-schema = schemathesis.openapi.from_asgi("/openapi.json", _app())
+# schemathesis's ASGI client calls itself "testserver": a name this daemon is told it has.
+schema = schemathesis.openapi.from_asgi("/openapi.json", _app(allowed_hosts=("testserver",)))
 
 
 # The MJPEG view never ends, and /healthz answers 503 by design while nothing runs (tested below).
@@ -40,7 +47,7 @@ def test_api_conforms_to_its_schema(case: schemathesis.Case) -> None:
 
 @pytest.fixture
 def client() -> TestClient:
-    return TestClient(_app())
+    return TestClient(_app(), base_url=BASE)
 
 
 def test_status_reports_every_section(client: TestClient) -> None:
@@ -60,9 +67,10 @@ def test_setpoint_validation_gives_reasons(client: TestClient) -> None:
     assert r.status_code == 422 and "theta_rad" in r.text
 
 
-def test_hold_without_a_tracked_cloth_is_a_conflict(client: TestClient) -> None:
+def test_hold_before_the_daemon_runs_is_a_conflict(client: TestClient) -> None:
+    """Never started: no link (each refusal by itself: tests/test_loop_safety.py)."""
     r = client.put("/api/v1/setpoint", json={"mode": "hold"})
-    assert r.status_code == 409 and "not tracked" in r.json()["detail"]
+    assert r.status_code == 409 and "stepper link" in r.json()["detail"]
 
 
 def test_estop_latches_and_refuses_moves_until_cleared(client: TestClient) -> None:
@@ -72,12 +80,15 @@ def test_estop_latches_and_refuses_moves_until_cleared(client: TestClient) -> No
     r = client.put("/api/v1/setpoint", json=move)
     assert r.status_code == 409 and "emergency stop" in r.json()["detail"]
     assert client.post("/api/v1/estop/clear").status_code == 200
-    assert client.put("/api/v1/setpoint", json=move).status_code == 200
-    assert client.get("/api/v1/status").json()["setpoint"] == {"x_m": 0.1, "y_m": 0.0, "theta_rad": 0.0}
+    assert client.get("/api/v1/status").json()["estop"] is False
+    # Cleared, but this daemon never started: no link, no cloth, so still nothing may move.
+    r = client.put("/api/v1/setpoint", json=move)
+    assert r.status_code == 409 and "stepper link" in r.json()["detail"]
+    assert client.get("/api/v1/status").json()["mode"] == "idle"
 
 
 def test_token_guards_changes_but_not_reads() -> None:
-    c = TestClient(_app(token=TOKEN))
+    c = TestClient(_app(token=TOKEN), base_url=BASE)
     assert c.get("/api/v1/status").status_code == 200
     assert c.post("/api/v1/estop").status_code == 401
     assert c.post("/api/v1/estop", headers={"Authorization": "Bearer wrong-token-xxxxxxx"}).status_code == 401
@@ -99,7 +110,7 @@ def test_metrics_and_health(client: TestClient) -> None:
 
 
 def test_stream_sends_the_status_at_once(client: TestClient) -> None:
-    with client.websocket_connect("/api/v1/stream?hz=5") as ws:
+    with client.websocket_connect("/api/v1/stream?hz=5", headers=WS_OWN) as ws:
         assert ws.receive_json()["mode"] == "idle"
 
 
@@ -131,3 +142,57 @@ def test_camera_homography_maps_the_table_like_the_camera_model(client: TestClie
         hom[:, :2] / hom[:, 2:], cam.project(np.column_stack([pts, np.zeros(3)])), atol=1e-9
     )
     assert (info["width"], info["height"]) == (640, 480)
+
+
+# -- the request guard: what a web page in the cell PC's browser, or a flood, must not do -----------------
+
+EVIL = {"Origin": "http://evil.example"}
+
+
+def test_a_foreign_page_cannot_clear_the_estop_or_move(client: TestClient) -> None:
+    assert client.post("/api/v1/estop").status_code == 200
+    # A "simple" cross-site request: text/plain, no preflight in a browser.
+    r = client.post("/api/v1/estop/clear", headers={**EVIL, "Content-Type": "text/plain"}, content="x")
+    assert r.status_code == 403
+    assert client.post("/api/v1/estop/clear", headers=EVIL).status_code == 403
+    assert client.post("/api/v1/reset", headers={"Referer": "http://evil.example/page"}).status_code == 403
+    assert client.get("/api/v1/status").json()["estop"] is True
+    # The daemon's own page (same origin) may.
+    assert client.post("/api/v1/estop/clear", headers={"Origin": BASE}).status_code == 200
+
+
+def test_a_rebound_host_name_is_refused(client: TestClient) -> None:
+    r = client.get("/api/v1/status", headers={"Host": "evil.example:8080"})
+    assert r.status_code == 421
+    assert client.get("/api/v1/status", headers={"Host": "localhost:8080"}).status_code == 200
+    assert client.get("/api/v1/status", headers={"Host": "127.0.0.1:9999"}).status_code == 421
+
+
+def test_the_websocket_checks_host_and_origin(client: TestClient) -> None:
+    for headers in ({**WS_OWN, **EVIL}, {"Host": "evil.example:8080"}):
+        with (
+            pytest.raises(WebSocketDisconnect),
+            client.websocket_connect("/api/v1/stream", headers=headers) as ws,
+        ):
+            ws.receive_json()
+    with client.websocket_connect("/api/v1/stream", headers={**WS_OWN, "Origin": BASE}) as ws:
+        assert ws.receive_json()["mode"] == "idle"
+
+
+def test_bodies_are_json_bounded_and_never_echoed(client: TestClient) -> None:
+    r = client.put("/api/v1/setpoint", content="mode=idle", headers={"Content-Type": "text/plain"})
+    assert r.status_code == 415
+    huge = b'{"mode": "' + b"x" * 20_000_000 + b'"}'
+    r = client.put("/api/v1/setpoint", content=huge, headers={"Content-Type": "application/json"})
+    assert r.status_code == 413 and len(r.content) < 200
+    for bad in ('{"mode": "move", "x_m": NaN, "y_m": 0, "theta_rad": 0}', '{"mode": "\\ud800"}'):
+        r = client.put("/api/v1/setpoint", content=bad, headers={"Content-Type": "application/json"})
+        assert r.status_code == 422, bad
+        assert "NaN" not in r.text and "ud800" not in r.text
+
+
+def test_with_a_token_nothing_is_read_before_it_is_checked() -> None:
+    c = TestClient(_app(token=TOKEN), base_url=BASE)
+    huge = b"{" + b" " * 10_000_000 + b"}"
+    r = c.put("/api/v1/setpoint", content=huge, headers={"Content-Type": "application/json"})
+    assert r.status_code == 401

@@ -19,6 +19,7 @@ from clothd.config import StepperConfig
 from clothd.core.messages import ModuleCommands
 from clothd.drivers import wire
 from clothd.drivers.stepper_link import StepperLink
+from clothd.tools.pty_relay import PtyRelay
 from hwsim.firmware import FAULT_WATCHDOG, Firmware
 from hwsim.scenario import TableSpec
 from hwsim.table import Table
@@ -194,3 +195,104 @@ def test_a_controller_that_answers_garbage_gets_a_clear_error(tmp_path: Path) ->
         stop.set()
         os.close(master)
         os.close(slave)
+
+
+# -- faults injected between the link and the controller (a pty relay) ---------------------------------
+
+
+async def _tick(
+    link: StepperLink, commands: ModuleCommands, until: Callable[[], bool], timeout_s: float = 5.0
+) -> None:
+    """Send commands every 33 ms, as the daemon's loop does, until `until()` holds."""
+    deadline = time.monotonic() + timeout_s
+    while not until():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        link.send_commands(commands)
+        await asyncio.sleep(1 / 30)
+
+
+def _with_relay(
+    tmp_path: Path,
+    body: Callable[[Firmware, Table, PtyRelay, StepperLink], Awaitable[None]],
+    **link_cfg: object,
+) -> None:
+    """Run body with a link to the firmware through a relay that can drop or delay either way."""
+
+    async def outer(fw: Firmware, table: Table) -> None:
+        relay = PtyRelay(fw.link_path, tmp_path / "ttyRELAY")
+        try:
+            async with _running(_link(relay.link_path, **link_cfg)) as link:
+                await _until(lambda: link.connected)
+                await body(fw, table, relay, link)
+        finally:
+            relay.close()
+
+    _with_firmware(tmp_path, outer)
+
+
+def test_a_controller_that_stops_answering_is_declared_lost_and_stopped(tmp_path: Path) -> None:
+    """Replies dropped: every tick's fresh command used to hide the silence, so nothing was ever
+    retransmitted and the link stayed 'connected'. The age of the last answer now decides."""
+
+    async def body(fw: Firmware, table: Table, relay: PtyRelay, link: StepperLink) -> None:
+        await _tick(link, _forward(0.05), lambda: table.cmd_speed_m_s[0] > 0.04)
+        relay.drop_replies = True
+        await _tick(link, _forward(0.05), lambda: not link.connected)
+        assert relay.dropped_bytes["replies"] > 0
+        assert link.counters.losses == 1 and link.counters.retransmitted == link.cfg.max_retransmits
+        assert "no answer" in (link.last_error or "")
+        # The controller still hears: the all-stop written on the way out reached it.
+        await _until(lambda: not table.cmd_speed_m_s.any(), timeout_s=1.0)
+        relay.drop_replies = False
+        await _until(lambda: link.connected, timeout_s=5.0)
+
+    _with_relay(tmp_path, body)
+
+
+def test_commands_that_never_arrive_lose_the_link_and_the_watchdog_stops_the_modules(tmp_path: Path) -> None:
+    async def body(fw: Firmware, table: Table, relay: PtyRelay, link: StepperLink) -> None:
+        await _tick(link, _forward(0.05), lambda: table.cmd_speed_m_s[0] > 0.04)
+        relay.drop_commands = True
+        await _tick(link, _forward(0.05), lambda: not link.connected)
+        assert link.counters.losses == 1
+        await _until(lambda: fw.watchdog_tripped and not table.cmd_speed_m_s.any(), timeout_s=1.0)
+
+    _with_relay(tmp_path, body)
+
+
+def test_late_answers_are_retransmitted_for_not_lost(tmp_path: Path) -> None:
+    """80 ms each way: past the 50 ms acknowledgement timeout, so the newest command goes again, but well
+    inside the 300 ms this link allows (ack_timeout_s x (max_retransmits + 1))."""
+
+    async def body(fw: Firmware, table: Table, relay: PtyRelay, link: StepperLink) -> None:
+        relay.delay_s = 0.08
+        await _tick(link, _forward(0.03), lambda: link.counters.retransmitted >= 3)
+        await _tick(link, _forward(0.03), lambda: link.counters.acked >= 30)
+        assert link.connected and link.counters.losses == 0
+
+    _with_relay(tmp_path, body, ack_timeout_s=0.05, max_retransmits=5)
+
+
+def test_a_held_estop_keeps_the_link_alive_without_false_faults(tmp_path: Path) -> None:
+    """While e-stopped the host sends no command; it used to go silent, and the controller's watchdog
+    reported a fault that did not happen. PINGs now keep it fed and the link's liveness measured."""
+
+    async def body(fw: Firmware, table: Table, relay: PtyRelay, link: StepperLink) -> None:
+        await _tick(link, _forward(0.05), lambda: table.cmd_speed_m_s[0] > 0.04)
+        link.estop()
+        held_until = time.monotonic() + 0.8  # three watchdog periods
+        await _tick(link, _forward(0.05), lambda: time.monotonic() > held_until)
+        assert fw.estopped and not fw.watchdog_tripped
+        assert link.connected and not link.faults and link.counters.losses == 0
+
+    _with_relay(tmp_path, body)
+
+
+def test_overlong_frames_count_as_invalid(tmp_path: Path) -> None:
+    async def body(fw: Firmware, table: Table, relay: PtyRelay, link: StepperLink) -> None:
+        before = link.counters.invalid
+        relay.inject(b"\x55" * (wire.MAX_FRAME_BYTES + 500))  # no delimiter: dropped whole
+        await _tick(link, _forward(0.0), lambda: link.counters.invalid > before)
+        assert link.connected
+
+    _with_relay(tmp_path, body)

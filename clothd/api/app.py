@@ -1,13 +1,13 @@
 """The HTTP API (FastAPI), versioned under /api/v1; the reference is docs/api.md and /docs (OpenAPI).
 
-Reads are open. When a token is configured, every PUT and POST needs `Authorization: Bearer <token>`.
+Reads are open to the daemon's own host names; changes need its own origin (or none: not a browser),
+a JSON body and, when a token is configured, `Authorization: Bearer <token>` (guard.py).
 Handlers only read the state the loop published or flip a request flag: none of them waits on the loop.
 """
 
 from __future__ import annotations
 
 import asyncio
-import hmac
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -15,23 +15,30 @@ from typing import Annotated, Any
 
 import httpx
 import numpy as np
-from fastapi import APIRouter, Depends, FastAPI, Header, HTTPException, Query, Request, WebSocket
+from fastapi import APIRouter, FastAPI, Query, Request, WebSocket
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.websockets import WebSocketDisconnect
 
+from clothd.api.guard import GuardPolicy, RequestGuard
 from clothd.api.metrics import registry_for
 from clothd.api.schemas import CameraInfo, ErrorResponse, MoveSetpoint, Ok, RecordStart, SetpointRequest
 from clothd.api.stream import StreamHub
+from clothd.config import ApiConfig
 from clothd.core.camera_model import CameraModel
 from clothd.daemon import Daemon
-from clothd.errors import ClothdError, HardwareError, RequestError
+from clothd.errors import ClothdError, HardwareError, RequestError, UnreachableTargetError
 from clothd.status import Status
 
 ERROR_DOC: dict[int | str, dict[str, Any]] = {
     400: {"model": ErrorResponse, "description": "a body that is not JSON"},
     401: {"model": ErrorResponse, "description": "a token is configured and the request did not carry it"},
+    403: {"model": ErrorResponse, "description": "from another web origin"},
+    413: {"model": ErrorResponse, "description": "a body over api.max_body_bytes"},
+    415: {"model": ErrorResponse, "description": "a body that is not application/json"},
+    421: {"model": ErrorResponse, "description": "a Host that is not one of the daemon's names"},
     409: {"model": ErrorResponse, "description": "not possible in the daemon's current state"},
 }
 STATIC_DIR = Path(__file__).resolve().parent / "static"
@@ -44,13 +51,27 @@ def create_app(
     daemon: Daemon,
     hub: StreamHub,
     camera_model: CameraModel,
-    token: str | None = None,
+    api_cfg: ApiConfig,
     sim_truth_url: str | None = None,
 ) -> FastAPI:
-    """The app over a daemon whose statuses `hub` receives. sim_truth_url: hwsim's ground truth, relayed
-    for the dashboard when running against the simulated cell."""
+    """The app over a daemon whose statuses `hub` receives, behind the request guard (guard.py).
+    sim_truth_url: hwsim's ground truth, relayed for the dashboard when running against hwsim."""
     registry = registry_for(daemon)
     app = FastAPI(title="clothd", version="1", description="Real-time cloth tracking and control")
+    c = api_cfg
+    policy = GuardPolicy(c.port, c.allowed_hosts, c.allowed_origins, c.token, c.max_body_bytes)
+    app.add_middleware(RequestGuard, policy=policy)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, err: RequestValidationError) -> JSONResponse:
+        """Where and what, never the input: a body is not echoed back (it may be huge, or not even
+        serialisable: NaN, a lone surrogate)."""
+        errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in err.errors()]
+        return JSONResponse({"detail": errors}, status_code=422)
+
+    @app.exception_handler(UnreachableTargetError)
+    async def _unreachable(request: Request, err: UnreachableTargetError) -> JSONResponse:
+        return JSONResponse({"detail": str(err)}, status_code=422)
 
     @app.exception_handler(RequestError)
     async def _conflict(request: Request, err: RequestError) -> JSONResponse:
@@ -60,17 +81,7 @@ def create_app(
     async def _unavailable(request: Request, err: ClothdError) -> JSONResponse:
         return JSONResponse({"detail": str(err)}, status_code=503)
 
-    def authorised(authorization: Annotated[str | None, Header()] = None) -> None:
-        if token is None:
-            return
-        scheme, _, given = (authorization or "").partition(" ")
-        if scheme.lower() != "bearer" or not hmac.compare_digest(given.encode(), token.encode()):
-            raise HTTPException(
-                401, "this daemon needs Authorization: Bearer <token>", {"WWW-Authenticate": "Bearer"}
-            )
-
     api = APIRouter(prefix="/api/v1")
-    guarded = [Depends(authorised)]
 
     @api.get("/status", responses=STATUS_DOC, response_model=None)
     async def status() -> Response:
@@ -78,7 +89,7 @@ def create_app(
         camera and link state."""
         return Response(hub.status_json, media_type="application/json")
 
-    @api.put("/setpoint", dependencies=guarded, responses=ERROR_DOC)
+    @api.put("/setpoint", responses=ERROR_DOC)
     async def setpoint(body: SetpointRequest) -> Ok:
         pose = (
             np.array([body.x_m, body.y_m, body.theta_rad], dtype=float)
@@ -88,30 +99,30 @@ def create_app(
         daemon.set_setpoint(body.mode, pose)
         return Ok(detail=f"mode {body.mode}")
 
-    @api.post("/estop", dependencies=guarded, responses=ERROR_DOC)
+    @api.post("/estop", responses=ERROR_DOC)
     async def estop() -> Ok:
         """Stop every module now; latched until /estop/clear."""
         daemon.estop()
         return Ok(detail="emergency stop latched")
 
-    @api.post("/estop/clear", dependencies=guarded, responses=ERROR_DOC)
+    @api.post("/estop/clear", responses=ERROR_DOC)
     async def estop_clear() -> Ok:
         daemon.estop_clear()
         return Ok(detail="emergency stop cleared; mode is idle")
 
-    @api.post("/reset", dependencies=guarded, responses=ERROR_DOC)
+    @api.post("/reset", responses=ERROR_DOC)
     async def reset() -> Ok:
         """Re-initialise tracking from the next frame; the mode becomes idle."""
         daemon.reset()
         return Ok(detail="tracking re-initialises on the next frame")
 
-    @api.post("/record/start", dependencies=guarded, responses=ERROR_DOC)
+    @api.post("/record/start", responses=ERROR_DOC)
     async def record_start(body: RecordStart | None = None) -> Ok:
         """Record the session (frames, commands, estimates) in the format `clothd replay` reads."""
         path = daemon.start_recording(Path(body.dir) if body and body.dir else None)
         return Ok(detail=f"recording into {path}")
 
-    @api.post("/record/stop", dependencies=guarded, responses=ERROR_DOC)
+    @api.post("/record/stop", responses=ERROR_DOC)
     async def record_stop() -> Ok:
         daemon.stop_recording()
         return Ok(detail="recording stops; estimates.npz is written")

@@ -61,6 +61,7 @@ class DaemonCollector(Collector):
             ("nacked", c.nacked),
             ("faults", c.faults),
             ("reconnects", c.reconnects),
+            ("losses", c.losses),
         ):
             yield CounterMetricFamily(
                 f"clothd_link_{name}", f"Stepper link frames/events: {name}", value=value

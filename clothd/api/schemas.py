@@ -30,9 +30,9 @@ class MoveSetpoint(_Strict):
     """Move the cloth to this pose (world frame, the table plane) within the speed limits."""
 
     mode: Literal["move"]
-    x_m: float = Field(ge=-5, le=5)
-    y_m: float = Field(ge=-5, le=5)
-    theta_rad: float = Field(ge=-math.pi, le=math.pi)
+    x_m: float = Field(ge=-5, le=5, allow_inf_nan=False)
+    y_m: float = Field(ge=-5, le=5, allow_inf_nan=False)
+    theta_rad: float = Field(ge=-math.pi, le=math.pi, allow_inf_nan=False)
 
 
 SetpointRequest = Annotated[IdleSetpoint | HoldSetpoint | MoveSetpoint, Field(discriminator="mode")]

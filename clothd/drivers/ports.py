@@ -60,6 +60,7 @@ class LinkCounters:
     nacked: int = 0
     faults: int = 0
     reconnects: int = 0
+    losses: int = 0  # times the link was declared lost (no answer, a read or write error)
     rtt_ms: deque[float] = field(default_factory=lambda: deque(maxlen=256))
 
     def snapshot(self) -> dict[str, float | int | None]:
@@ -72,6 +73,7 @@ class LinkCounters:
             "nacked": self.nacked,
             "faults": self.faults,
             "reconnects": self.reconnects,
+            "losses": self.losses,
             "rtt_p50_ms": None if rtt is None else float(np.median(rtt)),
             "rtt_p99_ms": None if rtt is None else float(np.percentile(rtt, 99)),
         }

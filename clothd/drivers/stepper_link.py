@@ -37,8 +37,6 @@ class _Pending:
     seq: int
     packet: bytes
     sent_t_s: float
-    first_sent_t_s: float
-    retries: int = 0
 
 
 class StepperLink:
@@ -63,6 +61,12 @@ class StepperLink:
         self._writer: asyncio.StreamWriter | None = None
         self._seq = 0
         self._pending: _Pending | None = None  # the newest unacknowledged COMMAND
+        # Liveness: when the oldest message still waiting for a reply was sent (None: every one answered),
+        # and how often the newest command has been sent again since. A fresh command every tick replaces
+        # the pending one, so the age of the last reply, not of one command, says whether the controller
+        # is there.
+        self._unanswered_since_s: float | None = None
+        self._retries = 0
         self._waiters: dict[int, asyncio.Future[wire.Message]] = {}
         self._lost = asyncio.Event()
         self._stopping = False
@@ -83,16 +87,19 @@ class StepperLink:
         return bool(self.controller_flags & wire.FLAG_ESTOP)
 
     def send_commands(self, commands: ModuleCommands) -> bool:
-        """Send this tick's module commands; False when the link is down (the controller's watchdog then
-        stops the modules) or the e-stop is latched."""
-        if not self.connected or self._estop_latched:
+        """Send this tick's module commands; False when they did not go out: the link is down (the
+        controller's watchdog then stops the modules) or the e-stop is latched, when a PING goes instead,
+        which keeps the controller's watchdog fed and the link's liveness measured."""
+        if not self.connected:
+            return False
+        if self._estop_latched:
+            self._write(wire.encode(wire.MsgType.PING, self._next_seq()), expect_reply=True)
             return False
         seq = self._next_seq()
         payload = wire.command_payload(commands.speed_m_s, commands.heading_rad)
         packet = wire.encode(wire.MsgType.COMMAND, seq, payload)
-        now = self.clock()
-        self._pending = _Pending(seq, packet, now, now)
-        self._write(packet)
+        self._pending = _Pending(seq, packet, self.clock())
+        self._write(packet, expect_reply=True)
         return True
 
     def estop(self) -> None:
@@ -110,9 +117,7 @@ class StepperLink:
         """Stop the modules, then close the port."""
         self._stopping = True
         if self.connected:
-            stop = ModuleCommands.all_stop(self.n_modules)
-            payload = wire.command_payload(stop.speed_m_s, stop.heading_rad)
-            self._write(wire.encode(wire.MsgType.COMMAND, self._next_seq(), payload))
+            self._write(self._all_stop_packet())
             with contextlib.suppress(Exception):
                 assert self._writer is not None
                 await asyncio.wait_for(self._writer.drain(), STOP_DRAIN_TIMEOUT_S)
@@ -208,7 +213,10 @@ class StepperLink:
                 if not data:
                     self._lose("the serial port closed")
                     return
-                for packet in splitter.feed(data):
+                overflows = splitter.overflows
+                packets = splitter.feed(data)
+                self.counters.invalid += splitter.overflows - overflows  # overlong: dropped whole
+                for packet in packets:
                     try:
                         self._dispatch(wire.decode(packet))
                     except wire.WireError as err:
@@ -221,6 +229,9 @@ class StepperLink:
         waiter = self._waiters.get(frame.seq)
         if waiter is not None and not waiter.done():
             waiter.set_result(frame)
+        if frame.type in (wire.MsgType.ACK, wire.MsgType.NACK):  # an answer: the controller is there
+            self._unanswered_since_s = None
+            self._retries = 0
         if frame.type == wire.MsgType.ACK:
             self.controller_flags = wire.parse_ack(frame.payload)
             self.counters.acked += 1
@@ -239,29 +250,39 @@ class StepperLink:
             self.faults.append(ControllerFault(time.time(), fault.code, fault.module, fault.text))
 
     async def _supervise(self) -> None:
-        """Retransmit the newest unacknowledged command; repeat an unacknowledged e-stop."""
-        period = self.cfg.ack_timeout_s / 2
+        """Watch the controller's answers: each `ack_timeout_s` without one, send the newest unanswered
+        command again; after `max_retransmits` of them, the link is lost. Repeat an unacknowledged e-stop."""
+        cfg = self.cfg
         while True:
-            await asyncio.sleep(min(period, ESTOP_REPEAT_S))
-            now = self.clock()
+            # Wake for the next retransmit or the deadline exactly, not on a coarse grid: the deadline is
+            # a safety figure.
+            wait_s = ESTOP_REPEAT_S
+            if self._unanswered_since_s is not None:
+                due_s = self._unanswered_since_s + cfg.ack_timeout_s * (self._retries + 1)
+                wait_s = min(wait_s, max(due_s - self.clock(), 0.0))
+            await asyncio.sleep(wait_s)
             if self._estop_latched and not self.controller_estopped:
-                self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()))
-            p = self._pending
-            if p is None or now - p.sent_t_s < self.cfg.ack_timeout_s:
+                self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()), expect_reply=True)
+            since = self._unanswered_since_s
+            if since is None:
                 continue
-            if p.retries >= self.cfg.max_retransmits:
+            silent_s = self.clock() - since
+            if silent_s >= cfg.ack_timeout_s * (cfg.max_retransmits + 1):
                 self._lose(
-                    f"no acknowledgement from the controller on {self.cfg.port} after {p.retries} retransmits"
+                    f"no answer from the controller on {cfg.port} for {silent_s * 1e3:.0f} ms "
+                    f"({self._retries} retransmits)"
                 )
                 return
-            p.retries += 1
-            p.sent_t_s = now
-            self.counters.retransmitted += 1
-            self._write(p.packet, count=False)
+            p = self._pending
+            if p is not None and silent_s >= cfg.ack_timeout_s * (self._retries + 1):
+                self._retries += 1
+                p.sent_t_s = self.clock()
+                self.counters.retransmitted += 1
+                self._write(p.packet, count=False)
 
     # -- helpers ----------------------------------------------------------------------------------
 
-    def _write(self, packet: bytes, count: bool = True) -> None:
+    def _write(self, packet: bytes, count: bool = True, expect_reply: bool = False) -> None:
         if self._writer is None:
             return
         try:
@@ -271,16 +292,29 @@ class StepperLink:
             return
         if count:
             self.counters.sent += 1
+        if expect_reply and self._unanswered_since_s is None:
+            self._unanswered_since_s = self.clock()
 
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) & 0xFFFF
         return self._seq
 
     def _lose(self, reason: str) -> None:
-        if self.state == "connected":
+        """Declare the link lost: all-stop written on the way out (a controller that hears but cannot
+        answer stops at once; one that hears nothing stops on its watchdog), then reconnect."""
+        was_connected = self.state == "connected"
+        self.state = "disconnected"  # from now on no command goes out
+        if was_connected:
             log.warning("stepper link lost: %s", reason)
+            self.counters.losses += 1
+            self._write(self._all_stop_packet())
         self.last_error = reason
         self._lost.set()
+
+    def _all_stop_packet(self) -> bytes:
+        stop = ModuleCommands.all_stop(self.n_modules)
+        payload = wire.command_payload(stop.speed_m_s, stop.heading_rad)
+        return wire.encode(wire.MsgType.COMMAND, self._next_seq(), payload)
 
     def _set_error(self, reason: str) -> None:
         if reason != self.last_error:
@@ -290,6 +324,8 @@ class StepperLink:
     def _close(self) -> None:
         self.state = "disconnected"
         self._pending = None
+        self._unanswered_since_s = None
+        self._retries = 0
         self.controller_flags = 0
         if self._writer is not None:
             with contextlib.suppress(Exception):

@@ -1,0 +1,257 @@
+"""The daemon's loop against fakes at its ports (a ModuleLink and a compute process): a fault that stops
+the modules drops the move, and nothing moves again until a new setpoint; moves are refused unless the
+e-stop is clear, the link up and the cloth tracked inside the workspace."""
+
+from __future__ import annotations
+
+import asyncio
+from collections import deque
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from clothd.compute import TickReply, TickRequest
+from clothd.config import CellConfig
+from clothd.core.control import Setpoint
+from clothd.core.ekf import UpdateStats
+from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.workspace import Workspace
+from clothd.daemon import Daemon, DaemonSettings
+from clothd.drivers.ports import ControllerFault, FrameSourceHealth, LinkCounters
+from clothd.errors import RequestError, UnreachableTargetError
+
+N = 48
+PERIOD_S = 0.01
+MOVING = ModuleCommands(np.full(N, 0.05), np.zeros(N))
+
+
+class FakeLink:
+    """A ModuleLink that records what it was told."""
+
+    def __init__(self) -> None:
+        self.state = "connected"
+        self.last_error: str | None = None
+        self.firmware: str | None = "fake"
+        self.counters = LinkCounters()
+        self.faults: deque[ControllerFault] = deque()
+        self.controller_estopped = False
+        self.sent: list[ModuleCommands] = []
+        self._estopped = False
+
+    @property
+    def connected(self) -> bool:
+        return self.state == "connected"
+
+    @property
+    def estopped(self) -> bool:
+        return self._estopped
+
+    def send_commands(self, commands: ModuleCommands) -> bool:
+        if not self.connected or self._estopped:
+            return False
+        self.sent.append(commands)
+        return True
+
+    def estop(self) -> None:
+        self._estopped = True
+
+    def estop_clear(self) -> None:
+        self._estopped = False
+
+    async def run(self) -> None:
+        await asyncio.Event().wait()
+
+    async def stop(self) -> None:
+        self.sent.append(ModuleCommands.all_stop(N))
+
+
+def _estimate(pose: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Estimate:
+    p = np.array(pose)
+    outline = np.array([[-0.125, -0.1], [0.125, -0.1], [0.125, 0.1], [-0.125, 0.1]]) + p[:2]
+    empty = np.zeros((0, 2))
+    return Estimate(
+        0.0,
+        "tracking",
+        p,
+        np.eye(3) * 1e-8,
+        None,
+        outline,
+        (0.25, 0.2),
+        np.zeros(0, np.int64),
+        empty,
+        empty,
+        UpdateStats(0, 0, 0.0),
+    )
+
+
+class FakeCompute:
+    """Answers each request at once with what `answer` makes of it; `silent` holds the answers back."""
+
+    def __init__(self) -> None:
+        self.requests: list[TickRequest] = []
+        self.silent = False
+        self.state = "tracking"
+        self.halt_reason: str | None = None
+
+    async def start(self) -> None:
+        pass
+
+    async def stop(self) -> None:
+        pass
+
+    def request(self, req: TickRequest) -> asyncio.Future[TickReply]:
+        self.requests.append(req)
+        fut: asyncio.Future[TickReply] = asyncio.get_running_loop().create_future()
+        if not self.silent:
+            fut.set_result(self._answer(req))
+        return fut
+
+    def _answer(self, req: TickRequest) -> TickReply:
+        moving = req.setpoint.mode != "idle" and self.state == "tracking" and self.halt_reason is None
+        commands = MOVING if moving else ModuleCommands.all_stop(N)
+        est = _estimate() if self.state == "tracking" else None
+        camera = FrameSourceHealth("streaming", self.state != "camera_lost", None, 0)
+        return TickReply(self.state, est, commands, True, None, camera, halt_reason=self.halt_reason)
+
+
+Scenario = Callable[[Daemon, FakeLink, FakeCompute], Awaitable[None]]
+
+
+def _run(scenario: Scenario, max_stale_ticks: int = 3) -> None:
+    link, compute = FakeLink(), FakeCompute()
+    settings = DaemonSettings(
+        period_s=PERIOD_S,
+        max_stale_ticks=max_stale_ticks,
+        n_modules=N,
+        workspace=Workspace.of_cell(CellConfig()),
+        view_period_s=0.1,
+        recording_dir=Path("/nonexistent"),
+        camera_source="fake",
+        link_port="fake",
+    )
+    daemon = Daemon(settings, link, compute)  # type: ignore[arg-type]
+
+    async def main() -> None:
+        loop_task = asyncio.create_task(daemon.run())
+        try:
+            await _ticks(daemon, 3)
+            await scenario(daemon, link, compute)
+        finally:
+            daemon.stop()
+            await asyncio.wait_for(loop_task, 2)
+
+    asyncio.run(asyncio.wait_for(main(), 20))
+
+
+async def _ticks(daemon: Daemon, n: int) -> None:
+    """Wait for n more ticks of the loop (counted, not timed: a loaded machine only makes it slower)."""
+    target = daemon.stats.ticks + n
+    while daemon.stats.ticks < target:
+        await asyncio.sleep(PERIOD_S / 2)
+
+
+def _moving(link: FakeLink) -> bool:
+    return bool(link.sent) and bool(link.sent[-1].speed_m_s.any())
+
+
+def _move(daemon: Daemon) -> None:
+    daemon.set_setpoint("move", np.array([0.05, 0.0, 0.0]))
+
+
+@pytest.mark.parametrize(
+    ("fault", "expected"),
+    [
+        ("camera_lost", "camera"),
+        ("tracking_lost", "not tracked"),
+        ("fault", "compute failed"),
+        ("link", "stepper link"),
+        ("workspace", "workspace"),
+    ],
+)
+def test_no_restart_after_a_fault_until_a_new_setpoint(fault: str, expected: str) -> None:
+    async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
+        _move(daemon)
+        await _ticks(daemon, 3)
+        assert _moving(link)
+        if fault == "link":
+            link.state = "disconnected"
+        elif fault == "workspace":
+            compute.halt_reason = "at the workspace's edge: the cloth would reach ..."
+        else:
+            compute.state = fault
+            compute.halt_reason = {
+                "camera_lost": "the camera is lost",
+                "tracking_lost": "the cloth is not tracked",
+            }.get(fault, f"the compute failed ({fault})")
+        await _ticks(daemon, 3)
+        assert daemon.setpoint.mode == "idle"
+        assert daemon.halt_reason is not None and expected in daemon.halt_reason
+        assert daemon.status is not None and daemon.status.halt_reason == daemon.halt_reason
+        # The fault goes away: the camera is back, the link reconnects. Nothing moves by itself.
+        link.state, compute.state, compute.halt_reason = "connected", "tracking", None
+        link.sent.clear()
+        await _ticks(daemon, 5)
+        assert link.sent and not any(c.speed_m_s.any() for c in link.sent)
+        assert all(r.setpoint.mode == "idle" for r in compute.requests[-4:])
+        # A new setpoint, and only that, moves the cloth again.
+        _move(daemon)
+        await _ticks(daemon, 3)
+        assert _moving(link) and daemon.halt_reason is None
+
+    _run(scenario)
+
+
+def test_a_compute_that_stops_answering_stops_the_modules() -> None:
+    async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
+        _move(daemon)
+        await _ticks(daemon, 3)
+        assert _moving(link)
+        compute.silent = True
+        await _ticks(daemon, 8)
+        assert daemon.stats.compute_overruns >= 3
+        assert not link.sent[-1].speed_m_s.any()  # stale commands are not resent past max_stale_ticks
+        assert daemon.setpoint.mode == "idle" and "compute has not answered" in (daemon.halt_reason or "")
+
+    _run(scenario, max_stale_ticks=3)
+
+
+def test_moves_are_refused_unless_tracked_linked_clear_and_on_the_table() -> None:
+    async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
+        with pytest.raises(UnreachableTargetError, match="workspace"):
+            daemon.set_setpoint("move", np.array([5.0, -5.0, 0.0]))
+        with pytest.raises(UnreachableTargetError, match="workspace"):  # the centre is on, a corner is not
+            daemon.set_setpoint("move", np.array([0.2, 0.0, 0.0]))
+        daemon.estop()
+        with pytest.raises(RequestError, match="emergency stop"):
+            _move(daemon)
+        daemon.estop_clear()
+        link.state = "disconnected"
+        with pytest.raises(RequestError, match="stepper link"):
+            _move(daemon)
+        link.state = "connected"
+        compute.state = "tracking_lost"
+        await _ticks(daemon, 3)
+        with pytest.raises(RequestError, match="not tracked"):
+            daemon.set_setpoint("hold", None)
+        compute.state = "tracking"
+        await _ticks(daemon, 3)
+        _move(daemon)
+        assert daemon.setpoint == Setpoint("move", daemon.setpoint.pose) and daemon.setpoint.mode == "move"
+
+    _run(scenario)
+
+
+def test_the_model_input_is_what_went_out_on_the_wire() -> None:
+    """While e-stopped nothing goes out, so the tracker is told the modules stand still."""
+
+    async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
+        _move(daemon)
+        await _ticks(daemon, 3)
+        assert compute.requests[-1].commands_in_force.speed_m_s.any()
+        daemon.estop()
+        await _ticks(daemon, 3)
+        assert not compute.requests[-1].commands_in_force.speed_m_s.any()
+
+    _run(scenario)
