@@ -15,6 +15,7 @@ controller's watchdog stops them.
 from __future__ import annotations
 
 import asyncio
+import errno
 import logging
 import time
 from collections.abc import Callable
@@ -30,7 +31,13 @@ from clothd.core.control import Mode, Setpoint
 from clothd.core.messages import ModuleCommands
 from clothd.core.workspace import Workspace, cloth_corners_m
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
-from clothd.errors import HardwareError, RequestError, UnreachableTargetError
+from clothd.errors import (
+    HardwareError,
+    InvalidRequestError,
+    RequestError,
+    StorageError,
+    UnreachableTargetError,
+)
 from clothd.loop_stats import LoopStats
 from clothd.notify import SystemdNotifier
 from clothd.status import Status, build_status
@@ -141,21 +148,21 @@ class Daemon:
         self.link.estop_clear()
         self.publish()
 
-    def start_recording(self, out_dir: Path | None) -> Path:
-        """Record from the next frame into out_dir (a new directory; by default a timestamped one under
-        the recording directory). Returns the directory."""
+    def start_recording(self, out_dir: Path) -> Path:
+        """Record from the next frame into out_dir, a new directory, made here and now: a place that
+        cannot be written is refused at once rather than found out by the compute later."""
         rec = self.latest.recording if self.latest else None
         if rec is not None and rec.active:
             raise RequestError(f"already recording into {rec.dir}: stop it first")
-        path = out_dir or self.settings.recording_dir / time.strftime("%Y%m%d-%H%M%S")
         try:
-            exists = path.exists()
-        except OSError as err:
-            raise RequestError(f"{path}: not a usable directory name ({err.strerror})") from None
-        if exists:
-            raise RequestError(f"{path} exists: a recording needs a new directory")
-        self._record_start = path
-        return path
+            out_dir.mkdir(parents=True)
+        except FileExistsError:
+            raise RequestError(f"{out_dir} exists: a recording needs a new directory") from None
+        except OSError as err:  # a full disk is the daemon's trouble (507); anything else is the place's
+            error = StorageError if err.errno in (errno.ENOSPC, errno.EDQUOT) else InvalidRequestError
+            raise error(f"cannot create {out_dir}: {err.strerror or err}") from None
+        self._record_start = out_dir
+        return out_dir
 
     def stop_recording(self) -> None:
         rec = self.latest.recording if self.latest else None

@@ -21,5 +21,13 @@ class RequestError(ClothdError):
     """An API request that cannot be carried out in the daemon's current state (HTTP 409)."""
 
 
-class UnreachableTargetError(RequestError):
-    """A setpoint that can never be carried out as given, such as a target off the workspace (HTTP 422)."""
+class InvalidRequestError(RequestError):
+    """A request that can never be carried out as given, whatever the state (HTTP 422)."""
+
+
+class UnreachableTargetError(InvalidRequestError):
+    """A setpoint whose target the cloth cannot reach, such as one off the workspace (HTTP 422)."""
+
+
+class StorageError(RequestError):
+    """Somewhere the daemon was asked to write, and cannot (HTTP 507)."""

@@ -207,4 +207,12 @@ def write_estimates(path: Path, estimates: list[Estimate]) -> None:
         arrays["nodes_m"] = np.array(
             [e.nodes_m if e.nodes_m is not None else np.full(shape, np.nan) for e in estimates], np.float32
         )
-    np.savez_compressed(path, allow_pickle=False, **arrays)
+    # Written beside and renamed into place: a full disk leaves no half-written (or 0-byte) file behind.
+    partial = path.with_name(path.name + ".partial")
+    try:
+        with partial.open("wb") as out:
+            np.savez_compressed(out, allow_pickle=False, **arrays)
+        partial.replace(path)
+    except OSError:
+        partial.unlink(missing_ok=True)
+        raise

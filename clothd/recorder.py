@@ -16,6 +16,7 @@ loop goes on either way.
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,6 +26,7 @@ import numpy as np
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import Estimate, ModuleCommands
+from clothd.errors import InvalidRequestError
 from clothd.formats import RecordingLog, write_camera, write_estimates, write_layout
 
 log = logging.getLogger(__name__)
@@ -39,6 +41,22 @@ class RecordingStatus:
     bytes: int
     max_bytes: int
     stopped_reason: str | None
+
+
+def recording_path(recording_dir: Path, requested: str | None) -> Path:
+    """Where a recording asked for over the API goes: a timestamped directory by default, else the name
+    or relative path given, which must stay inside recording_dir once symlinks are resolved."""
+    name = requested or time.strftime("%Y%m%d-%H%M%S")
+    if "\0" in name:
+        raise InvalidRequestError("a recording name cannot hold a NUL character")
+    root = recording_dir.resolve()
+    path = (root / name).resolve()
+    if path == root or root not in path.parents:
+        raise InvalidRequestError(
+            f"a recording goes inside the recording directory {recording_dir} (recording.dir): "
+            "give a name or a path relative to it"
+        )
+    return path
 
 
 class Recorder:

@@ -15,6 +15,7 @@ import functools
 import json
 import select
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -29,14 +30,14 @@ from clothd.api.app import create_app
 from clothd.api.stream import StreamHub
 from clothd.compute import ComputeSpec
 from clothd.compute_process import ComputeProcess
-from clothd.config import Config, with_overrides
+from clothd.config import ApiConfig, Config, with_overrides
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.workspace import Workspace
 from clothd.daemon import Daemon, DaemonSettings
-from clothd.drivers.camera import VideoCaptureSource
+from clothd.drivers.camera import VideoCaptureSource, redact_source
 from clothd.drivers.stepper_link import StepperLink
-from clothd.errors import HardwareError
+from clothd.errors import ConfigError, HardwareError
 from clothd.formats import read_camera
 
 SIM_START_TIMEOUT_S = 120.0
@@ -131,13 +132,29 @@ def build(cfg: Config) -> Parts:
         workspace=workspace,
         view_period_s=1.0 / cfg.api.view_fps,
         recording_dir=cfg.recording.dir,
-        camera_source=cfg.camera.source,
+        camera_source=redact_source(cfg.camera.source),
         link_port=cfg.stepper.port,
     )
     hub = StreamHub()
     link = StepperLink(cfg.stepper, layout.n_modules)
     daemon = Daemon(settings, link, ComputeProcess(spec), on_status=hub.publish)
     return Parts(daemon, hub, camera_model)
+
+
+def bind_api(api: ApiConfig) -> socket.socket:
+    """The API's listening address, taken first: a port in use ends the start with one clear line,
+    before hwsim, the compute process or any hardware is opened."""
+    sock = socket.socket(socket.AF_INET6 if ":" in api.host else socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind((api.host, api.port))
+    except OSError as err:
+        sock.close()
+        raise ConfigError(
+            f"cannot listen on {api.host}:{api.port}: {err.strerror or err}; "
+            "choose another address with --host/--port or api.host/api.port"
+        ) from None
+    return sock
 
 
 class _Server(uvicorn.Server):
@@ -149,11 +166,15 @@ class _Server(uvicorn.Server):
 
 
 async def serve(
-    cfg: Config, on_ready: str | None = None, sim_truth_url: str | None = None, record_dir: Path | None = None
+    cfg: Config,
+    listener: socket.socket,
+    on_ready: str | None = None,
+    sim_truth_url: str | None = None,
+    record_dir: Path | None = None,
 ) -> None:
     parts = build(cfg)
     daemon = parts.daemon
-    if record_dir is not None:
+    if record_dir is not None:  # the operator's own choice, anywhere
         daemon.start_recording(record_dir)
     app = create_app(daemon, parts.hub, parts.camera_model, cfg.api, sim_truth_url)
     server = _Server(uvicorn.Config(app, host=cfg.api.host, port=cfg.api.port, log_level="warning"))
@@ -166,7 +187,7 @@ async def serve(
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, _stop)
     loop_task = asyncio.create_task(daemon.run())
-    server_task = asyncio.create_task(server.serve())
+    server_task = asyncio.create_task(server.serve(sockets=[listener]))
     while not server.started and not server_task.done():
         await asyncio.sleep(POLL_S)
     if server.started and on_ready:
@@ -183,6 +204,7 @@ async def serve(
 def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -> int:
     """Run the daemon with `cfg` (loaded and validated by the caller), against hwsim when sim_scenario
     names a scenario."""
+    listener = bind_api(cfg.api)
     sim = start_sim(sim_scenario) if sim_scenario is not None else None
     try:
         if sim is not None:
@@ -197,8 +219,9 @@ def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -
         if sim is not None:
             urls += f"\nclothd: simulated cell truth {sim.ready['truth_url']}"
         truth_url = None if sim is None else str(sim.ready["truth_url"])
-        asyncio.run(serve(cfg, urls, truth_url, record_dir))
+        asyncio.run(serve(cfg, listener, urls, truth_url, record_dir))
     finally:
+        listener.close()
         if sim is not None:
             sim.stop()
     return 0

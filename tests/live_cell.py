@@ -53,6 +53,7 @@ class Cell:
 class Daemon:
     base: str
     proc: subprocess.Popen[bytes]
+    recording_dir: Path
 
     def status(self) -> dict[str, Any]:
         return dict(httpx.get(f"{self.base}/api/v1/status", timeout=5).json())
@@ -103,7 +104,8 @@ def start_daemon(cell: Cell, tmp_path: Path, env: dict[str, str] | None = None) 
         "camera": {"source": cell.ready["video_url"], "calibration": cell.ready["camera_json"]},
         "stepper": {"port": cell.ready["serial"]},
         "api": {"port": port},
-        "recording": {"max_bytes": 3_000_000},  # a few frames: recordings in these tests get cut short
+        # A few frames: recordings in these tests get cut short.
+        "recording": {"max_bytes": 3_000_000, "dir": str(tmp_path / "recordings")},
     }
     path = tmp_path / f"clothd-{port}.yaml"
     path.write_text(yaml.safe_dump(cfg))
@@ -113,7 +115,7 @@ def start_daemon(cell: Cell, tmp_path: Path, env: dict[str, str] | None = None) 
         stderr=subprocess.DEVNULL,
         env={**os.environ, **(env or {})},
     )
-    d = Daemon(f"http://127.0.0.1:{port}", proc)
+    d = Daemon(f"http://127.0.0.1:{port}", proc, tmp_path / "recordings")
 
     def tracking() -> bool:
         with contextlib.suppress(httpx.HTTPError):

@@ -4,6 +4,12 @@ real but not started: no camera, no serial port."""
 
 from __future__ import annotations
 
+import socket
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
 import hypothesis
 import numpy as np
 import pytest
@@ -14,8 +20,9 @@ from starlette.websockets import WebSocketDisconnect
 
 from clothd.api.app import create_app
 from clothd.api.stream import Subscriber
-from clothd.config import ApiConfig, Config, parse_config
+from clothd.config import ApiConfig, CameraSourceConfig, Config, RecordingConfig, parse_config
 from clothd.core.camera_model import CameraModel
+from clothd.drivers.camera import redact_source
 from clothd.errors import ConfigError
 from clothd.run import build
 
@@ -27,8 +34,9 @@ WS_OWN = {"Host": "127.0.0.1:8080"}  # the test client's WebSocket ignores base_
 
 
 def _app(token: str | None = None, allowed_hosts: tuple[str, ...] = ()) -> FastAPI:
-    """The app over a daemon built as `clothd run` builds it (ideal camera), never started."""
-    parts = build(Config())
+    """The app over a daemon built as `clothd run` builds it (ideal camera), never started; recordings go
+    to a directory of their own."""
+    parts = build(Config(recording=RecordingConfig(dir=Path(tempfile.mkdtemp(prefix="clothd-api-")))))
     api = ApiConfig(token=token, allowed_hosts=allowed_hosts)
     return create_app(parts.daemon, parts.hub, parts.camera_model, api)
 
@@ -196,3 +204,54 @@ def test_with_a_token_nothing_is_read_before_it_is_checked() -> None:
     huge = b"{" + b" " * 10_000_000 + b"}"
     r = c.put("/api/v1/setpoint", content=huge, headers={"Content-Type": "application/json"})
     assert r.status_code == 401
+
+
+def _client_recording_into(recording_dir: Path) -> TestClient:
+    parts = build(Config(recording=RecordingConfig(dir=recording_dir)))
+    return TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
+
+
+def test_recordings_stay_inside_the_recording_directory(tmp_path: Path) -> None:
+    root = tmp_path / "recordings"
+    root.mkdir()
+    (root / "escape").symlink_to(tmp_path)
+    c = _client_recording_into(root)
+    for bad in ("/proc/evil", "../outside", "escape/x", "a\x00b", ".", ""):
+        r = c.post("/api/v1/record/start", json={"dir": bad})
+        assert r.status_code == 422, (bad, r.text)
+    assert not (tmp_path / "outside").exists() and not (tmp_path / "x").exists()
+    r = c.post("/api/v1/record/start", json={"dir": "session-1"})
+    assert r.status_code == 200 and (root / "session-1").is_dir()
+    assert c.post("/api/v1/record/start", json={"dir": "session-1"}).status_code == 409  # exists
+
+
+def test_a_place_that_cannot_be_written_is_refused_at_once(tmp_path: Path) -> None:
+    (tmp_path / "a-file").write_text("")
+    c = _client_recording_into(tmp_path / "a-file")  # a directory cannot be made under a file
+    r = c.post("/api/v1/record/start", json={"dir": "s"})
+    assert r.status_code == 422 and "cannot create" in r.json()["detail"]
+
+
+def test_camera_credentials_stay_out_of_the_status() -> None:
+    assert redact_source("rtsp://admin:s3cret@10.0.0.9:554/stream") == "rtsp://***@10.0.0.9:554/stream"
+    assert redact_source("/dev/video0") == "/dev/video0"
+    parts = build(Config(camera=CameraSourceConfig(source="rtsp://admin:s3cret@cam/stream")))
+    c = TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
+    status = c.get("/api/v1/status")
+    assert "s3cret" not in status.text and status.json()["camera"]["source"] == "rtsp://***@cam/stream"
+
+
+def test_a_taken_port_ends_the_start_at_once_and_clearly() -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        done = subprocess.run(
+            [sys.executable, "-m", "clothd.cli", "run", "--sim", "--port", str(port)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+    assert done.returncode != 0
+    assert f"127.0.0.1:{port}" in done.stderr and "--port" in done.stderr
+    assert "hwsim" not in done.stdout  # nothing was started: no simulated cell, no compute

@@ -145,8 +145,8 @@ def test_unplugged_serial_and_video_are_survived(cell: Cell, daemon: Daemon) -> 
 
 
 def test_a_recording_cut_short_by_its_size_limit_replays(daemon: Daemon, tmp_path: Path) -> None:
-    rec = tmp_path / "session"
-    daemon.post_json("/record/start", {"dir": str(rec)})
+    rec = daemon.recording_dir / "session"
+    daemon.post_json("/record/start", {"dir": "session"})
     wait(lambda: (daemon.status()["recording"] or {}).get("active") is False, 20, "recording cut short")
     r = daemon.status()["recording"]
     print(f"recording stopped after {r['frames']} frames, {r['bytes']} bytes: {r['stopped_reason']}")

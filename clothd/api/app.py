@@ -29,7 +29,8 @@ from clothd.api.stream import StreamHub
 from clothd.config import ApiConfig
 from clothd.core.camera_model import CameraModel
 from clothd.daemon import Daemon
-from clothd.errors import ClothdError, HardwareError, RequestError, UnreachableTargetError
+from clothd.errors import ClothdError, HardwareError, InvalidRequestError, RequestError, StorageError
+from clothd.recorder import recording_path
 from clothd.status import Status
 
 ERROR_DOC: dict[int | str, dict[str, Any]] = {
@@ -39,6 +40,8 @@ ERROR_DOC: dict[int | str, dict[str, Any]] = {
     413: {"model": ErrorResponse, "description": "a body over api.max_body_bytes"},
     415: {"model": ErrorResponse, "description": "a body that is not application/json"},
     421: {"model": ErrorResponse, "description": "a Host that is not one of the daemon's names"},
+    422: {"model": ErrorResponse, "description": "a request that can never be carried out as given"},
+    507: {"model": ErrorResponse, "description": "no room on the disk for a recording"},
     409: {"model": ErrorResponse, "description": "not possible in the daemon's current state"},
 }
 STATIC_DIR = Path(__file__).resolve().parent / "static"
@@ -66,12 +69,17 @@ def create_app(
     async def _invalid(request: Request, err: RequestValidationError) -> JSONResponse:
         """Where and what, never the input: a body is not echoed back (it may be huge, or not even
         serialisable: NaN, a lone surrogate)."""
-        errors = [{"loc": list(e["loc"]), "msg": e["msg"], "type": e["type"]} for e in err.errors()]
-        return JSONResponse({"detail": errors}, status_code=422)
+        where = (".".join(str(part) for part in e["loc"]) for e in err.errors())
+        reasons = [f"{w}: {e['msg']} ({e['type']})" for w, e in zip(where, err.errors(), strict=True)]
+        return JSONResponse({"detail": "; ".join(reasons)}, status_code=422)
 
-    @app.exception_handler(UnreachableTargetError)
-    async def _unreachable(request: Request, err: UnreachableTargetError) -> JSONResponse:
+    @app.exception_handler(InvalidRequestError)
+    async def _unreachable(request: Request, err: InvalidRequestError) -> JSONResponse:
         return JSONResponse({"detail": str(err)}, status_code=422)
+
+    @app.exception_handler(StorageError)
+    async def _storage(request: Request, err: StorageError) -> JSONResponse:
+        return JSONResponse({"detail": str(err)}, status_code=507)
 
     @app.exception_handler(RequestError)
     async def _conflict(request: Request, err: RequestError) -> JSONResponse:
@@ -119,7 +127,9 @@ def create_app(
     @api.post("/record/start", responses=ERROR_DOC)
     async def record_start(body: RecordStart | None = None) -> Ok:
         """Record the session (frames, commands, estimates) in the format `clothd replay` reads."""
-        path = daemon.start_recording(Path(body.dir) if body and body.dir else None)
+        path = daemon.start_recording(
+            recording_path(daemon.settings.recording_dir, body.dir if body else None)
+        )
         return Ok(detail=f"recording into {path}")
 
     @api.post("/record/stop", responses=ERROR_DOC)

@@ -38,9 +38,16 @@ class MoveSetpoint(_Strict):
 SetpointRequest = Annotated[IdleSetpoint | HoldSetpoint | MoveSetpoint, Field(discriminator="mode")]
 
 
+# A name, or a relative path of names, each starting with a letter or digit: nothing absolute, no "."
+# or ".." step. The daemon still resolves it and keeps it inside recording.dir (symlinks).
+RECORDING_NAME = r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}(/[A-Za-z0-9][A-Za-z0-9._-]{0,63}){0,7}$"
+
+
 class RecordStart(_Strict):
     dir: str | None = Field(
-        None, min_length=1, max_length=1024, description="a new directory; default: dated"
+        None,
+        pattern=RECORDING_NAME,
+        description="a new directory inside recording.dir, by name or relative path; default: dated",
     )
 
 

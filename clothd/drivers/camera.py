@@ -12,6 +12,7 @@ import logging
 import threading
 import time
 from pathlib import Path
+from urllib.parse import urlsplit, urlunsplit
 
 import cv2
 import numpy as np
@@ -23,6 +24,15 @@ from clothd.drivers.ports import CameraFrame, FrameSourceHealth
 log = logging.getLogger(__name__)
 
 
+def redact_source(source: str) -> str:
+    """A camera source fit to show: a URL's user name and password become ***
+    (rtsp://admin:secret@cam/stream -> rtsp://***@cam/stream); anything else is shown as it is."""
+    parts = urlsplit(source)
+    if "@" not in parts.netloc:
+        return source
+    return urlunsplit(parts._replace(netloc="***@" + parts.netloc.rpartition("@")[2]))
+
+
 class VideoCaptureSource:
     """The FrameSource of a live camera; `latest()` never blocks, the capture runs on its own thread."""
 
@@ -31,6 +41,7 @@ class VideoCaptureSource:
         self.state = "connecting"  # connecting | streaming | lost
         self.last_error: str | None = None
         self.reconnects = 0
+        self.shown = redact_source(cfg.source)  # for logs and status: no credentials
         self._frame: CameraFrame | None = None
         self._count = 0
         self._lock = threading.Lock()
@@ -88,7 +99,7 @@ class VideoCaptureSource:
             cap = cv2.VideoCapture(int(source) if source.isdigit() else source)
         try:
             if not cap.isOpened():
-                self._lost(f"cannot open camera source {source!r}")
+                self._lost(f"cannot open camera source {self.shown!r}")
                 return False
             # A file plays at its own rate; a live source delivers at its own pace.
             pace_s = 1.0 / (cap.get(cv2.CAP_PROP_FPS) or DEFAULT_FPS) if path.is_file() else 0.0
@@ -100,7 +111,7 @@ class VideoCaptureSource:
                     if path.is_file() and delivered:
                         cap.set(cv2.CAP_PROP_POS_FRAMES, 0)  # loop the file
                         continue
-                    self._lost(f"camera source {source!r} stopped delivering frames")
+                    self._lost(f"camera source {self.shown!r} stopped delivering frames")
                     return delivered
                 self._publish(image)
                 delivered = True
@@ -136,7 +147,7 @@ class VideoCaptureSource:
             self._frame = CameraFrame(self._count, now, image)
             self._count += 1
         if self.state != "streaming":
-            log.info("camera streaming from %s", self.cfg.source)
+            log.info("camera streaming from %s", self.shown)
         self.state = "streaming"
         self.last_error = None
 
