@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -50,6 +50,22 @@ STATUS_DOC: dict[int | str, dict[str, Any]] = {
 }
 
 
+# clothd's errors as HTTP statuses; the most specific class that matches wins.
+ERROR_STATUS: dict[type[ClothdError], int] = {
+    InvalidRequestError: 422,  # can never be carried out as given
+    StorageError: 507,
+    RequestError: 409,  # not in the daemon's present state
+    ClothdError: 503,  # the hardware, or hwsim's truth, is not answering
+}
+
+
+def _detail_response(status_code: int) -> Callable[[Request, Exception], Awaitable[JSONResponse]]:
+    async def respond(request: Request, err: Exception) -> JSONResponse:
+        return JSONResponse({"detail": str(err)}, status_code=status_code)
+
+    return respond
+
+
 def create_app(
     daemon: Daemon,
     hub: StreamHub,
@@ -73,21 +89,8 @@ def create_app(
         reasons = [f"{w}: {e['msg']} ({e['type']})" for w, e in zip(where, err.errors(), strict=True)]
         return JSONResponse({"detail": "; ".join(reasons)}, status_code=422)
 
-    @app.exception_handler(InvalidRequestError)
-    async def _unreachable(request: Request, err: InvalidRequestError) -> JSONResponse:
-        return JSONResponse({"detail": str(err)}, status_code=422)
-
-    @app.exception_handler(StorageError)
-    async def _storage(request: Request, err: StorageError) -> JSONResponse:
-        return JSONResponse({"detail": str(err)}, status_code=507)
-
-    @app.exception_handler(RequestError)
-    async def _conflict(request: Request, err: RequestError) -> JSONResponse:
-        return JSONResponse({"detail": str(err)}, status_code=409)
-
-    @app.exception_handler(ClothdError)
-    async def _unavailable(request: Request, err: ClothdError) -> JSONResponse:
-        return JSONResponse({"detail": str(err)}, status_code=503)
+    for error, status_code in ERROR_STATUS.items():
+        app.add_exception_handler(error, _detail_response(status_code))
 
     api = APIRouter(prefix="/api/v1")
 
