@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from clothd.config import load_config
+from clothd.config import load_config, with_overrides
 from clothd.errors import ClothdError
 
 
@@ -88,8 +88,8 @@ def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
         for label, model, use_input in MODES:
             if args.modes and label not in args.modes:
                 continue
-            tracker_cfg = cfg.tracker.model_copy(update={"model": model, "use_input": use_input})
-            graded[label] = grade(rec, scenario, label, tracker_cfg)
+            mode_cfg = with_overrides(cfg, {"tracker": {"model": model, "use_input": use_input}})
+            graded[label] = grade(rec, scenario, label, mode_cfg.tracker)
             rows.append(graded[label].row)
         plot(scenario, graded, 30.0, args.out / f"{scenario}.png")
     print(format_table(rows))

@@ -11,9 +11,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from recorded_frames import compute_on
 
 from clothd.compute import TickReply, TickRequest
-from clothd.config import CellConfig
+from clothd.config import AreaConfig, CellConfig
 from clothd.core.control import Setpoint
 from clothd.core.ekf import UpdateStats
 from clothd.core.messages import Estimate, ModuleCommands
@@ -255,3 +256,24 @@ def test_the_model_input_is_what_went_out_on_the_wire() -> None:
         assert not compute.requests[-1].commands_in_force.speed_m_s.any()
 
     _run(scenario)
+
+
+def test_a_cloth_at_the_workspace_edge_is_stopped_in_closed_loop(
+    short_recording: Callable[[str], Path],
+) -> None:
+    """The compute's own check: a moving cloth whose estimated outline leaves the workspace is stopped,
+    and the reply says why (the daemon then drops the move)."""
+    tight = CellConfig(workspace=AreaConfig(x_min_m=-0.1, x_max_m=0.1, y_min_m=-0.08, y_max_m=0.08))
+    compute = compute_on(short_recording("translate"), cell=tight)
+    stopped = ModuleCommands.all_stop(N)
+    move = Setpoint("move", np.array([0.05, 0.0, 0.0]))
+    first = compute.tick(TickRequest(move, stopped, reset=False, want_view=False))
+    assert first.estimate is not None and first.estimate.tracking
+    reply = compute.tick(TickRequest(move, stopped, reset=False, want_view=False))
+    assert reply.halt_reason is not None and "workspace" in reply.halt_reason
+    assert not reply.commands.speed_m_s.any()
+    # The same cloth on the default workspace (the belts less 2 cm) moves.
+    roomy = compute_on(short_recording("translate"))
+    roomy.tick(TickRequest(move, stopped, reset=False, want_view=False))
+    reply = roomy.tick(TickRequest(move, stopped, reset=False, want_view=False))
+    assert reply.halt_reason is None and reply.commands.speed_m_s.any()

@@ -1,0 +1,58 @@
+"""A compute process's parts on recorded frames: a FrameSource that hands out a recording's frames in
+turn, and a Compute built over it as `clothd run` builds one (in this process, Taichi started)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from clothd.compute import Compute, ComputeSpec
+from clothd.config import CellConfig, ControlConfig, TrackerConfig
+from clothd.core.conveyor import ConveyorLayout
+from clothd.core.workspace import Workspace
+from clothd.drivers.footage import open_footage
+from clothd.drivers.ports import CameraFrame, FrameSourceHealth
+from clothd.formats import read_camera
+from clothd.taichi_runtime import start_taichi
+
+
+class RecordedFrames:
+    """A FrameSource that hands out a recording's frames in turn, each one new."""
+
+    def __init__(self, images: list[np.ndarray]) -> None:
+        self.images = images
+        self.index = -1
+
+    def start(self) -> None:
+        pass
+
+    def stop(self) -> None:
+        pass
+
+    def latest(self) -> CameraFrame:
+        self.index += 1
+        return CameraFrame(self.index, time.monotonic(), self.images[self.index % len(self.images)])
+
+    def health(self) -> FrameSourceHealth:
+        return FrameSourceHealth("streaming", True, None, 0)
+
+
+def compute_on(recording: Path, frames: int = 4, cell: CellConfig | None = None) -> Compute:
+    start_taichi("cpu")
+    images = [img for _, (_, img) in zip(range(frames), open_footage(recording).frames(), strict=False)]
+    cell = cell or CellConfig()
+    spec = ComputeSpec(
+        tracker=TrackerConfig(model="mesh"),
+        control=ControlConfig(),
+        cell=cell,
+        layout=ConveyorLayout.of_cell(cell),
+        camera_model=read_camera(recording / "camera.json"),
+        period_s=1 / 30,
+        workspace=Workspace.of_cell(cell),
+        taichi_arch="cpu",
+        max_record_bytes=10**6,
+        frame_source=lambda: RecordedFrames(images),
+    )
+    return Compute(spec, spec.frame_source())
