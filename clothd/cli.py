@@ -49,6 +49,18 @@ def _cmd_bench_faults(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_abuse(args: argparse.Namespace) -> int:
+    import json
+
+    from clothd.tools.bench_abuse import format_rows, run_bench
+
+    rows = run_bench(connections=args.connections, flood_s=args.seconds)
+    print(format_rows(rows))
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=2) + "\n")
+    return 0
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from clothd.taichi_runtime import start_taichi
     from clothd.tools.replay import replay
@@ -180,6 +192,11 @@ def build_parser() -> argparse.ArgumentParser:
     bf.add_argument("--resets", type=int, default=500, help="POST /reset this many times (10 a second)")
     bf.add_argument("--json", type=Path, help="also write the figures as JSON")
     bf.set_defaults(func=_cmd_bench_faults)
+    bab = bsub.add_parser("abuse", help="slow-header and slow-body floods: e-stop round trip, missed ticks")
+    bab.add_argument("--connections", type=int, default=1100, help="sockets held open during each flood")
+    bab.add_argument("--seconds", type=float, default=20.0, help="how long each flood lasts")
+    bab.add_argument("--json", type=Path, help="also write the figures as JSON")
+    bab.set_defaults(func=_cmd_bench_abuse)
     return p
 
 

@@ -225,6 +225,12 @@ class ApiConfig(_Strict):
     max_body_bytes: int = Field(
         4096, ge=256, le=1_000_000, description="a larger request body is refused (413)"
     )
+    max_connections: int = Field(
+        128, ge=8, le=2048, description="open HTTP connections; one more evicts the oldest idle one"
+    )
+    request_timeout_s: float = Field(
+        5.0, gt=0, le=120, description="a request must arrive whole this soon after its connection opens"
+    )
 
     @model_validator(mode="after")
     def _token_off_loopback(self) -> ApiConfig:

@@ -27,6 +27,7 @@ from pathlib import Path
 import uvicorn
 
 from clothd.api.app import create_app
+from clothd.api.connections import BoundedH11Protocol
 from clothd.api.stream import StreamHub
 from clothd.compute import ComputeSpec
 from clothd.compute_process import ComputeProcess
@@ -41,6 +42,9 @@ from clothd.errors import ConfigError, HardwareError
 from clothd.formats import read_camera
 
 SIM_START_TIMEOUT_S = 120.0
+# asyncio accepts up to the backlog in one go, on the loop that also runs the tick: a flood's burst of
+# connections then stalls a tick. 64 keeps a burst short and still queues an operator's click.
+ACCEPT_BACKLOG = 64
 POLL_S = 0.05  # how often start-up checks whether the API server listens
 SIM_READ_POLL_S = 0.5
 
@@ -177,7 +181,13 @@ async def serve(
     if record_dir is not None:  # the operator's own choice, anywhere
         daemon.start_recording(record_dir)
     app = create_app(daemon, parts.hub, parts.camera_model, cfg.api, sim_truth_url)
-    server = _Server(uvicorn.Config(app, host=cfg.api.host, port=cfg.api.port, log_level="warning"))
+    a = cfg.api
+    protocol = BoundedH11Protocol.bounded(a.max_connections, a.request_timeout_s)
+    server = _Server(
+        uvicorn.Config(
+            app, host=a.host, port=a.port, log_level="warning", http=protocol, backlog=ACCEPT_BACKLOG
+        )
+    )
     loop = asyncio.get_running_loop()
 
     def _stop() -> None:

@@ -11,7 +11,8 @@ In order, for every HTTP request and WebSocket handshake:
    route. Else 415.
 4. With `api.token`, a changing request must carry it (compared in constant time). Else 401.
 5. A body larger than `api.max_body_bytes` is refused from its Content-Length before a byte is read,
-   and a streamed one as soon as it passes the limit. Else 413.
+   and a streamed one as soon as it passes the limit. Else 413. The body is read whole here, before the
+   app: one that trickles in costs no routing and no handler.
 Refusals are short JSON bodies that never echo what was sent.
 """
 
@@ -32,10 +33,6 @@ ASGIApp = Callable[[Scope, Receive, Send], Awaitable[None]]
 
 LOOPBACK_NAMES = ("127.0.0.1", "localhost", "[::1]")
 CHANGING_METHODS = frozenset({"POST", "PUT", "PATCH", "DELETE"})
-
-
-class TooLarge(Exception):  # noqa: N818  (not an error to report: it ends a request)
-    pass
 
 
 @dataclass(frozen=True)
@@ -90,29 +87,30 @@ class RequestGuard:
         if scope["type"] == "websocket":
             await self.app(scope, receive, send)
             return
+        # The body is read here, whole and bounded, before the app sees the request: a body that trickles
+        # in, or never ends, costs no routing and no handler, and is dropped with its connection.
         limit = self.policy.max_body_bytes
-        seen = 0
-
-        async def bounded_receive() -> Message:
-            nonlocal seen
+        body = bytearray()
+        more = True
+        while more:
             message = await receive()
-            seen += len(message.get("body", b""))
-            if seen > limit:
-                raise TooLarge
-            return message
-
-        started = False
-
-        async def tracked_send(message: Message) -> None:
-            nonlocal started
-            started = started or message["type"] == "http.response.start"
-            await send(message)
-
-        try:
-            await self.app(scope, bounded_receive, tracked_send)
-        except TooLarge:
-            if not started:
+            if message["type"] == "http.disconnect":
+                return  # gone before its request was whole: nobody to answer
+            body += message.get("body", b"")
+            if len(body) > limit:
                 await _refuse(scope, receive, send, 413, f"a request body is at most {limit} bytes")
+                return
+            more = message.get("more_body", False)
+        replayed = False
+
+        async def replay() -> Message:
+            nonlocal replayed
+            if replayed:
+                return await receive()  # after the body: the disconnect a streaming response waits for
+            replayed = True
+            return {"type": "http.request", "body": bytes(body), "more_body": False}
+
+        await self.app(scope, replay, send)
 
     def _refusal(self, scope: Scope) -> tuple[int, str] | None:
         headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope["headers"]}

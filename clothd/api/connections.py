@@ -1,0 +1,87 @@
+"""Connections bounded in number and in time, below the API (uvicorn's h11 protocol, subclassed).
+
+A client that opens a connection and never finishes its request (a slow-header or slow-body flood)
+used to hold its file descriptor forever: 1,100 of them exhausted the service's 1,024, the accept loop
+logged an error storm, the API stopped answering and the tick stalled behind the logging. Now:
+- a request must arrive whole within `api.request_timeout_s` of the connection opening (or of the
+  previous response on a kept-alive one), else the connection is dropped;
+- at most `api.max_connections` are open; one more evicts the oldest connection that has not yet sent a
+  whole request, so a flood of idle connections cannot lock out the operator's e-stop. Only when every
+  open connection is busy with a real request is the newcomer turned away.
+The cap sits far below the unit's LimitNOFILE (deploy/clothd.service), so the daemon never runs out of
+descriptors, and nothing here logs per connection.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+from uvicorn.protocols.http.h11_impl import H11Protocol
+
+
+class BoundedH11Protocol(H11Protocol):
+    max_connections = 128
+    request_timeout_s = 5.0
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._deadline: asyncio.TimerHandle | None = None
+        self._opened_s = 0.0
+
+    @classmethod
+    def bounded(cls, max_connections: int, request_timeout_s: float) -> type[BoundedH11Protocol]:
+        """This protocol with its own bounds (uvicorn takes a class)."""
+        return type(
+            "BoundedH11Protocol",
+            (cls,),
+            {"max_connections": max_connections, "request_timeout_s": request_timeout_s},
+        )
+
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        if len(self.connections) > self.max_connections and not self._evict_a_waiting_one():
+            self.transport.abort()
+            return
+        self._arm_deadline()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm_deadline()
+        super().connection_lost(exc)
+
+    def handle_websocket_upgrade(self, event: Any) -> None:
+        self._disarm_deadline()  # the WebSocket's own protocol takes the connection over
+        super().handle_websocket_upgrade(event)
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        if not self.transport.is_closing():
+            self._arm_deadline()  # the next request on a kept-alive connection gets the same time
+
+    def waiting(self) -> bool:
+        """No whole request yet: no request line and headers, or a body still coming."""
+        cycle = self.cycle
+        return cycle is None or cycle.response_complete or cycle.more_body
+
+    def _evict_a_waiting_one(self) -> bool:
+        others = [c for c in self.connections if c is not self and isinstance(c, BoundedH11Protocol)]
+        waiting = [c for c in others if c.waiting() and not c.transport.is_closing()]
+        if not waiting:
+            return False
+        min(waiting, key=lambda c: c._opened_s).transport.abort()
+        return True
+
+    def _arm_deadline(self) -> None:
+        self._disarm_deadline()
+        self._opened_s = self.loop.time()
+        self._deadline = self.loop.call_later(self.request_timeout_s, self._drop_if_waiting)
+
+    def _disarm_deadline(self) -> None:
+        if self._deadline is not None:
+            self._deadline.cancel()
+            self._deadline = None
+
+    def _drop_if_waiting(self) -> None:
+        self._deadline = None
+        if self.waiting():
+            self.transport.abort()

@@ -1,0 +1,194 @@
+"""`clothd bench abuse`: connection floods against `clothd run --sim`, measured from outside.
+
+For each flood, `connections` sockets are held open to the API for `flood_s` seconds, re-opened as the
+daemon drops them (at most REOPEN_PER_S a second), all on loopback and all closed at the end:
+- slow-header: a request line and a header, then nothing (never the blank line);
+- slow-body: whole headers announcing a 1,000-byte JSON body, then one byte a second.
+Meanwhile POST /api/v1/estop is sent every 100 ms on a connection of its own (a fresh one each time,
+as an operator's click would): its round trip. Before and after: the daemon's missed ticks, and its open
+file descriptors and resident memory (from /proc), the latter again a few seconds after the flood.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import resource
+import socket
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from clothd.tools.bench_loop import DaemonProcess, free_port
+
+REOPEN_PER_S = 500.0
+ESTOP_EVERY_S = 0.1
+SETTLE_S = 7.0  # after a flood: longer than api.request_timeout_s, so dropped connections are gone
+FLOODS = {
+    "slow-header": b"GET /api/v1/status HTTP/1.1\r\nHost: 127.0.0.1\r\n",
+    "slow-body": (
+        b"PUT /api/v1/setpoint HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n"
+        b"Content-Length: 1000\r\n\r\n{"
+    ),
+}
+
+
+def _fds(pid: int) -> int:
+    return len(os.listdir(f"/proc/{pid}/fd"))
+
+
+def _rss_mb(pid: int) -> float:
+    return int(Path(f"/proc/{pid}/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
+
+
+class Flood:
+    """Holds `n` sockets open to the port with `opening` sent, re-opening dropped ones, until stopped."""
+
+    def __init__(self, port: int, opening: bytes, n: int) -> None:
+        self.port, self.opening, self.n = port, opening, n
+        self.opened = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> Flood:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=30)
+
+    def _open(self) -> socket.socket | None:
+        try:
+            s = socket.create_connection(("127.0.0.1", self.port), timeout=1)
+            s.sendall(self.opening)
+            s.setblocking(False)
+            self.opened += 1
+            return s
+        except OSError:
+            return None
+
+    def _run(self) -> None:
+        held: list[socket.socket] = []
+        last_trickle = time.monotonic()
+        try:
+            while not self._stop.is_set():
+                alive = []
+                for s in held:  # keep those the daemon has not dropped
+                    try:
+                        dropped = s.recv(1, socket.MSG_PEEK) == b""
+                    except BlockingIOError:
+                        dropped = False
+                    except OSError:
+                        dropped = True
+                    if dropped:
+                        s.close()
+                    else:
+                        alive.append(s)
+                held = alive
+                if time.monotonic() - last_trickle >= 1.0:  # the slow body's one byte a second
+                    for s in held:
+                        with contextlib.suppress(OSError):
+                            s.send(b" ")
+                    last_trickle = time.monotonic()
+                budget = int(REOPEN_PER_S * 0.05)
+                while len(held) < self.n and budget > 0 and not self._stop.is_set():
+                    opened = self._open()
+                    if opened is not None:
+                        held.append(opened)
+                    budget -= 1
+                self._stop.wait(0.05)
+        finally:
+            for s in held:
+                s.close()
+
+
+def _estops(base: str, stop: threading.Event, rtts: list[float], failures: list[str]) -> None:
+    while not stop.is_set():
+        t0 = time.monotonic()
+        try:
+            r = httpx.post(f"{base}/api/v1/estop", timeout=2.0)
+            if r.status_code == 200:
+                rtts.append(time.monotonic() - t0)
+            else:
+                failures.append(str(r.status_code))
+        except httpx.HTTPError as err:
+            failures.append(type(err).__name__)
+        stop.wait(max(0.0, ESTOP_EVERY_S - (time.monotonic() - t0)))
+
+
+def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float) -> dict[str, Any]:
+    pid = d.proc.pid
+    fds0, rss0 = _fds(pid), _rss_mb(pid)
+    before = httpx.get(f"{d.base}/api/v1/status", timeout=5).json()["timing"]
+    rtts: list[float] = []
+    failures: list[str] = []
+    stop = threading.Event()
+    prober = threading.Thread(target=_estops, args=(d.base, stop, rtts, failures), daemon=True)
+    with Flood(port, FLOODS[kind], n) as flood:
+        prober.start()
+        time.sleep(flood_s)
+        fds_during = _fds(pid)
+        stop.set()
+        prober.join(timeout=10)
+    after = httpx.get(f"{d.base}/api/v1/status", timeout=10).json()["timing"]
+    time.sleep(SETTLE_S)
+    ticks = after["ticks"] - before["ticks"]
+    missed = after["missed_ticks"] - before["missed_ticks"]
+    lat = np.asarray(rtts) * 1e3
+    return {
+        "flood": kind,
+        "connections_held": n,
+        "connections_opened": flood.opened,
+        "estop_answered": len(rtts),
+        "estop_failed": len(failures),
+        "estop_p50_ms": float(np.median(lat)) if len(lat) else None,
+        "estop_p99_ms": float(np.percentile(lat, 99)) if len(lat) else None,
+        "missed_tick_pct": 100.0 * missed / max(ticks + missed, 1),
+        "fds_before": fds0,
+        "fds_during": fds_during,
+        "fds_after": _fds(pid),
+        "rss_before_mb": rss0,
+        "rss_after_mb": _rss_mb(pid),
+    }
+
+
+def run_bench(connections: int = 1100, flood_s: float = 20.0) -> list[dict[str, Any]]:
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)  # this process holds the flood's sockets
+    resource.setrlimit(resource.RLIMIT_NOFILE, (min(hard, max(soft, connections + 256)), hard))
+    port = free_port()
+    d = DaemonProcess(None, port)
+    try:
+        d.wait_ready()
+        deadline = time.monotonic() + 120
+        while httpx.get(f"{d.base}/api/v1/status", timeout=5).json()["state"] != "tracking":
+            if time.monotonic() > deadline:
+                raise RuntimeError("the daemon did not start tracking")
+            time.sleep(0.2)
+        time.sleep(2.0)
+        rows = [_measure(d, port, kind, connections, flood_s) for kind in FLOODS]
+        httpx.post(f"{d.base}/api/v1/estop/clear", timeout=5)
+        return rows
+    finally:
+        d.stop()
+
+
+def format_rows(rows: list[dict[str, Any]]) -> str:
+    out = ["clothd bench abuse (clothd run --sim; floods on loopback, bounded in count and time)"]
+    for r in rows:
+        p99 = "n/a" if r["estop_p99_ms"] is None else f"{r['estop_p99_ms']:.1f} ms"
+        p50 = "n/a" if r["estop_p50_ms"] is None else f"{r['estop_p50_ms']:.1f} ms"
+        held = f"{r['connections_held']} held ({r['connections_opened']} opened)"
+        answered = f"{r['estop_answered']} answered, {r['estop_failed']} failed"
+        estop = f"e-stop p50 {p50}, p99 {p99} (bar 100 ms), {answered}"
+        fds = f"fds {r['fds_before']} -> {r['fds_during']} -> {r['fds_after']}"
+        rss = f"RSS {r['rss_before_mb']:.1f} -> {r['rss_after_mb']:.1f} MB"
+        out.append(
+            f"  {r['flood']:<11} {held}: {estop}; missed ticks {r['missed_tick_pct']:.3f} % (bar 0.5 %)"
+        )
+        out.append(f"  {'':<11} {fds}; {rss}")
+    return "\n".join(out)
