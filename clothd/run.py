@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import functools
+import gc
 import json
 import select
 import signal
@@ -19,6 +20,7 @@ import socket
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import Generator
 from dataclasses import dataclass
@@ -27,6 +29,7 @@ from pathlib import Path
 import uvicorn
 
 from clothd.api.app import create_app
+from clothd.api.bridge import DaemonBridge
 from clothd.api.connections import BoundedH11Protocol
 from clothd.api.stream import StreamHub
 from clothd.compute import ComputeSpec
@@ -42,9 +45,7 @@ from clothd.errors import ConfigError, HardwareError
 from clothd.formats import read_camera
 
 SIM_START_TIMEOUT_S = 120.0
-# asyncio accepts up to the backlog in one go, on the loop that also runs the tick: a flood's burst of
-# connections then stalls a tick. 64 keeps a burst short and still queues an operator's click.
-ACCEPT_BACKLOG = 64
+GIL_SWITCH_S = 0.001
 POLL_S = 0.05  # how often start-up checks whether the API server listens
 SIM_READ_POLL_S = 0.5
 
@@ -180,40 +181,46 @@ async def serve(
     daemon = parts.daemon
     if record_dir is not None:  # the operator's own choice, anywhere
         daemon.start_recording(record_dir)
-    app = create_app(daemon, parts.hub, parts.camera_model, cfg.api, sim_truth_url)
+    bridge = DaemonBridge()
+    app = create_app(daemon, parts.hub, parts.camera_model, cfg.api, sim_truth_url, bridge)
     a = cfg.api
     protocol = BoundedH11Protocol.bounded(a.max_connections, a.request_timeout_s)
-    server = _Server(
-        uvicorn.Config(
-            app, host=a.host, port=a.port, log_level="warning", http=protocol, backlog=ACCEPT_BACKLOG
-        )
-    )
+    server = _Server(uvicorn.Config(app, host=a.host, port=a.port, log_level="warning", http=protocol))
     loop = asyncio.get_running_loop()
+    bridge.loop = loop
+    # Everything built so far lives as long as the daemon: out of the collector's sight, a full collection
+    # (which holds the GIL, so the tick too) walks only what the running daemon makes.
+    gc.collect()
+    gc.freeze()
 
     def _stop() -> None:
         daemon.stop()
-        server.should_exit = True
+        server.should_exit = True  # the API's thread polls it
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, _stop)
     loop_task = asyncio.create_task(daemon.run())
-    server_task = asyncio.create_task(server.serve(sockets=[listener]))
-    while not server.started and not server_task.done():
+    # The API on a thread and event loop of its own: HTTP work never delays a tick (api/bridge.py).
+    api = threading.Thread(target=asyncio.run, args=(server.serve(sockets=[listener]),), name="api")
+    api.start()
+    api_done = loop.run_in_executor(None, api.join)
+    while not server.started and api.is_alive():
         await asyncio.sleep(POLL_S)
     if server.started and on_ready:
         print(on_ready, flush=True)
-    done, _ = await asyncio.wait({loop_task, server_task}, return_when=asyncio.FIRST_COMPLETED)
+    await asyncio.wait({loop_task, api_done}, return_when=asyncio.FIRST_COMPLETED)
     daemon.stop()
     server.should_exit = True
-    await asyncio.gather(loop_task, server_task, return_exceptions=True)
-    for task in done:
-        if task.exception() is not None:
-            raise task.exception()  # type: ignore[misc]
+    await asyncio.gather(loop_task, api_done, return_exceptions=True)
+    if loop_task.exception() is not None:
+        raise loop_task.exception()  # type: ignore[misc]
 
 
 def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -> int:
     """Run the daemon with `cfg` (loaded and validated by the caller), against hwsim when sim_scenario
     names a scenario."""
+    # The tick's thread waits at most this long for the GIL while the API's thread computes (default 5 ms).
+    sys.setswitchinterval(GIL_SWITCH_S)
     listener = bind_api(cfg.api)
     sim = start_sim(sim_scenario) if sim_scenario is not None else None
     try:

@@ -22,6 +22,7 @@ from fastapi.staticfiles import StaticFiles
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.websockets import WebSocketDisconnect
 
+from clothd.api.bridge import DaemonBridge
 from clothd.api.guard import GuardPolicy, RequestGuard
 from clothd.api.metrics import registry_for
 from clothd.api.schemas import CameraInfo, ErrorResponse, MoveSetpoint, Ok, RecordStart, SetpointRequest
@@ -72,10 +73,12 @@ def create_app(
     camera_model: CameraModel,
     api_cfg: ApiConfig,
     sim_truth_url: str | None = None,
+    bridge: DaemonBridge | None = None,
 ) -> FastAPI:
     """The app over a daemon whose statuses `hub` receives, behind the request guard (guard.py).
     sim_truth_url: hwsim's ground truth, relayed for the dashboard when running against hwsim."""
-    registry = registry_for(daemon)
+    bridge = bridge or DaemonBridge()
+    registry = registry_for(hub)
     app = FastAPI(title="clothd", version="1", description="Real-time cloth tracking and control")
     c = api_cfg
     policy = GuardPolicy(c.port, c.allowed_hosts, c.allowed_origins, c.token, c.max_body_bytes)
@@ -107,37 +110,37 @@ def create_app(
             if isinstance(body, MoveSetpoint)
             else None
         )
-        daemon.set_setpoint(body.mode, pose)
+        await bridge.call(daemon.set_setpoint, body.mode, pose)
         return Ok(detail=f"mode {body.mode}")
 
     @api.post("/estop", responses=ERROR_DOC)
     async def estop() -> Ok:
         """Stop every module now; latched until /estop/clear."""
-        daemon.estop()
+        await bridge.call(daemon.estop)
         return Ok(detail="emergency stop latched")
 
     @api.post("/estop/clear", responses=ERROR_DOC)
     async def estop_clear() -> Ok:
-        daemon.estop_clear()
+        await bridge.call(daemon.estop_clear)
         return Ok(detail="emergency stop cleared; mode is idle")
 
     @api.post("/reset", responses=ERROR_DOC)
     async def reset() -> Ok:
         """Re-initialise tracking from the next frame; the mode becomes idle."""
-        daemon.reset()
+        await bridge.call(daemon.reset)
         return Ok(detail="tracking re-initialises on the next frame")
 
     @api.post("/record/start", responses=ERROR_DOC)
     async def record_start(body: RecordStart | None = None) -> Ok:
         """Record the session (frames, commands, estimates) in the format `clothd replay` reads."""
-        path = daemon.start_recording(
-            recording_path(daemon.settings.recording_dir, body.dir if body else None)
+        path = await bridge.call(
+            daemon.start_recording, recording_path(daemon.settings.recording_dir, body.dir if body else None)
         )
         return Ok(detail=f"recording into {path}")
 
     @api.post("/record/stop", responses=ERROR_DOC)
     async def record_stop() -> Ok:
-        daemon.stop_recording()
+        await bridge.call(daemon.stop_recording)
         return Ok(detail="recording stops; estimates.npz is written")
 
     @api.get("/camera", response_model=CameraInfo)
@@ -195,13 +198,15 @@ def create_app(
     async def healthz() -> JSONResponse:
         """200 while the loop ticks with camera and link up, else 503 with the reasons."""
         problems = []
-        if not daemon.camera.healthy:
+        s = hub.status  # the last tick's snapshot: nothing here reads the daemon's live state
+        assert s is not None  # the daemon publishes once when it is built
+        if not s.camera.healthy:
             problems.append("camera")
-        if not daemon.link.connected:
+        if s.link.state != "connected":
             problems.append("stepper link")
-        if daemon.state == "fault":
+        if s.state == "fault":
             problems.append("loop fault")
-        body = {"ok": not problems, "state": daemon.state, "problems": problems}
+        body = {"ok": not problems, "state": s.state, "problems": problems}
         return JSONResponse(body, status_code=503 if problems else 200)
 
     @app.get("/metrics", response_class=PlainTextResponse)

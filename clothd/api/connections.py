@@ -6,8 +6,9 @@ logged an error storm, the API stopped answering and the tick stalled behind the
 - a request must arrive whole within `api.request_timeout_s` of the connection opening (or of the
   previous response on a kept-alive one), else the connection is dropped;
 - at most `api.max_connections` are open; one more evicts the oldest connection that has not yet sent a
-  whole request, so a flood of idle connections cannot lock out the operator's e-stop. Only when every
-  open connection is busy with a real request is the newcomer turned away.
+  whole request (one that never has first, then an idle kept-alive one), so a flood of idle connections
+  cannot lock out the operator's e-stop, nor push out the dashboard's kept-alive connection. Only when
+  every open connection is busy with a real request is the newcomer turned away.
 The cap sits far below the unit's LimitNOFILE (deploy/clothd.service), so the daemon never runs out of
 descriptors, and nothing here logs per connection.
 """
@@ -28,6 +29,7 @@ class BoundedH11Protocol(H11Protocol):
         super().__init__(*args, **kwargs)
         self._deadline: asyncio.TimerHandle | None = None
         self._opened_s = 0.0
+        self._answered = 0  # whole requests answered on this connection
 
     @classmethod
     def bounded(cls, max_connections: int, request_timeout_s: float) -> type[BoundedH11Protocol]:
@@ -54,6 +56,7 @@ class BoundedH11Protocol(H11Protocol):
         super().handle_websocket_upgrade(event)
 
     def on_response_complete(self) -> None:
+        self._answered += 1
         super().on_response_complete()
         if not self.transport.is_closing():
             self._arm_deadline()  # the next request on a kept-alive connection gets the same time
@@ -68,7 +71,7 @@ class BoundedH11Protocol(H11Protocol):
         waiting = [c for c in others if c.waiting() and not c.transport.is_closing()]
         if not waiting:
             return False
-        min(waiting, key=lambda c: c._opened_s).transport.abort()
+        min(waiting, key=lambda c: (c._answered > 0, c._opened_s)).transport.abort()
         return True
 
     def _arm_deadline(self) -> None:

@@ -1,76 +1,69 @@
-"""Prometheus metrics (GET /metrics), read from the daemon at scrape time: nothing is paid per tick."""
+"""Prometheus metrics (GET /metrics), read at scrape time from the status the last tick published: the
+snapshot is immutable, so the API's thread never reads the daemon's live state, and nothing is paid
+per tick."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector, CollectorRegistry
 
-if TYPE_CHECKING:
-    from clothd.daemon import Daemon
+from clothd.api.stream import StreamHub
+
+STATES = ("starting", "tracking", "tracking_lost", "camera_lost", "fault")
 
 
-class DaemonCollector(Collector):
-    def __init__(self, daemon: Daemon) -> None:
-        self.daemon = daemon
+class StatusCollector(Collector):
+    def __init__(self, hub: StreamHub) -> None:
+        self.hub = hub
 
     def collect(self) -> Iterator[Metric]:
-        d = self.daemon
-        s = d.stats
-        yield CounterMetricFamily("clothd_ticks", "Ticks run", value=s.ticks)
+        s = self.hub.status
+        if s is None:
+            return
+        t = s.timing
+        yield CounterMetricFamily("clothd_ticks", "Ticks run", value=t.ticks)
         yield CounterMetricFamily(
-            "clothd_missed_ticks", "Tick deadlines missed and skipped", value=s.missed_ticks
+            "clothd_missed_ticks", "Tick deadlines missed and skipped", value=t.missed_ticks
         )
         yield CounterMetricFamily(
-            "clothd_compute_overruns", "Ticks sent with the previous commands", value=s.compute_overruns
+            "clothd_compute_overruns", "Ticks sent with the previous commands", value=t.compute_overruns
         )
         stage = GaugeMetricFamily(
             "clothd_stage_seconds", "Compute time per stage", labels=["stage", "quantile"]
         )
-        for name, window in s.stages.items():
-            summary = window.summary()
-            for q, key in (("0.5", "p50_ms"), ("0.99", "p99_ms")):
-                value = summary[key]
+        for name, window in t.stages.items():
+            for q, value in (("0.5", window.p50_ms), ("0.99", window.p99_ms)):
                 if value is not None:
                     stage.add_metric([name, q], value / 1e3)
         yield stage
-        latency = s.latency.summary()["p50_ms"]
-        if latency is not None:
+        if t.frame_to_command.p50_ms is not None:
             yield GaugeMetricFamily(
                 "clothd_frame_to_command_seconds",
                 "Median frame-capture to command-sent latency",
-                value=latency / 1e3,
+                value=t.frame_to_command.p50_ms / 1e3,
             )
         state = GaugeMetricFamily("clothd_state", "1 for the daemon's current state", labels=["state"])
-        for name in ("starting", "tracking", "tracking_lost", "camera_lost", "fault"):
-            state.add_metric([name], 1.0 if d.state == name else 0.0)
+        for name in STATES:
+            state.add_metric([name], 1.0 if s.state == name else 0.0)
         yield state
-        yield GaugeMetricFamily("clothd_estop", "Emergency stop latched", value=float(d.link.estopped))
+        yield GaugeMetricFamily("clothd_estop", "Emergency stop latched", value=float(s.estop))
         yield GaugeMetricFamily(
-            "clothd_camera_up", "Camera delivering fresh frames", value=float(d.camera.healthy)
+            "clothd_camera_up", "Camera delivering fresh frames", value=float(s.camera.healthy)
         )
-        yield GaugeMetricFamily("clothd_link_up", "Stepper link connected", value=float(d.link.connected))
-        c = d.link.counters
-        for name, value in (
-            ("sent", c.sent),
-            ("retransmitted", c.retransmitted),
-            ("acked", c.acked),
-            ("invalid", c.invalid),
-            ("nacked", c.nacked),
-            ("faults", c.faults),
-            ("reconnects", c.reconnects),
-            ("losses", c.losses),
-        ):
+        yield GaugeMetricFamily(
+            "clothd_link_up", "Stepper link connected", value=float(s.link.state == "connected")
+        )
+        c = s.link.counters
+        for name in ("sent", "retransmitted", "acked", "invalid", "nacked", "faults", "reconnects", "losses"):
             yield CounterMetricFamily(
-                f"clothd_link_{name}", f"Stepper link frames/events: {name}", value=value
+                f"clothd_link_{name}", f"Stepper link frames/events: {name}", value=getattr(c, name)
             )
-        features = d.status.features if d.status is not None else 0
-        yield GaugeMetricFamily("clothd_features", "Features tracked", value=float(features))
+        yield GaugeMetricFamily("clothd_features", "Features tracked", value=float(s.features))
 
 
-def registry_for(daemon: Daemon) -> CollectorRegistry:
+def registry_for(hub: StreamHub) -> CollectorRegistry:
     registry = CollectorRegistry()
-    registry.register(DaemonCollector(daemon))
+    registry.register(StatusCollector(hub))
     return registry

@@ -1,6 +1,8 @@
 """Fan-out of the per-tick status to GET /status and the WebSocket clients.
 
-The status is serialised once per tick, here; every reader gets the same bytes.
+The status is serialised once per tick, here, on the daemon's thread; every reader gets the same bytes.
+The subscribers live on the API's event loop (another thread): the bytes are handed to it, never waited
+on.
 
 Each client has a latest-value slot: publishing overwrites it (counting a drop if the client had not
 taken the previous value) and never waits. Each client's sender takes the slot when it is ready, so a
@@ -38,11 +40,13 @@ class Subscriber:
 
 class StreamHub:
     def __init__(self) -> None:
-        self.subscribers: set[Subscriber] = set()
+        self.subscribers: set[Subscriber] = set()  # touched on the API's loop only
         self.status: Status | None = None
         self.status_json = b"{}"
+        self._api_loop: asyncio.AbstractEventLoop | None = None
 
     def subscribe(self, min_interval_s: float) -> Subscriber:
+        self._api_loop = asyncio.get_running_loop()
         sub = Subscriber(min_interval_s)
         self.subscribers.add(sub)
         return sub
@@ -52,7 +56,20 @@ class StreamHub:
 
     def publish(self, status: Status) -> None:
         """Serialise the status (non-finite numbers as null) and offer it to every subscriber."""
-        self.status = status
-        self.status_json = data = status.model_dump_json().encode()
+        data = status.model_dump_json().encode()
+        self.status, self.status_json = status, data  # readers on other threads see one or the other
+        loop = self._api_loop
+        if loop is None or loop.is_closed():
+            return
+        try:
+            same = asyncio.get_running_loop() is loop
+        except RuntimeError:
+            same = False
+        if same:
+            self._offer(data)
+        else:
+            loop.call_soon_threadsafe(self._offer, data)
+
+    def _offer(self, data: bytes) -> None:
         for sub in self.subscribers:
             sub.offer(data)

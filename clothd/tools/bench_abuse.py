@@ -4,9 +4,10 @@ For each flood, `connections` sockets are held open to the API for `flood_s` sec
 daemon drops them (at most REOPEN_PER_S a second), all on loopback and all closed at the end:
 - slow-header: a request line and a header, then nothing (never the blank line);
 - slow-body: whole headers announcing a 1,000-byte JSON body, then one byte a second.
-Meanwhile POST /api/v1/estop is sent every 100 ms on a connection of its own (a fresh one each time,
-as an operator's click would): its round trip. Before and after: the daemon's missed ticks, and its open
-file descriptors and resident memory (from /proc), the latter again a few seconds after the flood.
+Meanwhile POST /api/v1/estop is sent every 100 ms, twice: on a fresh connection each time (the first
+click after a pause), and on one kept alive (a dashboard or HMI that stays connected): the round
+trips. Before and after: the daemon's missed ticks, and its open file descriptors and resident memory
+(from /proc), the latter again a few seconds after the flood.
 """
 
 from __future__ import annotations
@@ -107,25 +108,29 @@ class Flood:
                 s.close()
 
 
-def _estops(base: str, stop: threading.Event, rtts: list[float], failures: list[str]) -> None:
-    while not stop.is_set():
-        t0 = time.monotonic()
-        try:
-            r = httpx.post(f"{base}/api/v1/estop", timeout=2.0)
-            if r.status_code == 200:
-                rtts.append(time.monotonic() - t0)
-            else:
-                failures.append(str(r.status_code))
-        except httpx.HTTPError as err:
-            failures.append(type(err).__name__)
-        stop.wait(max(0.0, ESTOP_EVERY_S - (time.monotonic() - t0)))
+def _estops(base: str, stop: threading.Event, rtts: dict[str, list[float]], failures: list[str]) -> None:
+    with httpx.Client(base_url=base, timeout=2.0) as kept:
+        while not stop.is_set():
+            t0 = time.monotonic()
+            for how, post in (("fresh", httpx.post), ("kept", kept.post)):
+                url = "/api/v1/estop" if how == "kept" else f"{base}/api/v1/estop"
+                t = time.monotonic()
+                try:
+                    r = post(url, timeout=2.0)
+                    if r.status_code == 200:
+                        rtts[how].append(time.monotonic() - t)
+                    else:
+                        failures.append(f"{how} {r.status_code}")
+                except httpx.HTTPError as err:
+                    failures.append(f"{how} {type(err).__name__}")
+            stop.wait(max(0.0, ESTOP_EVERY_S - (time.monotonic() - t0)))
 
 
 def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float) -> dict[str, Any]:
     pid = d.proc.pid
     fds0, rss0 = _fds(pid), _rss_mb(pid)
     before = httpx.get(f"{d.base}/api/v1/status", timeout=5).json()["timing"]
-    rtts: list[float] = []
+    rtts: dict[str, list[float]] = {"fresh": [], "kept": []}
     failures: list[str] = []
     stop = threading.Event()
     prober = threading.Thread(target=_estops, args=(d.base, stop, rtts, failures), daemon=True)
@@ -139,15 +144,19 @@ def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float) -> 
     time.sleep(SETTLE_S)
     ticks = after["ticks"] - before["ticks"]
     missed = after["missed_ticks"] - before["missed_ticks"]
-    lat = np.asarray(rtts) * 1e3
-    return {
+    row: dict[str, Any] = {
         "flood": kind,
         "connections_held": n,
         "connections_opened": flood.opened,
-        "estop_answered": len(rtts),
         "estop_failed": len(failures),
-        "estop_p50_ms": float(np.median(lat)) if len(lat) else None,
-        "estop_p99_ms": float(np.percentile(lat, 99)) if len(lat) else None,
+    }
+    for how, seconds in rtts.items():
+        lat = np.asarray(seconds) * 1e3
+        row[f"estop_{how}_answered"] = len(lat)
+        row[f"estop_{how}_p50_ms"] = float(np.median(lat)) if len(lat) else None
+        row[f"estop_{how}_p99_ms"] = float(np.percentile(lat, 99)) if len(lat) else None
+    return {
+        **row,
         "missed_tick_pct": 100.0 * missed / max(ticks + missed, 1),
         "fds_before": fds0,
         "fds_during": fds_during,
@@ -177,18 +186,22 @@ def run_bench(connections: int = 1100, flood_s: float = 20.0) -> list[dict[str, 
         d.stop()
 
 
+def _ms(value: float | None) -> str:
+    return "n/a" if value is None else f"{value:.1f} ms"
+
+
 def format_rows(rows: list[dict[str, Any]]) -> str:
     out = ["clothd bench abuse (clothd run --sim; floods on loopback, bounded in count and time)"]
     for r in rows:
-        p99 = "n/a" if r["estop_p99_ms"] is None else f"{r['estop_p99_ms']:.1f} ms"
-        p50 = "n/a" if r["estop_p50_ms"] is None else f"{r['estop_p50_ms']:.1f} ms"
         held = f"{r['connections_held']} held ({r['connections_opened']} opened)"
-        answered = f"{r['estop_answered']} answered, {r['estop_failed']} failed"
-        estop = f"e-stop p50 {p50}, p99 {p99} (bar 100 ms), {answered}"
+        out.append(f"  {r['flood']:<11} {held}: missed ticks {r['missed_tick_pct']:.3f} % (bar 0.5 %)")
+        for how in ("fresh", "kept"):
+            p50, p99 = _ms(r[f"estop_{how}_p50_ms"]), _ms(r[f"estop_{how}_p99_ms"])
+            n = r[f"estop_{how}_answered"]
+            out.append(
+                f"  {'':<11} e-stop, {how} connection: p50 {p50}, p99 {p99} (bar 100 ms), {n} answered"
+            )
         fds = f"fds {r['fds_before']} -> {r['fds_during']} -> {r['fds_after']}"
         rss = f"RSS {r['rss_before_mb']:.1f} -> {r['rss_after_mb']:.1f} MB"
-        out.append(
-            f"  {r['flood']:<11} {held}: {estop}; missed ticks {r['missed_tick_pct']:.3f} % (bar 0.5 %)"
-        )
-        out.append(f"  {'':<11} {fds}; {rss}")
+        out.append(f"  {'':<11} {r['estop_failed']} e-stops failed; {fds}; {rss}")
     return "\n".join(out)
