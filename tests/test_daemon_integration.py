@@ -24,6 +24,8 @@ import numpy as np
 import pytest
 import websockets
 from live_cell import Cell, Daemon, serve_cell, start_daemon, wait
+from websockets.exceptions import InvalidStatus
+from websockets.typing import Origin
 
 pytestmark = pytest.mark.slow
 TICK_S = 1 / 30
@@ -124,6 +126,29 @@ def test_a_stalled_websocket_client_does_not_slow_the_loop(daemon: Daemon) -> No
     print(f"4 s with a stalled client: {ticks} ticks, {missed} missed, {received} messages to the reader")
     assert ticks >= 0.8 * 4.0 / TICK_S  # the loop kept its rate
     assert received >= 0.5 * ticks  # and the reader kept getting the status
+
+
+def test_the_running_daemon_refuses_foreign_pages_and_huge_bodies(daemon: Daemon) -> None:
+    """The guard in front of the real daemon: a cross-site "simple" request, a rebound host name, a
+    100 MB body (refused from its Content-Length, never read) and a foreign WebSocket; the loop goes on."""
+    api = f"{daemon.base}/api/v1"
+    ticks = daemon.status()["timing"]["ticks"]
+    evil = {"Origin": "http://evil.example", "Content-Type": "text/plain"}
+    assert httpx.post(f"{api}/estop/clear", headers=evil, content="x", timeout=5).status_code == 403
+    port = daemon.base.rsplit(":", 1)[1]
+    assert httpx.get(f"{api}/status", headers={"Host": f"evil.example:{port}"}, timeout=5).status_code == 421
+    huge = b"{" + b" " * 100_000_000 + b"}"
+    r = httpx.put(f"{api}/setpoint", content=huge, headers={"Content-Type": "application/json"}, timeout=30)
+    assert r.status_code == 413 and len(r.content) < 200
+
+    async def foreign_websocket() -> None:
+        url = daemon.base.replace("http", "ws") + "/api/v1/stream"
+        with pytest.raises(InvalidStatus):
+            async with websockets.connect(url, origin=Origin("http://evil.example")) as ws:
+                await ws.recv()
+
+    asyncio.run(foreign_websocket())
+    wait(lambda: daemon.status()["timing"]["ticks"] > ticks + 10, 5, "the loop going on")
 
 
 def test_unplugged_serial_and_video_are_survived(cell: Cell, daemon: Daemon) -> None:
