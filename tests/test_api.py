@@ -255,3 +255,19 @@ def test_a_taken_port_ends_the_start_at_once_and_clearly() -> None:
     assert done.returncode != 0
     assert f"127.0.0.1:{port}" in done.stderr and "--port" in done.stderr
     assert "hwsim" not in done.stdout  # nothing was started: no simulated cell, no compute
+
+
+def test_cors_only_for_configured_origins() -> None:
+    hmi = "http://hmi.plant.example"
+    parts = build(Config())
+    app = create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig(allowed_origins=(hmi,)))
+    c = TestClient(app, base_url=BASE)
+    preflight = {"Access-Control-Request-Method": "POST", "Access-Control-Request-Headers": "content-type"}
+    r = c.options("/api/v1/estop", headers={"Origin": hmi, **preflight})
+    assert r.status_code == 200 and r.headers["access-control-allow-origin"] == hmi
+    assert c.post("/api/v1/estop", headers={"Origin": hmi}).status_code == 200
+    r = c.options("/api/v1/estop", headers={"Origin": "http://evil.example", **preflight})
+    assert "access-control-allow-origin" not in r.headers
+    # Without the setting there is no CORS at all.
+    r = TestClient(_app(), base_url=BASE).options("/api/v1/estop", headers={"Origin": hmi, **preflight})
+    assert "access-control-allow-origin" not in r.headers

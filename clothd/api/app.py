@@ -17,6 +17,7 @@ import httpx
 import numpy as np
 from fastapi import APIRouter, FastAPI, Query, Request, WebSocket
 from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
@@ -82,7 +83,14 @@ def create_app(
     app = FastAPI(title="clothd", version="1", description="Real-time cloth tracking and control")
     c = api_cfg
     policy = GuardPolicy(c.port, c.allowed_hosts, c.allowed_origins, c.token, c.max_body_bytes)
-    app.add_middleware(RequestGuard, policy=policy)
+    if c.allowed_origins:  # no CORS unless configured: then only for those origins, and only what we use
+        app.add_middleware(
+            CORSMiddleware,
+            allow_origins=list(c.allowed_origins),
+            allow_methods=["GET", "PUT", "POST"],
+            allow_headers=["Authorization", "Content-Type"],
+        )
+    app.add_middleware(RequestGuard, policy=policy)  # added last, so it runs first
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, err: RequestValidationError) -> JSONResponse:
