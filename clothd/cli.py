@@ -17,11 +17,10 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    import logging
-
+    from clothd.logs import configure_logging
     from clothd.run import run
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    configure_logging()
     flags = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
     cfg = load_config(args.config, {"api": flags})
     return run(cfg, args.sim, args.record)

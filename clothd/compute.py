@@ -30,6 +30,7 @@ from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
 from clothd.drivers.ports import FrameSource, FrameSourceHealth
+from clothd.logs import configure_logging
 from clothd.recorder import Recorder, RecordingStatus
 from clothd.taichi_runtime import start_taichi
 from clothd.view import ViewRenderer
@@ -181,7 +182,7 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
     # (a terminal's Ctrl-C or systemd's stop reach the whole process group).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    configure_logging()
     start_taichi(spec.taichi_arch)
     cv2.setNumThreads(1)
     compute = Compute(spec, spec.frame_source())

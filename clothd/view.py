@@ -8,6 +8,7 @@ drawn in the compute process, only on ticks when someone watches, at `api.view_f
 from __future__ import annotations
 
 import math
+import time
 
 import cv2
 import numpy as np
@@ -42,8 +43,11 @@ def _crosses(img: np.ndarray, px: np.ndarray, colour: tuple[int, int, int]) -> N
     _segments(img, np.concatenate([p - d, p + d * [-1, 1]]), np.concatenate([p + d, p + d * [1, -1]]), colour)
 
 
-def draw_estimate(image: np.ndarray, est: Estimate, camera_model: CameraModel) -> np.ndarray:
-    """A copy of `image` (BGR) with the estimate drawn on, the mesh projected through camera_model."""
+def draw_estimate(
+    image: np.ndarray, est: Estimate, camera_model: CameraModel, when: str | None = None
+) -> np.ndarray:
+    """A copy of `image` (BGR) with the estimate drawn on, the mesh projected through camera_model.
+    `when` labels the frame's time (default: its time in the footage, seconds)."""
     img = image.copy()
     if est.nodes_m is not None:
         ny, nx = est.nodes_m.shape[:2]
@@ -55,9 +59,15 @@ def draw_estimate(image: np.ndarray, est: Estimate, camera_model: CameraModel) -
     _segments(img, est.meas_px[ok], est.pred_px[ok], YELLOW)
     _crosses(img, est.meas_px[ok], RED)
     _crosses(img, est.pred_px, GREEN)
-    label = f"t {est.frame_t_s:6.2f} s  {est.status}  features {len(est.feature_id)}"
+    label = f"{when or f't {est.frame_t_s:6.2f} s'}  {est.status}  features {len(est.feature_id)}"
     cv2.putText(img, label, (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
     return img
+
+
+def wall_clock_label(t_mono_s: float) -> str:
+    """A capture time on the host's monotonic clock as the wall-clock time an operator reads."""
+    t_unix_s = time.time() - (time.monotonic() - t_mono_s)
+    return time.strftime("%H:%M:%S", time.localtime(t_unix_s)) + f".{int(t_unix_s * 10) % 10}"
 
 
 class ViewRenderer:
@@ -66,7 +76,7 @@ class ViewRenderer:
 
     def render(self, image: np.ndarray, est: Estimate | None, setpoint: Setpoint) -> bytes | None:
         if est is not None and est.tracking:
-            img = draw_estimate(image, est, self.camera_model)
+            img = draw_estimate(image, est, self.camera_model, wall_clock_label(est.frame_t_s))
             self._arrow(img, est.pose)
         else:
             img = image.copy()

@@ -20,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import yaml
+from tqdm import tqdm
 
 from hwsim.camera import Camera
 from hwsim.paths import frame_path
@@ -90,7 +91,8 @@ def record(scenario: Scenario, out_dir: Path, arch: str = "cpu") -> RecordStats:
     physics_s = render_s = 0.0
     start = time.perf_counter()
     try:
-        for k in range(n):
+        # A progress bar on a terminal only (tqdm disables itself elsewhere: logs and CI stay quiet).
+        for k in tqdm(range(n), desc=f"recording {scenario.name}", unit="frame", disable=None, leave=False):
             t0 = time.perf_counter()
             image, visible[k] = render_frame(world, renderer)
             sink.write(k, to_sensor_bgr8(image, scenario.noise.sigma, rng))

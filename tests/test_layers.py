@@ -28,6 +28,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "clothd.status",
             "clothd.loop_stats",
             "clothd.notify",
+            "clothd.logs",
         ),
     ),
     ("tools", ("clothd.tools",)),

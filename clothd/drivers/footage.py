@@ -43,6 +43,11 @@ class Footage:
     _images: tuple[Path, ...] | None  # None for a video
     _times_s: tuple[float, ...] | None = None  # a live recording's capture times (frames.csv)
 
+    @property
+    def frame_count(self) -> int | None:
+        """How many frames, where that is known without decoding (image sequences)."""
+        return None if self._images is None else len(self._images)
+
     def _t(self, k: int) -> float:
         return self._times_s[k] if self._times_s is not None else k / self.fps
 

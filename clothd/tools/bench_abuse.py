@@ -23,6 +23,7 @@ from typing import Any
 
 import httpx
 import numpy as np
+from tqdm import tqdm
 
 from clothd.tools.bench_loop import DaemonProcess, free_port
 
@@ -179,7 +180,8 @@ def run_bench(connections: int = 1100, flood_s: float = 20.0) -> list[dict[str, 
                 raise RuntimeError("the daemon did not start tracking")
             time.sleep(0.2)
         time.sleep(2.0)
-        rows = [_measure(d, port, kind, connections, flood_s) for kind in FLOODS]
+        floods = tqdm(FLOODS, desc="floods", disable=None, leave=False)
+        rows = [_measure(d, port, kind, connections, flood_s) for kind in floods]
         httpx.post(f"{d.base}/api/v1/estop/clear", timeout=5)
         return rows
     finally:

@@ -110,7 +110,7 @@ def _node_errors_mm(truth: Truth, ests: list[Estimate]) -> np.ndarray | None:
 
 def grade(recording: Path, scenario: str, mode: str, cfg: TrackerConfig) -> Graded:
     truth = Truth.load(recording)
-    run = OfflineTracking(recording, cfg, read_ahead=False)
+    run = OfflineTracking(recording, cfg, read_ahead=False, progress=f"{scenario}: {mode}")
     start = time.perf_counter()
     ests = [est for _, _, est in run]
     wall = time.perf_counter() - start

@@ -23,6 +23,7 @@ from typing import Any
 
 import httpx
 import yaml
+from tqdm import tqdm
 
 from clothd.tools.bench_loop import free_port
 from clothd.tools.pty_relay import PtyRelay
@@ -187,6 +188,7 @@ def run_bench(resets: int = 500) -> dict[str, Any]:
             def flag(name: str, value: bool) -> Callable[[], None]:
                 return lambda: setattr(relay, name, value)
 
+            print("injecting faults ...", flush=True)
             rows = [
                 _fault(
                     cell,
@@ -219,7 +221,7 @@ def _resets(cell: Cell, n: int) -> dict[str, Any]:
     pid = cell.compute_pid()
     before = cell.status()["timing"]
     rss: dict[str, float] = {}
-    for k in range(1, n + 1):
+    for k in tqdm(range(1, n + 1), desc="resets", disable=None, leave=False):
         cell.post(f"{cell.api}/reset")
         time.sleep(1.0 / RESET_RATE_HZ)
         if k == 10:

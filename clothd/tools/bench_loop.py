@@ -30,6 +30,7 @@ from typing import Any
 import httpx
 import numpy as np
 import websockets
+from tqdm import tqdm
 
 POS_TOL_M = 0.005
 ANGLE_TOL_RAD = math.radians(1.0)
@@ -282,10 +283,15 @@ async def _bench(config: Path | None, run_s: float, load_s: float, hold_s: float
             await _wait_tracking(client, d.base)
             await asyncio.sleep(2.0)  # let the first ticks' start-up pass
             result: dict[str, Any] = {}
-            result.update(await measure_settle(client, d, hold_s, timeout_s=20.0))
-            result.update(await measure_estop(client, d))
-            result.update(await measure_run(client, d.base, run_s))
-            result.update(await measure_load(client, d.base, load_s))
+            with tqdm(total=4, desc="settle, e-stop, run, load", disable=None, leave=False) as bar:
+                result.update(await measure_settle(client, d, hold_s, timeout_s=20.0))
+                bar.update()
+                result.update(await measure_estop(client, d))
+                bar.update()
+                result.update(await measure_run(client, d.base, run_s))
+                bar.update()
+                result.update(await measure_load(client, d.base, load_s))
+                bar.update()
             return result
     finally:
         d.stop()

@@ -49,7 +49,10 @@ def clothd_rows(recording: Path, budget: int, mesh: tuple[int, int], frames: int
     )
     timings: dict[str, list[float]] = {s: [] for s in STAGES}
     counts = []
-    for k, (_, _, est) in enumerate(OfflineTracking(recording, cfg, read_ahead=False)):
+    run = OfflineTracking(
+        recording, cfg, read_ahead=False, progress=f"{budget} features, {mesh[0]}x{mesh[1]}"
+    )
+    for k, (_, _, est) in enumerate(run):
         if k > WARMUP_TICKS:
             counts.append(len(est.feature_id))
             for s in STAGES:

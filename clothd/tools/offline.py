@@ -10,6 +10,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from clothd.config import TrackerConfig
 from clothd.core.camera_model import CameraModel
@@ -26,7 +27,8 @@ class OfflineTracking:
 
     camera_json / commands_csv override the recording's own; without any camera.json the camera is ideal
     (tracker.camera in the config) at the footage's image size. read_ahead decodes frames on a second
-    thread (benchmarks that time the tracker's stages turn it off, to keep a core to the tracker)."""
+    thread (benchmarks that time the tracker's stages turn it off, to keep a core to the tracker).
+    progress: a label for a progress bar, shown on a terminal only."""
 
     def __init__(
         self,
@@ -37,7 +39,9 @@ class OfflineTracking:
         roi: str = "auto",
         read_ahead: bool = True,
         clock: Clock = time.perf_counter,
+        progress: str | None = None,
     ) -> None:
+        self.progress = progress
         self.footage = open_footage(source)
         self._frames = self.footage.frames(read_ahead=read_ahead)
         try:
@@ -60,6 +64,10 @@ class OfflineTracking:
         return CameraModel.ideal(w, h, cfg.camera.f_px, cfg.camera.distance_m)
 
     def __iter__(self) -> Iterator[tuple[float, np.ndarray, Estimate]]:
-        for t_s, image in itertools.chain([self._first], self._frames):
+        frames = itertools.chain([self._first], self._frames)
+        if self.progress is not None:  # a bar on a terminal only: tqdm is silent elsewhere
+            total = self.footage.frame_count
+            frames = tqdm(frames, desc=self.progress, total=total, unit="frame", disable=None, leave=False)
+        for t_s, image in frames:
             commands = self.schedule.at(t_s) if self.schedule else None
             yield t_s, image, self.tracker.step(image, t_s, commands)

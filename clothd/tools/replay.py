@@ -61,7 +61,7 @@ def replay(
     commands_csv: Path | None = None,
     write_video: bool = True,
 ) -> ReplayResult:
-    run = OfflineTracking(source, cfg, camera_json, commands_csv, roi)
+    run = OfflineTracking(source, cfg, camera_json, commands_csv, roi, progress=f"replaying {source.name}")
     fps = run.footage.fps
     out_dir.mkdir(parents=True, exist_ok=True)
     video = None

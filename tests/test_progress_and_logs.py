@@ -1,0 +1,78 @@
+"""Long commands show progress on a terminal and nothing elsewhere; the daemon's logs suit journald."""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import pty
+import struct
+import subprocess
+import sys
+import termios
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from clothd.view import wall_clock_label
+
+Recorder = Callable[[str], Path]
+
+
+def _replay(rec: Path, out: Path, on_terminal: bool) -> str:
+    cmd = [sys.executable, "-m", "clothd.cli", "replay", str(rec), "--out", str(out), "--model", "none"]
+    if not on_terminal:
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        assert done.returncode == 0, done.stderr
+        return done.stderr
+    main, child = pty.openpty()
+    fcntl.ioctl(child, termios.TIOCSWINSZ, struct.pack("HHHH", 30, 100, 0, 0))  # a terminal has a size
+    proc = subprocess.Popen(cmd, stdout=child, stderr=child, stdin=subprocess.DEVNULL)
+    os.close(child)
+    output = b""
+    while True:
+        try:
+            chunk = os.read(main, 4096)
+        except OSError:  # the child closed the terminal
+            break
+        if not chunk:
+            break
+        output += chunk
+    os.close(main)
+    assert proc.wait(timeout=300) == 0
+    return output.decode(errors="replace")
+
+
+def test_replay_shows_progress_on_a_terminal_only(short_recording: Recorder, tmp_path: Path) -> None:
+    rec = short_recording("translate")
+    on_terminal = _replay(rec, tmp_path / "tty", on_terminal=True)
+    assert f"replaying {rec.name}" in on_terminal
+    assert "frame/s" in on_terminal or "s/frame" in on_terminal
+    piped = _replay(rec, tmp_path / "pipe", on_terminal=False)
+    assert "frame/s" not in piped and "replaying" not in piped
+
+
+def _log_lines(env: dict[str, str]) -> list[str]:
+    code = (
+        "import logging\n"
+        "from clothd.logs import configure_logging\n"
+        "configure_logging()\n"
+        "logging.getLogger('clothd.daemon').warning('tick overran')\n"
+        "logging.getLogger('httpx').info('HTTP Request: GET /truth 200')\n"
+        "logging.getLogger('uvicorn.access').info('127.0.0.1 GET /api/v1/status 200')\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
+    return done.stderr.splitlines()
+
+
+def test_logs_leave_time_stamps_to_journald_and_skip_per_request_lines() -> None:
+    base = {k: v for k, v in os.environ.items() if k != "JOURNAL_STREAM"}
+    assert _log_lines({**base, "JOURNAL_STREAM": "8:1234"}) == ["WARNING clothd.daemon: tick overran"]
+    on_a_terminal = _log_lines(base)
+    assert len(on_a_terminal) == 1 and on_a_terminal[0].endswith("WARNING clothd.daemon: tick overran")
+    assert on_a_terminal[0][:4].isdigit()  # a time stamp of our own first
+
+
+def test_the_live_view_labels_frames_with_the_wall_clock() -> None:
+    label = wall_clock_label(time.monotonic() - 2.0)
+    expected = time.strftime("%H:%M:%S", time.localtime(time.time() - 2.0))
+    assert label.startswith(expected[:5]) and len(label) == len("12:34:56.7")
