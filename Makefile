@@ -1,19 +1,38 @@
-# Two commands: `make run` and `make test`. Each creates .venv if it is missing and installs the
-# project into it; re-running is quick because the install is stamped on pyproject.toml.
+# Two commands: `make run` and `make test`. Each creates .venv if it is missing and installs exactly the
+# locked dependency set (requirements.lock, hashes checked) into it; re-running is quick because the
+# install is stamped on pyproject.toml and the lock. `make lock` re-resolves after pyproject.toml changes.
 PYTHON ?= $(shell command -v python3.11 || command -v python3.12 || command -v python3)
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
+LOCK := requirements.lock
+UV_VERSION := $(shell sed -n 's/^uv==\([^ ]*\).*/\1/p' $(LOCK))
+COMPILE = $(BIN)/uv pip compile --quiet pyproject.toml --extra dev --universal --generate-hashes \
+	--python-version 3.11
 
-.PHONY: run test lint venv clean browser
+.PHONY: run test lint lock lock-check venv clean browser
 
 venv: $(STAMP)
 
-$(STAMP): pyproject.toml
+# uv is bootstrapped from PyPI with pip, at the version the lock names; then the venv is made exactly the
+# lock (uv is in it, so it stays), and clothd itself is installed editable on top, without dependencies.
+$(STAMP): pyproject.toml $(LOCK)
 	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	@test -x $(BIN)/uv || $(BIN)/python -m pip install --quiet "uv==$(UV_VERSION)"
+	$(BIN)/uv pip sync --quiet --python $(BIN)/python $(LOCK)
+	$(BIN)/uv pip install --quiet --python $(BIN)/python --no-deps -e .
 	@touch $(STAMP)
+
+lock: $(STAMP)
+	$(COMPILE) -o $(LOCK)
+
+# Fails when pyproject.toml asks for something the lock does not hold (the lock's pins are kept as
+# preferences, so a new release elsewhere does not count as out of date).
+lock-check: $(STAMP)
+	@cp $(LOCK) $(VENV)/lock-check.txt
+	@$(COMPILE) -o $(VENV)/lock-check.txt
+	@diff -q -I '^#' $(LOCK) $(VENV)/lock-check.txt >/dev/null || \
+	  { echo "$(LOCK) is out of date with pyproject.toml: run make lock"; exit 1; }
 
 # The main job: the daemon against the simulated cell (hwsim serve as its child), API on loopback.
 run: $(STAMP)
@@ -29,7 +48,7 @@ browser:
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; \
 	  else echo "make test: the browser tests need Debian's chromium: sudo apt-get install chromium"; exit 1; fi; }
 
-test: lint browser
+test: lock-check lint browser
 	$(BIN)/pytest -q
 
 clean:
