@@ -41,7 +41,9 @@ def sim() -> Iterator[Sim]:
     try:
         d.wait_ready()
         s = Sim(d)
-        wait(lambda: s.status()["state"] == "tracking", 60, "tracking")
+        # Moves need the cloth tracked and the link up (docs/state-machine.md).
+        ready = ("tracking", "connected")
+        wait(lambda: (s.status()["state"], s.status()["link"]["state"]) == ready, 60, "tracking, link up")
         yield s
     finally:
         d.stop()
@@ -162,7 +164,9 @@ def test_a_daemon_with_a_token_gets_one_from_the_page(
     try:
         d.wait_ready()
         s = Sim(d)
-        wait(lambda: s.status()["state"] == "tracking", 60, "tracking")
+        # Moves need the cloth tracked and the link up (docs/state-machine.md).
+        ready = ("tracking", "connected")
+        wait(lambda: (s.status()["state"], s.status()["link"]["state"]) == ready, 60, "tracking, link up")
         pg = browser.new_page(viewport={"width": 1280, "height": 720})
         pg.goto(s.base + "/")
         pg.click("#reset")
