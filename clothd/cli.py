@@ -60,6 +60,15 @@ def _cmd_bench_abuse(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_export(args: argparse.Namespace) -> int:
+    from clothd.tools.export import export_mcap
+
+    counts = export_mcap(args.recording, args.mcap, args.estimates)
+    listed = ", ".join(f"{topic} {n}" for topic, n in counts.messages.items())
+    print(f"exported {counts.frames} frames to {args.mcap}: {listed}")
+    return 0
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from clothd.taichi_runtime import start_taichi
     from clothd.tools.replay import replay
@@ -156,6 +165,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--commands", type=Path, help="commands.csv (default: the recording's)")
     r.add_argument("--config", type=Path)
     r.set_defaults(func=_cmd_replay)
+    e = sub.add_parser("export", help="a recording as MCAP for Foxglove")
+    e.add_argument("recording", type=Path, help="a recording directory (clothd run --record, hwsim record)")
+    e.add_argument("--mcap", type=Path, required=True, help="the MCAP file to write")
+    e.add_argument("--estimates", type=Path, help="estimates.npz (default: the recording's own)")
+    e.set_defaults(func=_cmd_export)
     b = sub.add_parser("bench", help="benchmarks against hwsim")
     bsub = b.add_subparsers(dest="bench", required=True)
     bs = bsub.add_parser("speed", help="per-stage tick time by feature count and mesh size, beside filterpy")
