@@ -123,15 +123,26 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
     import json
 
     from clothd.taichi_runtime import start_taichi
-    from clothd.tools.bench_speed import format_rows, rows_json, run_speed
+    from clothd.tools.bench_speed import DEFAULT_BUDGETS, DEFAULT_MESHES, format_rows, rows_json, run_speed
     from clothd.tools.recordings import scenario_recording
 
     start_taichi(load_config(args.config).taichi.arch)
-    rows = run_speed(scenario_recording(args.cache, "translate"), frames=args.frames)
+    recording = scenario_recording(args.cache, "translate")
+    budgets = tuple(args.features) if args.features else DEFAULT_BUDGETS
+    meshes = tuple(args.mesh) if args.mesh else DEFAULT_MESHES
+    rows = run_speed(recording, budgets, meshes, frames=args.frames)
     print(format_rows(rows))
     if args.json:
         args.json.write_text(json.dumps(rows_json(rows), indent=1) + "\n")
     return 0
+
+
+def _mesh_size(text: str) -> tuple[int, int]:
+    """'32x24' -> (32, 24), for --mesh."""
+    nx, sep, ny = text.lower().partition("x")
+    if not (sep and nx.isdigit() and ny.isdigit() and 2 <= int(nx) <= 64 and 2 <= int(ny) <= 64):
+        raise argparse.ArgumentTypeError(f"{text!r}: a mesh is NXxNY, each 2..64 (e.g. 32x24)")
+    return int(nx), int(ny)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -174,6 +185,12 @@ def build_parser() -> argparse.ArgumentParser:
     bsub = b.add_subparsers(dest="bench", required=True)
     bs = bsub.add_parser("speed", help="per-stage tick time by feature count and mesh size, beside filterpy")
     bs.add_argument("--frames", type=int, default=60, help="ticks per configuration")
+    bs.add_argument(
+        "--features", type=int, nargs="+", action="extend", metavar="N", help="feature budgets (repeatable)"
+    )
+    bs.add_argument(
+        "--mesh", type=_mesh_size, nargs="+", action="extend", metavar="NXxNY", help="mesh sizes (repeatable)"
+    )
     bs.add_argument(
         "--cache", type=Path, default=Path("out/bench"), help="where shipped scenarios are recorded"
     )

@@ -113,10 +113,14 @@ def filterpy_rows(budget: int, mesh: tuple[int, int], repeats: int = 3) -> list[
     ]
 
 
+DEFAULT_BUDGETS = (100, 300, 1000)
+DEFAULT_MESHES = ((6, 6), (9, 9), (12, 12), (16, 16), (20, 20))
+
+
 def run_speed(
     recording: Path,
-    budgets: tuple[int, ...] = (100, 300, 1000),
-    meshes: tuple[tuple[int, int], ...] = ((6, 6), (9, 9), (12, 12), (16, 16), (20, 20)),
+    budgets: tuple[int, ...] = DEFAULT_BUDGETS,
+    meshes: tuple[tuple[int, int], ...] = DEFAULT_MESHES,
     frames: int = 60,
 ) -> list[Row]:
     rows: list[Row] = []
