@@ -239,7 +239,8 @@ def test_moves_are_refused_unless_tracked_linked_clear_and_on_the_table() -> Non
         compute.state = "tracking"
         await _ticks(daemon, 3)
         _move(daemon)
-        assert daemon.setpoint == Setpoint("move", daemon.setpoint.pose) and daemon.setpoint.mode == "move"
+        assert daemon.setpoint.mode == "move" and daemon.setpoint.pose is not None
+        np.testing.assert_array_equal(daemon.setpoint.pose, [0.05, 0.0, 0.0])
 
     _run(scenario)
 

@@ -5,7 +5,6 @@ resets here would have grown it by some 110 MB. `clothd bench faults` measures t
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from pathlib import Path
 
@@ -14,14 +13,10 @@ from recorded_frames import compute_on
 from clothd.compute import TickRequest
 from clothd.core.control import Setpoint
 from clothd.core.messages import ModuleCommands
+from clothd.tools.procfs import rss_mb
 
 RESETS = 60
 ALLOWED_GROWTH_MB = 20.0
-
-
-def _rss_mb() -> float:
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
 def test_resets_do_not_grow_the_compute(short_recording: Callable[[str], Path]) -> None:
@@ -34,7 +29,7 @@ def test_resets_do_not_grow_the_compute(short_recording: Callable[[str], Path]) 
         reply = compute.tick(TickRequest(idle, stopped, reset=False, want_view=False))  # tracks
         assert reply.estimate is not None and reply.estimate.tracking and reply.estimate.nodes_m is not None
         if k in (10, RESETS):
-            rss[k] = _rss_mb()
+            rss[k] = rss_mb()
     growth = rss[RESETS] - rss[10]
     print(f"RSS after 10 resets {rss[10]:.1f} MB, after {RESETS} {rss[RESETS]:.1f} MB (+{growth:.1f} MB)")
     assert growth < ALLOWED_GROWTH_MB

@@ -13,12 +13,10 @@ trips. Before and after: the daemon's missed ticks, and its open file descriptor
 from __future__ import annotations
 
 import contextlib
-import os
 import resource
 import socket
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 import httpx
@@ -26,6 +24,7 @@ import numpy as np
 from tqdm import tqdm
 
 from clothd.tools.bench_loop import DaemonProcess, free_port
+from clothd.tools.procfs import open_fds, rss_mb
 
 REOPEN_PER_S = 500.0
 ESTOP_EVERY_S = 0.1
@@ -37,14 +36,6 @@ FLOODS = {
         b"Content-Length: 1000\r\n\r\n{"
     ),
 }
-
-
-def _fds(pid: int) -> int:
-    return len(os.listdir(f"/proc/{pid}/fd"))
-
-
-def _rss_mb(pid: int) -> float:
-    return int(Path(f"/proc/{pid}/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 1e6
 
 
 class Flood:
@@ -129,7 +120,7 @@ def _estops(base: str, stop: threading.Event, rtts: dict[str, list[float]], fail
 
 def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float) -> dict[str, Any]:
     pid = d.proc.pid
-    fds0, rss0 = _fds(pid), _rss_mb(pid)
+    fds0, rss0 = open_fds(pid), rss_mb(pid)
     before = httpx.get(f"{d.base}/api/v1/status", timeout=5).json()["timing"]
     rtts: dict[str, list[float]] = {"fresh": [], "kept": []}
     failures: list[str] = []
@@ -138,7 +129,7 @@ def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float) -> 
     with Flood(port, FLOODS[kind], n) as flood:
         prober.start()
         time.sleep(flood_s)
-        fds_during = _fds(pid)
+        fds_during = open_fds(pid)
         stop.set()
         prober.join(timeout=10)
     after = httpx.get(f"{d.base}/api/v1/status", timeout=10).json()["timing"]
@@ -161,9 +152,9 @@ def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float) -> 
         "missed_tick_pct": 100.0 * missed / max(ticks + missed, 1),
         "fds_before": fds0,
         "fds_during": fds_during,
-        "fds_after": _fds(pid),
+        "fds_after": open_fds(pid),
         "rss_before_mb": rss0,
-        "rss_after_mb": _rss_mb(pid),
+        "rss_after_mb": rss_mb(pid),
     }
 
 

@@ -11,7 +11,6 @@ all of them is read from /proc.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -26,6 +25,7 @@ import yaml
 from tqdm import tqdm
 
 from clothd.tools.bench_loop import free_port
+from clothd.tools.procfs import rss_mb
 from clothd.tools.pty_relay import PtyRelay
 
 POLL_S = 0.005
@@ -130,11 +130,6 @@ def _until(check: Callable[[], bool], timeout_s: float, what: str) -> float:
     return time.monotonic() - t0
 
 
-def _rss_mb(pid: int) -> float:
-    pages = int(Path(f"/proc/{pid}/statm").read_text().split()[1])
-    return pages * os.sysconf("SC_PAGE_SIZE") / 1e6
-
-
 def _reported(s: dict[str, Any]) -> str | None:
     if s["estop"]:
         return "estop latched"
@@ -225,9 +220,9 @@ def _resets(cell: Cell, n: int) -> dict[str, Any]:
         cell.post(f"{cell.api}/reset")
         time.sleep(1.0 / RESET_RATE_HZ)
         if k == 10:
-            rss["after_10_mb"] = _rss_mb(pid)
+            rss["after_10_mb"] = rss_mb(pid)
     time.sleep(1.0)
-    rss[f"after_{n}_mb"] = _rss_mb(pid)
+    rss[f"after_{n}_mb"] = rss_mb(pid)
     after = cell.status()["timing"]
     compute = after["stages"].get("compute", {})
     return {
