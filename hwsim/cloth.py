@@ -30,6 +30,7 @@ import numpy as np
 import taichi as ti
 
 from hwsim.belt_geometry import belt_at, belt_hit
+from hwsim.ridges import lay_ridges
 from hwsim.scenario import ClothSpec, Pose, TableSpec
 
 GRAVITY_M_S2 = 9.81
@@ -67,21 +68,13 @@ class ClothGrid:
 
     def placed(self, pose: Pose) -> np.ndarray:
         """World positions (ny, nx, 3) of the cloth with its centre at (x, y), rotated by theta: flat, or
-        with the pose's hump, which keeps every row's arc length."""
-        s_m = np.arange(self.nx) * self.dx_m - (self.nx - 1) * self.dx_m / 2.0
-        z_m = np.zeros(self.nx)
-        if pose.hump is not None:
-            z_m = pose.hump.height_m * np.exp(-0.5 * (s_m / pose.hump.sigma_m) ** 2)
-            # Re-integrate x along the row so each edge keeps its length: dx = sqrt(ds² - dz²).
-            dx = np.sqrt(np.clip(self.dx_m**2 - np.diff(z_m) ** 2, 0.0, None))
-            s_m = np.concatenate([[0.0], np.cumsum(dx)])
-            s_m -= s_m[-1] / 2.0
-        t_m = np.arange(self.ny) * self.dy_m - (self.ny - 1) * self.dy_m / 2.0
-        sx, ty = np.meshgrid(s_m, t_m)
+        with the pose's ridges laid in (hwsim/ridges.py), which keeps the sheet's lengths."""
+        centre = np.array([(self.nx - 1) * self.dx_m, (self.ny - 1) * self.dy_m]) / 2.0
+        xy, z = lay_ridges(self.st_m - centre, pose.ridges)
         c, s = np.cos(pose.theta_rad), np.sin(pose.theta_rad)
-        x = c * sx - s * ty + pose.x_m
-        y = s * sx + c * ty + pose.y_m
-        return np.stack([x, y, np.broadcast_to(z_m, x.shape)], axis=-1)
+        x = c * xy[..., 0] - s * xy[..., 1] + pose.x_m
+        y = s * xy[..., 0] + c * xy[..., 1] + pose.y_m
+        return np.stack([x, y, z], axis=-1)
 
     def node_masses_kg(self, areal_density_kg_m2: float) -> np.ndarray:
         """Lumped masses (ny, nx): each node carries the area of the cell quarters around it."""

@@ -110,19 +110,33 @@ class LightSpec(_Strict):
     ambient: float = Field(0.35, ge=0, le=1)
 
 
-class Hump(_Strict):
-    """A smooth ridge of slack across the cloth's middle, parallel to its short side (the t axis), as a
-    hand-laid cloth has. The sheet keeps its material length: the ridge draws the two halves inward."""
+class Ridge(_Strict):
+    """A ridge of slack laid into the cloth along a straight line, as a hand-laid cloth has: a Gaussian
+    profile across the line. The sheet keeps its material length, so the cloth on either side is drawn
+    towards the ridge. Where two ridges cross, their heights add."""
 
-    height_m: float = Field(gt=0, le=0.05)
-    sigma_m: float = Field(0.012, gt=0.002, le=0.2, description="Gaussian width of the ridge")
+    height_m: float = Field(gt=0, le=0.05, description="height of the profile as laid, before it settles")
+    sigma_m: float = Field(0.012, gt=0.002, le=0.2, description="Gaussian width of the profile")
+    at_m: tuple[float, float] = Field(
+        (0.0, 0.0), description="a point of the ridge line: cloth frame (s, t), metres from its centre"
+    )
+    direction_rad: float = Field(
+        math.pi / 2, ge=-2 * math.pi, le=2 * math.pi, description="line direction, from the s axis"
+    )
+
+    @model_validator(mode="after")
+    def _not_overhanging(self) -> Ridge:
+        # The profile's steepest slope is 0.61 height/sigma; a sheet cannot rise steeper than vertical.
+        if self.sigma_m < 0.65 * self.height_m:
+            raise ValueError(f"sigma_m ({self.sigma_m}) must be at least 0.65 x height_m: it would overhang")
+        return self
 
 
 class Pose(_Strict):
     x_m: float = Field(0.0, ge=-5, le=5)
     y_m: float = Field(0.0, ge=-5, le=5)
     theta_rad: float = Field(0.0, ge=-2 * math.pi, le=2 * math.pi)
-    hump: Hump | None = None
+    ridges: list[Ridge] = Field([], max_length=8)
 
 
 class ModuleSelector(_Strict):
