@@ -26,6 +26,7 @@ from clothd.config import CellConfig, ControlConfig, TrackerConfig
 from clothd.core.camera_model import CameraModel
 from clothd.core.control import PoseController, Setpoint
 from clothd.core.conveyor import ConveyorLayout
+from clothd.core.flatness import Flatness, FlatnessMonitor
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
@@ -60,6 +61,7 @@ class TickReply:
     view_jpeg: bytes | None = None
     recording: RecordingStatus | None = None
     halt_reason: str | None = None  # the commands stopped the modules for a fault of this tick
+    flatness: Flatness | None = None  # of this tick's estimate, when it has a mesh and tracks
 
 
 @dataclass(frozen=True)
@@ -89,6 +91,7 @@ class Compute:
         self.tracker = Tracker(spec.tracker, spec.camera_model, spec.layout, clock=time.perf_counter)
         self.controller = PoseController(spec.control, spec.cell, spec.layout.centres_m)
         self.view = ViewRenderer(spec.camera_model)
+        self.flatness = FlatnessMonitor(spec.control.flatness)
         self._estimate: Estimate | None = None
         self._last_frame_index = -1
 
@@ -116,6 +119,7 @@ class Compute:
         if req.reset:
             self.tracker.reset()
             self.controller.reset()
+            self.flatness.reset()
             self._estimate = None
         self._record_requests(req)
         frame = self.frames.latest()
@@ -133,6 +137,7 @@ class Compute:
                 self.recorder.add(frame.image, frame.t_mono_s, req.commands_in_force, est)
                 timing["record"] = time.perf_counter() - t_rec
         t1 = time.perf_counter()
+        flatness = self._flatness(est)
         state, commands, halt = self._control(frame is not None, est, req.setpoint)
         timing["control"] = time.perf_counter() - t1
         timing["compute"] = time.perf_counter() - t0
@@ -142,8 +147,23 @@ class Compute:
         frame_t = frame.t_mono_s if frame is not None else None
         recording = None if self.recorder is None else self.recorder.status()
         return TickReply(
-            state, est, commands, new_frame, frame_t, self.frames.health(), timing, jpeg, recording, halt
+            state,
+            est,
+            commands,
+            new_frame,
+            frame_t,
+            self.frames.health(),
+            timing,
+            jpeg,
+            recording,
+            halt,
+            flatness,
         )
+
+    def _flatness(self, est: Estimate | None) -> Flatness | None:
+        if est is None or not est.tracking or est.nodes_m is None or est.cloth_size_m is None:
+            return None
+        return self.flatness.update(est.nodes_m, est.cloth_size_m)
 
     def _record_requests(self, req: TickRequest) -> None:
         if req.record_stop and self.recorder is not None:

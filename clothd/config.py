@@ -198,6 +198,17 @@ class CellConfig(_Strict):
     )
 
 
+class FlatnessConfig(_Strict):
+    """When the estimate counts as flat (core/flatness.py): it turns flat below both bars and unflat only
+    past twice either."""
+
+    compressed_strain: float = Field(
+        0.05, gt=0, lt=1, description="a mesh quad this much smaller on the table than at rest holds slack"
+    )
+    flat_height_m: float = Field(0.001, gt=0, le=0.1, description="estimated height of the highest node")
+    flat_compressed_pct: float = Field(1.0, ge=0, le=100, description="share of the quads holding slack")
+
+
 class ControlConfig(_Strict):
     """Moves to a setpoint: the cloth's planned velocity is limited in speed and acceleration, and
     approaches the target as gain x error near it."""
@@ -210,6 +221,7 @@ class ControlConfig(_Strict):
     under_cloth_margin_m: float = Field(
         0.0, ge=-0.1, le=0.2, description="a module is under the cloth when its centre is this far inside"
     )
+    flatness: FlatnessConfig = FlatnessConfig()
 
 
 class ApiConfig(_Strict):

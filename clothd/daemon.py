@@ -313,6 +313,7 @@ class Daemon:
             setpoint=self.setpoint,
             halt_reason=self.halt_reason,
             estimate=self.latest.estimate if self.latest else None,
+            flatness=self.latest.flatness if self.latest else None,
             timing=self.stats.cached_summary(),
             camera=self.camera,
             camera_source=s.camera_source,

@@ -14,6 +14,7 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from clothd.core.control import Setpoint
+from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
 from clothd.recorder import RecordingStatus
@@ -109,6 +110,39 @@ class Recording(BaseModel):
     stopped_reason: str | None = Field(description="why it stopped: a request, the size limit, a full disk")
 
 
+class RidgeState(BaseModel):
+    x_m: float = Field(description="world position of its highest node")
+    y_m: float
+    direction_rad: float = Field(description="the direction its line runs in, world, [0, π)")
+    height_mm: float
+    area_m2: float = Field(description="rest area of the compressed quads it covers")
+
+
+class FlatnessState(BaseModel):
+    max_height_mm: float = Field(description="the highest node of the estimate")
+    compressed_area_pct: float = Field(description="share of the mesh quads that hold slack")
+    flat: bool = Field(description="with hysteresis: on below control.flatness's bars, off past twice them")
+    ridges: list[RidgeState] = Field(description="highest first")
+
+    @classmethod
+    def of(cls, f: Flatness) -> FlatnessState:
+        return cls(
+            max_height_mm=f.max_height_m * 1e3,
+            compressed_area_pct=f.compressed_area_pct,
+            flat=f.flat,
+            ridges=[
+                RidgeState(
+                    x_m=r.position_m[0],
+                    y_m=r.position_m[1],
+                    direction_rad=r.direction_rad,
+                    height_mm=r.height_m * 1e3,
+                    area_m2=r.area_m2,
+                )
+                for r in f.ridges
+            ],
+        )
+
+
 class Status(BaseModel):
     t_unix_s: float
     state: str = Field(description="starting | tracking | tracking_lost | camera_lost | fault")
@@ -120,6 +154,7 @@ class Status(BaseModel):
     estop: bool
     pose: PoseWithCovariance | None
     mesh: Mesh | None
+    flatness: FlatnessState | None = Field(description="of the mesh estimate; null without one")
     features: int = Field(description="features measured and accepted in the last frame")
     rejected_features: int = Field(description="rejected by the filter's gate in the last frame")
     residual: Residual
@@ -136,6 +171,7 @@ def build_status(
     setpoint: Setpoint,
     halt_reason: str | None,
     estimate: Estimate | None,
+    flatness: Flatness | None,
     timing: dict[str, object],
     camera: FrameSourceHealth,
     camera_source: str,
@@ -169,6 +205,7 @@ def build_status(
         estop=link.estopped,
         pose=pose,
         mesh=mesh,
+        flatness=None if est is None or flatness is None else FlatnessState.of(flatness),
         features=features,
         rejected_features=rejected,
         residual=residual,

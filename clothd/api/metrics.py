@@ -61,6 +61,22 @@ class StatusCollector(Collector):
                 f"clothd_link_{name}", f"Stepper link frames/events: {name}", value=getattr(c, name)
             )
         yield GaugeMetricFamily("clothd_features", "Features tracked", value=float(s.features))
+        if s.flatness is not None:
+            f = s.flatness
+            yield GaugeMetricFamily(
+                "clothd_flatness_max_height_meters",
+                "Estimated height of the highest node",
+                value=f.max_height_mm / 1e3,
+            )
+            yield GaugeMetricFamily(
+                "clothd_flatness_compressed_area_ratio",
+                "Share of the mesh holding slack",
+                value=f.compressed_area_pct / 100,
+            )
+            yield GaugeMetricFamily("clothd_flat", "The cloth is flat (with hysteresis)", value=float(f.flat))
+            yield GaugeMetricFamily(
+                "clothd_ridges", "Ridges found in the estimate", value=float(len(f.ridges))
+            )
 
 
 def registry_for(hub: StreamHub) -> CollectorRegistry:

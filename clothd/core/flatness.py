@@ -1,0 +1,127 @@
+"""How flat the cloth is, from the mesh estimate: its highest node, how much of it lies compressed, and
+the ridges it has.
+
+An overhead camera sees a wrinkle as cloth that is shorter on the table than at rest (docs/flatness.md):
+a quad of the mesh whose projected area is below (1 - tolerance) of its rest area holds slack, which has
+risen out of the plane. The node heights come from the same shortening (core/folds.py). A ridge is a
+connected set of compressed quads; it runs across its compressed direction, which is the principal axis
+of the quads' compression tensor Σ (1 - d/L) e eᵀ over their shortened edges e.
+
+`FlatnessMonitor` adds hysteresis to the `flat` flag, so that it does not chatter at the threshold.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from clothd.config import FlatnessConfig
+
+
+@dataclass(frozen=True)
+class Ridge:
+    """A wrinkle: where it is (world x, y of its highest node), the direction its line runs in (world,
+    [0, π)), its estimated height, and the direction across it in which the cloth is short."""
+
+    position_m: tuple[float, float]
+    direction_rad: float
+    height_m: float
+    area_m2: float
+
+    @property
+    def compressed_direction_rad(self) -> float:
+        return (self.direction_rad + math.pi / 2) % math.pi
+
+
+@dataclass(frozen=True)
+class Flatness:
+    max_height_m: float
+    compressed_area_pct: float
+    flat: bool
+    ridges: tuple[Ridge, ...]
+
+
+def quad_shortening(nodes_xy_m: np.ndarray, rest_spacing_m: tuple[float, float]) -> np.ndarray:
+    """(ny-1, nx-1): for each quad, 1 - its projected area / its rest area (positive: compressed)."""
+    p = nodes_xy_m
+    a, b, c, d = p[:-1, :-1], p[:-1, 1:], p[1:, 1:], p[1:, :-1]
+    # Shoelace over the quad a-b-c-d; the mesh keeps its orientation, so the sign is the rest sign.
+    area = 0.5 * (_cross(a, b) + _cross(b, c) + _cross(c, d) + _cross(d, a))
+    rest = rest_spacing_m[0] * rest_spacing_m[1]
+    return np.asarray(1.0 - np.abs(area) / rest)
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return np.asarray(u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0])
+
+
+def _compression_tensor(nodes_xy_m: np.ndarray, rest_spacing_m: tuple[float, float]) -> np.ndarray:
+    """(ny-1, nx-1, 2, 2): per quad, Σ (1 - d/L)₊ ê êᵀ over its four edges (ê the unit edge direction)."""
+    t = np.zeros((*nodes_xy_m.shape[:2], 2, 2))[:-1, :-1]
+    for axis, rest in ((1, rest_spacing_m[0]), (0, rest_spacing_m[1])):
+        e = np.diff(nodes_xy_m, axis=axis)
+        length = np.maximum(np.linalg.norm(e, axis=-1), 1e-12)
+        short = np.clip(1.0 - length / rest, 0.0, None)
+        outer = short[..., None, None] * np.einsum(
+            "...i,...j->...ij", e / length[..., None], e / length[..., None]
+        )
+        # Each quad has two edges along each axis: those of the node rows (columns) on either side of it.
+        t += outer[:-1] + outer[1:] if axis == 1 else outer[:, :-1] + outer[:, 1:]
+    return t
+
+
+def find_ridges(
+    nodes_m: np.ndarray, rest_spacing_m: tuple[float, float], tolerance_strain: float
+) -> tuple[Ridge, ...]:
+    """The ridges of the mesh nodes_m (ny, nx, 3), highest first."""
+    xy = nodes_m[..., :2]
+    shortening = quad_shortening(xy, rest_spacing_m)
+    compressed = (shortening > tolerance_strain).astype(np.uint8)
+    count, labels = cv2.connectedComponents(compressed, connectivity=8)
+    tensor = _compression_tensor(xy, rest_spacing_m)
+    quad_height = np.maximum.reduce(
+        [nodes_m[:-1, :-1, 2], nodes_m[:-1, 1:, 2], nodes_m[1:, 1:, 2], nodes_m[1:, :-1, 2]]
+    )
+    rest_area = rest_spacing_m[0] * rest_spacing_m[1]
+    ridges = []
+    for k in range(1, count):
+        quads = labels == k
+        top = np.unravel_index(np.argmax(np.where(quads, quad_height, -np.inf)), quads.shape)
+        corners = nodes_m[top[0] : top[0] + 2, top[1] : top[1] + 2].reshape(-1, 3)
+        peak = corners[np.argmax(corners[:, 2])]
+        evals, evecs = np.linalg.eigh(tensor[quads].sum(axis=0))
+        across = evecs[:, np.argmax(evals)]
+        along = math.atan2(across[0], -across[1]) % math.pi  # the line runs perpendicular to `across`
+        ridges.append(
+            Ridge((float(peak[0]), float(peak[1])), along, float(peak[2]), float(quads.sum() * rest_area))
+        )
+    return tuple(sorted(ridges, key=lambda r: (-r.height_m, -r.area_m2)))
+
+
+class FlatnessMonitor:
+    """The flatness of each estimate; `flat` turns on below the configured height and compressed area and
+    off only past twice them."""
+
+    def __init__(self, cfg: FlatnessConfig) -> None:
+        self.cfg = cfg
+        self.flat = False
+
+    def reset(self) -> None:
+        self.flat = False
+
+    def update(self, nodes_m: np.ndarray, cloth_size_m: tuple[float, float]) -> Flatness:
+        ny, nx = nodes_m.shape[:2]
+        spacing = (cloth_size_m[0] / (nx - 1), cloth_size_m[1] / (ny - 1))
+        shortening = quad_shortening(nodes_m[..., :2], spacing)
+        compressed_pct = float(100.0 * np.mean(shortening > self.cfg.compressed_strain))
+        max_height = float(max(nodes_m[..., 2].max(), 0.0))
+        c = self.cfg
+        if self.flat:
+            self.flat = max_height <= 2 * c.flat_height_m and compressed_pct <= 2 * c.flat_compressed_pct
+        else:
+            self.flat = max_height <= c.flat_height_m and compressed_pct <= c.flat_compressed_pct
+        ridges = find_ridges(nodes_m, spacing, self.cfg.compressed_strain)
+        return Flatness(max_height, compressed_pct, self.flat, ridges)

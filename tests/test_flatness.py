@@ -1,0 +1,77 @@
+"""Flatness from the mesh estimate: compressed area, ridges with their direction, and the flat flag's
+hysteresis (core/flatness.py)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from clothd.config import FlatnessConfig
+from clothd.core.flatness import FlatnessMonitor, find_ridges
+
+SIZE_M = (0.25, 0.20)
+NX, NY = 12, 12
+SPACING_M = (SIZE_M[0] / (NX - 1), SIZE_M[1] / (NY - 1))
+
+
+def _mesh(theta_rad: float = 0.0, ridge_cols: tuple[int, ...] = (), height_m: float = 0.0) -> np.ndarray:
+    """A rest mesh centred on the origin; the columns of edges in ridge_cols are drawn 40 % shorter in x
+    (a ridge along t, the slack risen into it) and their nodes lifted; then the mesh is turned by theta."""
+    dx = np.full(NX - 1, SPACING_M[0])
+    dx[list(ridge_cols)] *= 0.6
+    x = np.concatenate([[0.0], np.cumsum(dx)])
+    x -= x.mean()
+    y = (np.arange(NY) - (NY - 1) / 2) * SPACING_M[1]
+    xx, yy = np.meshgrid(x, y)
+    z = np.zeros_like(xx)
+    for c in ridge_cols:
+        z[:, c + 1] = height_m
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    return np.stack([c * xx - s * yy, s * xx + c * yy, z], axis=-1)
+
+
+def test_a_flat_mesh_has_no_ridge_and_is_flat() -> None:
+    monitor = FlatnessMonitor(FlatnessConfig())
+    f = monitor.update(_mesh(0.4), SIZE_M)
+    assert f.ridges == () and f.flat and f.max_height_m == 0.0
+    assert f.compressed_area_pct == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("theta_rad", [0.0, 0.5, -1.2])
+def test_a_ridge_is_found_with_its_position_direction_and_height(theta_rad: float) -> None:
+    nodes = _mesh(theta_rad, ridge_cols=(7,), height_m=0.008)
+    (ridge,) = find_ridges(nodes, SPACING_M, 0.05)
+    # The ridge runs along the cloth's t axis, turned by theta; the cloth is short across it.
+    assert math.remainder(ridge.direction_rad - (math.pi / 2 + theta_rad), math.pi) == pytest.approx(
+        0, abs=1e-6
+    )
+    assert math.remainder(ridge.compressed_direction_rad - theta_rad, math.pi) == pytest.approx(0, abs=1e-6)
+    assert ridge.height_m == pytest.approx(0.008)
+    top = np.array(ridge.position_m)
+    assert np.linalg.norm(nodes[:, 8, :2] - top, axis=1).min() < 1e-9  # on the lifted column
+    assert ridge.area_m2 == pytest.approx((NY - 1) * SPACING_M[0] * SPACING_M[1])
+
+
+def test_two_ridges_are_two_and_the_higher_comes_first() -> None:
+    nodes = _mesh(0.0, ridge_cols=(2, 8), height_m=0.005)
+    nodes[:, 9, 2] = 0.012
+    ridges = find_ridges(nodes, SPACING_M, 0.05)
+    assert len(ridges) == 2 and ridges[0].height_m == pytest.approx(0.012) and ridges[0].position_m[0] > 0
+    monitor = FlatnessMonitor(FlatnessConfig())
+    f = monitor.update(nodes, SIZE_M)
+    assert f.compressed_area_pct == pytest.approx(100.0 * 2 / (NX - 1))
+    assert not f.flat and f.max_height_m == pytest.approx(0.012)
+
+
+def test_the_flat_flag_has_hysteresis() -> None:
+    cfg = FlatnessConfig(flat_height_m=0.001, flat_compressed_pct=100.0)
+    monitor = FlatnessMonitor(cfg)
+    bumped = _mesh()
+    bumped[5, 5, 2] = 0.0015
+    assert not monitor.update(bumped, SIZE_M).flat  # not yet flat: above the bar
+    assert monitor.update(_mesh(), SIZE_M).flat
+    assert monitor.update(bumped, SIZE_M).flat  # flat stays flat up to twice the bar
+    bumped[5, 5, 2] = 0.0025
+    assert not monitor.update(bumped, SIZE_M).flat
+    monitor.reset()
+    assert not monitor.flat
