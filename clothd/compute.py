@@ -27,6 +27,7 @@ from clothd.core.camera_model import CameraModel
 from clothd.core.control import PoseController, Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.flatness import Flatness, FlatnessMonitor
+from clothd.core.flattening import FlatteningRegulator
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
@@ -92,6 +93,12 @@ class Compute:
         self.controller = PoseController(spec.control, spec.cell, spec.layout.centres_m)
         self.view = ViewRenderer(spec.camera_model)
         self.flatness = FlatnessMonitor(spec.control.flatness)
+        self.regulator = FlatteningRegulator(
+            spec.control.flattening,
+            spec.layout.centres_m,
+            spec.layout.module_size_m,
+            spec.tracker.physics.strain_limit,
+        )
         self._estimate: Estimate | None = None
         self._last_frame_index = -1
 
@@ -138,7 +145,7 @@ class Compute:
                 timing["record"] = time.perf_counter() - t_rec
         t1 = time.perf_counter()
         flatness = self._flatness(est)
-        state, commands, halt = self._control(frame is not None, est, req.setpoint)
+        state, commands, halt = self._control(frame is not None, est, req.setpoint, flatness)
         timing["control"] = time.perf_counter() - t1
         timing["compute"] = time.perf_counter() - t0
         jpeg = None
@@ -161,7 +168,9 @@ class Compute:
         )
 
     def _flatness(self, est: Estimate | None) -> Flatness | None:
-        if est is None or not est.tracking or est.nodes_m is None or est.cloth_size_m is None:
+        if not self.spec.tracker.estimates_shape or est is None or not est.tracking:
+            return None
+        if est.nodes_m is None or est.cloth_size_m is None:
             return None
         return self.flatness.update(est.nodes_m, est.cloth_size_m)
 
@@ -180,7 +189,7 @@ class Compute:
                 log.warning("cannot start recording in %s: %s", req.record_start, err)
 
     def _control(
-        self, have_frame: bool, est: Estimate | None, sp: Setpoint
+        self, have_frame: bool, est: Estimate | None, sp: Setpoint, flatness: Flatness | None
     ) -> tuple[str, ModuleCommands, str | None]:
         """The state, the commands, and why they stop a hold or move (None when they do not)."""
         if not have_frame:
@@ -193,7 +202,12 @@ class Compute:
         if off_limits is not None:
             return "tracking", self.controller.stop(), f"at the workspace's edge: {off_limits}"
         twist = self.controller.plan_twist(est.pose, sp.pose, self.spec.period_s)
-        return "tracking", self.controller.module_commands(est.pose, twist, est.outline_m), None
+        under = self.controller.modules_under(est.outline_m)
+        shaping = None
+        flattens = sp.mode == "flatten" or self.spec.control.flatten
+        if flattens and flatness is not None and est.nodes_m is not None and est.cloth_size_m is not None:
+            shaping = self.regulator.velocities(flatness, est.nodes_m, est.cloth_size_m, under, est.pose[:2])
+        return "tracking", self.controller.module_commands(est.pose, twist, under, shaping), None
 
 
 def serve_compute(conn: Connection, spec: ComputeSpec) -> None:

@@ -129,6 +129,11 @@ class TrackerConfig(_Strict):
     physics: PhysicsConfig = PhysicsConfig()
     ekf: EkfConfig = EkfConfig()
 
+    @property
+    def estimates_shape(self) -> bool:
+        """The model tracks the cloth's shape (a mesh of its own), so flatness can be read off it."""
+        return self.model in ("mesh", "predict")
+
 
 class LoopConfig(_Strict):
     tick_hz: float = Field(30.0, ge=15, le=30, description="the fixed control tick")
@@ -209,6 +214,17 @@ class FlatnessConfig(_Strict):
     flat_compressed_pct: float = Field(1.0, ge=0, le=100, description="share of the quads holding slack")
 
 
+class FlattenConfig(_Strict):
+    """The flattening regulator (core/flattening.py, docs/flattening.md)."""
+
+    time_constant_s: float = Field(0.5, gt=0.01, le=60, description="a ridge's slack decays like exp(-t/τ)")
+    max_speed_m_s: float = Field(0.04, gt=0, le=1, description="the most a module pulls a ridge's side")
+    reach_m: float = Field(0.12, gt=0, le=2, description="modules this far from a ridge, or nearer, pull")
+    ridge_margin_m: float = Field(
+        0.01, ge=0, le=0.5, description="a module pulls on a ridge that passes its belt this far to the side"
+    )
+
+
 class ControlConfig(_Strict):
     """Moves to a setpoint: the cloth's planned velocity is limited in speed and acceleration, and
     approaches the target as gain x error near it."""
@@ -222,6 +238,8 @@ class ControlConfig(_Strict):
         0.0, ge=-0.1, le=0.2, description="a module is under the cloth when its centre is this far inside"
     )
     flatness: FlatnessConfig = FlatnessConfig()
+    flatten: bool = Field(True, description="hold and move flatten the cloth as they go")
+    flattening: FlattenConfig = FlattenConfig()
 
 
 class ApiConfig(_Strict):

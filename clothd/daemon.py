@@ -59,6 +59,7 @@ class DaemonSettings:
     recording_dir: Path  # where recordings go by default
     camera_source: str  # as shown in the status
     link_port: str
+    estimates_shape: bool  # the tracker's model follows the cloth's shape: flatten is possible
 
 
 class Daemon:
@@ -109,8 +110,13 @@ class Daemon:
     # -- requests from the API (event loop thread) --------------------------------------------------
 
     def set_setpoint(self, mode: Mode, pose: np.ndarray | None) -> None:
-        """The one way the modules start moving: hold or move needs the e-stop clear, the link up and the
-        cloth tracked; a move's target must keep the whole cloth inside the workspace."""
+        """The one way the modules start moving: hold, move or flatten needs the e-stop clear, the link up
+        and the cloth tracked; a move's target must keep the whole cloth inside the workspace; flatten needs
+        a tracker that follows the cloth's shape."""
+        if mode == "flatten" and not self.settings.estimates_shape:
+            raise RequestError(
+                "flatten needs the cloth's shape: run the mesh tracker (tracker.model mesh), not a rigid one"
+            )
         if mode != "idle":
             self._check_can_move()
         est = self.latest.estimate if self.latest else None
@@ -121,7 +127,7 @@ class Daemon:
             reason = self.settings.workspace.leaves(cloth_corners_m(pose, est.cloth_size_m))
             if reason is not None:
                 raise UnreachableTargetError(f"target x_m {pose[0]:g}, y_m {pose[1]:g}: {reason}")
-        if mode == "hold":
+        if mode in ("hold", "flatten"):
             assert est is not None
             pose = est.pose.copy()
         self.setpoint = Setpoint(mode, None if mode == "idle" else pose)

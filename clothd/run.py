@@ -139,6 +139,7 @@ def build(cfg: Config) -> Parts:
         recording_dir=cfg.recording.dir,
         camera_source=redact_source(cfg.camera.source),
         link_port=cfg.stepper.port,
+        estimates_shape=cfg.tracker.estimates_shape,
     )
     hub = StreamHub()
     link = StepperLink(cfg.stepper, layout.n_modules)

@@ -35,6 +35,10 @@ from hwsim.scenario import ClothSpec, Pose, TableSpec
 
 GRAVITY_M_S2 = 9.81
 vec2d = ti.types.vector(2, ti.f64)
+# Laying a cloth with ridges down: quasi-static (velocity decays within 10 ms) until they have settled.
+_LAY_IN_S = 0.5
+_LAY_IN_DAMPING_1_S = 100.0
+_ON_TABLE_M = 1e-4  # a node laid lower than this rests on the table
 # A belt this fast shakes the cloth with the full vibration_m_s; slower belts proportionally less.
 _VIBRATION_REF_SPEED_M_S = 0.05
 
@@ -102,18 +106,34 @@ class ClothSim:
         self.v = ti.Vector.field(3, ti.f64, shape=shape)
         self.x_prev = ti.Vector.field(3, ti.f64, shape=shape)
         self.inv_mass = ti.field(ti.f64, shape=shape)
+        self.stuck = ti.field(ti.i32, shape=shape)  # 1: held by static friction, moving with its belt
+        self.reaction = ti.Vector.field(3, ti.f64, shape=shape)  # impulse the constraints ask of a stuck node
         self.kick = ti.field(ti.f64, shape=shape)
         n_mod = table.modules_x * table.modules_y
         self.mod_speed = ti.field(ti.f64, shape=n_mod)
         self.mod_direction = ti.Vector.field(2, ti.f64, shape=n_mod)  # cos, sin of heading
         self.mass_kg = g.node_masses_kg(spec.areal_density_kg_m2)
         self.inv_mass.from_numpy(1.0 / self.mass_kg)
-        self.set_positions(g.placed(pose))
+        self.lay(pose, np.zeros(n_mod))
+
+    def lay(self, pose: Pose, module_heading_rad: np.ndarray) -> None:
+        """Lay the cloth down at rest at `pose` on the stopped belts (turned to the given headings), as a
+        hand does: what lies on a belt sticks to it, and a ridge settles quasi-statically into the shape its
+        weight and stiffness give it, held by that friction alone."""
+        x = self.grid.placed(pose)
+        self.set_positions(x)
+        self.stuck.from_numpy((x[..., 2] < _ON_TABLE_M).astype(np.int32))
+        if pose.ridges:
+            stopped = np.zeros(len(module_heading_rad))
+            self.advance(_LAY_IN_S, stopped, module_heading_rad, damping_1_s=_LAY_IN_DAMPING_1_S)
+            self.v.fill(0.0)
 
     def set_positions(self, x_m: np.ndarray) -> None:
-        """Place the cloth at rest at the given node positions (ny, nx, 3)."""
+        """Place the cloth at rest at the given node positions (ny, nx, 3); nothing sticks until it has
+        come to rest on a belt."""
         self.x.from_numpy(np.ascontiguousarray(x_m, dtype=np.float64))
         self.v.fill(0.0)
+        self.stuck.fill(0)
 
     def positions_m(self) -> np.ndarray:
         return np.asarray(self.x.to_numpy())
@@ -121,9 +141,15 @@ class ClothSim:
     def velocities_m_s(self) -> np.ndarray:
         return np.asarray(self.v.to_numpy())
 
-    def advance(self, dt_s: float, module_speed_m_s: np.ndarray, module_heading_rad: np.ndarray) -> None:
+    def advance(
+        self,
+        dt_s: float,
+        module_speed_m_s: np.ndarray,
+        module_heading_rad: np.ndarray,
+        damping_1_s: float | None = None,
+    ) -> None:
         """Advance by dt_s (a whole number of substeps) with the belts at the given signed speeds and
-        headings. The belts' vertical shake is drawn once per call."""
+        headings. The belts' vertical shake is drawn once per call. damping_1_s: instead of the cloth's."""
         self.mod_speed.from_numpy(np.asarray(module_speed_m_s, dtype=np.float64))
         heading = np.asarray(module_heading_rad, dtype=np.float64)
         self.mod_direction.from_numpy(np.stack([np.cos(heading), np.sin(heading)], axis=1))
@@ -147,30 +173,55 @@ class ClothSim:
             # Bending compliance h⁴/(B·cell area), with dx ≈ dy: dx·dy/B.
             self.grid.dx_m * self.grid.dy_m / s.bending_stiffness_n_m / h**2,
             s.friction.mu,
-            s.friction.stick_speed_m_s,
-            float(np.exp(-s.damping_1_s * h)),
+            s.friction.mu_static,
+            s.stretch_stiffness_n_m * h**2,
+            s.shear_stiffness_n_m * h**2,
+            float(np.exp(-(s.damping_1_s if damping_1_s is None else damping_1_s) * h)),
             t.pitch_m,
             t.module_size_m / 2.0,
         )
 
     @ti.func
+    def _free_inv_mass(self, a: ti.template()) -> ti.f64:
+        """A stuck node is anchored to its belt: the solve moves it not at all."""
+        return self.inv_mass[a] * ti.cast(1 - self.stuck[a], ti.f64)
+
+    @ti.func
     def _distance(self, a: ti.template(), b: ti.template(), rest: ti.f64, alpha: ti.f64):
-        wa, wb = self.inv_mass[a], self.inv_mass[b]
+        wa, wb = self._free_inv_mass(a), self._free_inv_mass(b)
         d = self.x[a] - self.x[b]
         length = d.norm()
-        if length > 1e-12:
+        if length > 1e-12 and wa + wb > 0.0:
             dlam = -(length - rest) / (wa + wb + alpha)
             n = d / length
             self.x[a] += wa * dlam * n
             self.x[b] -= wb * dlam * n
+            # The anchor of a stuck end supplies the impulse the constraint asks of it.
+            self.reaction[a] += ti.cast(self.stuck[a], ti.f64) * dlam * n
+            self.reaction[b] -= ti.cast(self.stuck[b], ti.f64) * dlam * n
+
+    @ti.func
+    def _anchored_spring(self, a: ti.template(), b: ti.template(), rest: ti.f64, k_h2: ti.f64):
+        """Two stuck ends cannot move, so the edge's true elastic force k·C acts on both anchors."""
+        if self.stuck[a] == 1 and self.stuck[b] == 1:
+            d = self.x[a] - self.x[b]
+            length = d.norm()
+            if length > 1e-12:
+                impulse = -k_h2 * (length - rest) * d / length
+                self.reaction[a] += impulse
+                self.reaction[b] -= impulse
 
     @ti.func
     def _bend(self, a: ti.template(), b: ti.template(), c: ti.template(), alpha: ti.f64):
-        wa, wb, wc = self.inv_mass[a], self.inv_mass[b], self.inv_mass[c]
-        dlam = -(self.x[a] - 2.0 * self.x[b] + self.x[c]) / (wa + 4.0 * wb + wc + alpha)
-        self.x[a] += wa * dlam
-        self.x[b] -= 2.0 * wb * dlam
-        self.x[c] += wc * dlam
+        wa, wb, wc = self._free_inv_mass(a), self._free_inv_mass(b), self._free_inv_mass(c)
+        if wa + wb + wc > 0.0:
+            dlam = -(self.x[a] - 2.0 * self.x[b] + self.x[c]) / (wa + 4.0 * wb + wc + alpha)
+            self.x[a] += wa * dlam
+            self.x[b] -= 2.0 * wb * dlam
+            self.x[c] += wc * dlam
+            self.reaction[a] += ti.cast(self.stuck[a], ti.f64) * dlam
+            self.reaction[b] -= 2.0 * ti.cast(self.stuck[b], ti.f64) * dlam
+            self.reaction[c] += ti.cast(self.stuck[c], ti.f64) * dlam
 
     @ti.func
     def _belt_velocity(self, p: ti.template(), pitch: ti.f64, half_belt: ti.f64) -> belt_hit:
@@ -197,7 +248,9 @@ class ClothSim:
         alpha_shear: ti.f64,
         alpha_bend: ti.f64,
         mu: ti.f64,
-        stick_speed: ti.f64,
+        mu_static: ti.f64,
+        stretch_k_h2: ti.f64,
+        shear_k_h2: ti.f64,
         damping: ti.f64,
         pitch: ti.f64,
         half_belt: ti.f64,
@@ -209,11 +262,17 @@ class ClothSim:
         for step in range(substeps):
             for j, i in ti.ndrange(ny, nx):
                 self.x_prev[j, i] = self.x[j, i]
-                self.v[j, i][2] -= GRAVITY_M_S2 * h
-                if step == 0 and self.x[j, i][2] <= 1e-6:
-                    belt = self._belt_velocity(self.x[j, i], pitch, half_belt)
-                    shake = ti.min(1.0, vec2d(belt[0], belt[1]).norm() / _VIBRATION_REF_SPEED_M_S)
-                    self.v[j, i][2] += shake * ti.abs(self.kick[j, i])
+                self.reaction[j, i] = ti.Vector([0.0, 0.0, 0.0])
+                belt = self._belt_velocity(self.x[j, i], pitch, half_belt)
+                if self.stuck[j, i] == 1 and belt[2] > 0.0:
+                    # Static friction: the node rides its belt, on the table.
+                    self.v[j, i] = ti.Vector([belt[0], belt[1], 0.0])
+                else:
+                    self.stuck[j, i] = 0
+                    self.v[j, i][2] -= GRAVITY_M_S2 * h
+                    if step == 0 and self.x[j, i][2] <= 1e-6:
+                        shake = ti.min(1.0, vec2d(belt[0], belt[1]).norm() / _VIBRATION_REF_SPEED_M_S)
+                        self.v[j, i][2] += shake * ti.abs(self.kick[j, i])
                 self.x[j, i] += h * self.v[j, i]
             # Gauss-Seidel sweeps alternate direction: a one-way sweep pushes the cloth sideways.
             for it in range(stretch_iterations):
@@ -235,22 +294,39 @@ class ClothSim:
             for jj, ii in ti.ndrange(ny - 2, nx):
                 j, i = _swept(jj, ny - 2, flip), _swept(ii, nx, flip)
                 self._bend(ti.Vector([j, i]), ti.Vector([j + 1, i]), ti.Vector([j + 2, i]), alpha_bend)
+            for j, i in ti.ndrange(ny, nx - 1):
+                self._anchored_spring(ti.Vector([j, i]), ti.Vector([j, i + 1]), dx, stretch_k_h2)
+            for j, i in ti.ndrange(ny - 1, nx):
+                self._anchored_spring(ti.Vector([j, i]), ti.Vector([j + 1, i]), dy, stretch_k_h2)
+            for j, i in ti.ndrange(ny - 1, nx - 1):
+                self._anchored_spring(ti.Vector([j, i]), ti.Vector([j + 1, i + 1]), diag, shear_k_h2)
+                self._anchored_spring(ti.Vector([j, i + 1]), ti.Vector([j + 1, i]), diag, shear_k_h2)
             for j, i in ti.ndrange(ny, nx):
-                if self.x[j, i][2] < 0.0:
+                m = 1.0 / self.inv_mass[j, i]
+                if self.stuck[j, i] == 1:
+                    # Coulomb: the anchor holds while the pull it resists stays within μ_static·N; the
+                    # normal force is the weight less what the constraints lift (impulses over h).
+                    r = self.reaction[j, i]
+                    normal = m * GRAVITY_M_S2 * h * h - r[2]
+                    if normal <= 0.0 or vec2d(r[0], r[1]).norm() > mu_static * normal:
+                        self.stuck[j, i] = 0
+                elif self.x[j, i][2] < 0.0:
                     depth = -self.x[j, i][2]  # the normal correction; its impulse is m·depth/h
                     self.x[j, i][2] = 0.0
                     belt = self._belt_velocity(self.x[j, i], pitch, half_belt)
                     if belt[2] > 0.0:
-                        # Positional Coulomb friction (Macklin et al.) against the belt: the slip d of this
-                        # substep shrinks by at most μ·depth (kinetic). In the regularised stick zone the
-                        # force is μN·|v|/stick_speed, solved implicitly: d /= 1 + μ·depth/(stick_speed·h).
+                        # Kinetic friction (Macklin et al. 2014): the substep's slip against the belt shrinks
+                        # by μ·depth; where that stops it, the node sticks from the next substep on.
                         slip = vec2d(
                             self.x[j, i][0] - self.x_prev[j, i][0] - belt[0] * h,
                             self.x[j, i][1] - self.x_prev[j, i][1] - belt[1] * h,
                         )
-                        budget = mu * depth
-                        keep_kinetic = 1.0 - budget / ti.max(slip.norm(), 1e-15)
-                        keep = ti.max(keep_kinetic, 1.0 / (1.0 + budget / (stick_speed * h)))
+                        slip_m = slip.norm()
+                        keep = ti.f64(0.0)
+                        if slip_m > mu * depth:
+                            keep = 1.0 - mu * depth / slip_m
+                        else:
+                            self.stuck[j, i] = 1
                         self.x[j, i][0] -= (1.0 - keep) * slip[0]
                         self.x[j, i][1] -= (1.0 - keep) * slip[1]
                 self.v[j, i] = (self.x[j, i] - self.x_prev[j, i]) / h * damping

@@ -45,8 +45,17 @@ class TableSpec(_Strict):
 
 
 class FrictionSpec(_Strict):
-    mu: float = Field(1.1, gt=0, le=3.0, description="Coulomb coefficient, denim on rubber belt")
-    stick_speed_m_s: float = Field(0.001, gt=0, le=0.1, description="regularised stick zone half-width")
+    """Coulomb friction of the cloth on a belt: a node at rest on its belt sticks while the pull on it
+    stays within mu_static x its normal force, and slides against mu x the normal force once it slips."""
+
+    mu: float = Field(1.1, gt=0, le=3.0, description="kinetic coefficient, denim on rubber belt")
+    mu_static: float = Field(1.2, gt=0, le=3.0, description="static coefficient, at least mu")
+
+    @model_validator(mode="after")
+    def _static_at_least_kinetic(self) -> FrictionSpec:
+        if self.mu_static < self.mu:
+            raise ValueError(f"mu_static ({self.mu_static}) must be at least mu ({self.mu})")
+        return self
 
 
 class ClothSpec(_Strict):

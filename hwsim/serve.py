@@ -4,7 +4,8 @@
 - The camera as MJPEG over HTTP on 127.0.0.1 (GET /video.mjpg), which OpenCV's FFmpeg backend reads.
 - Ground truth and module states at GET /truth (JSON), for tests and the truth overlay.
 - Test hooks: POST /unplug?seconds=S (serial cable), POST /camera/drop?seconds=S (video stream),
-  POST /fault?code=C&module=M (a controller fault report).
+  POST /fault?code=C&module=M (a controller fault report), POST /cloth with a JSON pose as in a
+  scenario's `initial_pose` (lay the cloth down again there, ridges and all; 409 while a belt runs).
 
 The world steps at the scenario's rate with absolute deadlines; the camera renders every
 `camera_every` steps. It moves only by what the firmware receives: the loop is closed through the real
@@ -31,7 +32,7 @@ from hwsim.camera import Camera
 from hwsim.firmware import Firmware
 from hwsim.recording import render_frame, write_table
 from hwsim.renderer import Renderer
-from hwsim.scenario import Scenario
+from hwsim.scenario import Pose, Scenario
 from hwsim.taichi_runtime import ensure_taichi
 from hwsim.world import World
 
@@ -97,6 +98,15 @@ class Cell:
     def video_up(self) -> bool:
         return time.monotonic() >= self.video_dropped_until
 
+    def lay_cloth(self, pose: Pose) -> bool:
+        """Lay the cloth down again at `pose`; refused (False) while any belt runs."""
+        with self.lock:
+            if np.any(self.world.table.speed_m_s != 0.0):
+                return False
+            self.world.lay(pose)
+            self._update_truth()
+        return True
+
     def truth(self, with_nodes: bool) -> dict[str, Any]:
         with self.lock:
             out = dict(self._truth_cache)
@@ -137,6 +147,7 @@ class Cell:
             "frames_ok": self.firmware.frames_ok,
             "frames_bad": self.firmware.frames_bad,
             "late_steps": self.late_steps,
+            **self.world.sheet_measures(),
         }
 
     def _publish_frame(self) -> None:
@@ -183,11 +194,18 @@ class _Handler(BaseHTTPRequestHandler):
             elif url.path == "/fault":
                 module = int(q.get("module", "65535"))
                 self.cell.firmware.report_fault(int(q["code"]), module, q.get("text", ""))
+            elif url.path == "/cloth":
+                length = int(self.headers.get("Content-Length", "0"))
+                pose = Pose.model_validate_json(self.rfile.read(length))
+                if not self.cell.lay_cloth(pose):
+                    self.send_error(HTTPStatus.CONFLICT, "stop the belts before laying the cloth")
+                    return
             else:
                 self.send_error(HTTPStatus.NOT_FOUND)
                 return
-        except (KeyError, ValueError) as err:
-            self.send_error(HTTPStatus.BAD_REQUEST, f"bad query: {err}")
+        except (KeyError, ValueError) as err:  # pydantic's ValidationError is a ValueError
+            reason = " ".join(str(err).split())  # one line: it goes into the status line
+            self.send_error(HTTPStatus.BAD_REQUEST, f"bad request: {reason}"[:300])
             return
         self._json({"ok": True})
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hwsim.cloth import ClothSim
-from hwsim.scenario import Scenario
+from hwsim.scenario import Pose, Scenario
 from hwsim.scene import SceneState, arms_at
 from hwsim.table import Table
 from hwsim.taichi_runtime import ensure_taichi
@@ -30,6 +30,10 @@ class CommandRow:
     module: int
     speed_m_s: float
     heading_rad: float
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return np.asarray(u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0])
 
 
 class World:
@@ -66,6 +70,29 @@ class World:
         c = xy.mean(axis=0)
         M = (st - st.mean(axis=0)).T @ (xy - c)
         return np.array([c[0], c[1], math.atan2(M[0, 1] - M[1, 0], M[0, 0] + M[1, 1])])
+
+    def sheet_measures(self) -> dict[str, float]:
+        """How flat and how stretched the truth cloth is: its highest node (m), its area projected on the
+        table over its rest area (the quads' shoelace areas), and its most stretched grid edge (strain)."""
+        x = self.cloth.positions_m()
+        g = self.cloth.grid
+        p = x[..., :2]
+        a, b, c, d = p[:-1, :-1], p[:-1, 1:], p[1:, 1:], p[1:, :-1]
+        area = 0.5 * np.abs(_cross(a, b) + _cross(b, c) + _cross(c, d) + _cross(d, a)).sum()
+        rest_area = (g.nx - 1) * g.dx_m * (g.ny - 1) * g.dy_m
+        strain = max(
+            float((np.linalg.norm(np.diff(x, axis=axis), axis=-1) / rest - 1.0).max())
+            for axis, rest in ((1, g.dx_m), (0, g.dy_m))
+        )
+        return {
+            "max_height_m": float(x[..., 2].max()),
+            "area_ratio": float(area / rest_area),
+            "max_strain": strain,
+        }
+
+    def lay(self, pose: Pose) -> None:
+        """Lay the cloth down again at `pose` (its ridges laid in) on the belts as they are turned now."""
+        self.cloth.lay(pose, self.table.heading_rad)
 
     def scene_state(self, before_s: float = 0.0) -> SceneState:
         """What the camera sees `before_s` before now; motion blur looks a few ms back, extrapolating the

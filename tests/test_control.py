@@ -52,8 +52,8 @@ def test_modules_under_the_cloth_follow_the_rigid_field_and_the_rest_stop() -> N
     c = _controller()
     pose = np.array([0.0, 0.0, 0.0])
     twist = np.array([0.02, 0.0, 0.3])
-    cmd = c.module_commands(pose, twist, _cloth_outline(0.0, 0.0))
     under = c.modules_under(_cloth_outline(0.0, 0.0))
+    cmd = c.module_commands(pose, twist, under)
     assert 0 < under.sum() < LAYOUT.n_modules
     rel = LAYOUT.centres_m[under]
     expected = twist[:2] + twist[2] * np.stack([-rel[:, 1], rel[:, 0]], axis=1)
@@ -65,17 +65,16 @@ def test_modules_under_the_cloth_follow_the_rigid_field_and_the_rest_stop() -> N
 def test_a_field_too_fast_for_the_modules_is_scaled_down_whole() -> None:
     c = _controller()
     twist = np.array([0.5, 0.0, 2.0])
-    cmd = c.module_commands(np.zeros(3), twist, _cloth_outline(0.0, 0.0))
+    under = c.modules_under(_cloth_outline(0.0, 0.0))
+    cmd = c.module_commands(np.zeros(3), twist, under)
     assert math.isclose(cmd.speed_m_s.max(), CELL.max_speed_m_s)
-    slow = c.module_commands(
-        np.zeros(3), twist * CELL.max_speed_m_s / cmd.speed_m_s.max(), _cloth_outline(0, 0)
-    )
+    slow = c.module_commands(np.zeros(3), twist * CELL.max_speed_m_s / cmd.speed_m_s.max(), under)
     np.testing.assert_allclose(cmd.speed_m_s, slow.speed_m_s, atol=1e-12)
 
 
 def test_stop_commands_zero_speed_and_keeps_headings() -> None:
     c = _controller()
-    c.module_commands(np.zeros(3), np.array([0.0, 0.05, 0.0]), _cloth_outline(0.0, 0.0))
+    c.module_commands(np.zeros(3), np.array([0.0, 0.05, 0.0]), c.modules_under(_cloth_outline(0.0, 0.0)))
     stop = c.stop()
     assert not stop.speed_m_s.any()
     assert np.isclose(stop.heading_rad[c.modules_under(_cloth_outline(0, 0))], math.pi / 2).all()

@@ -120,7 +120,7 @@ class FakeCompute:
 Scenario = Callable[[Daemon, FakeLink, FakeCompute], Awaitable[None]]
 
 
-def _run(scenario: Scenario, max_stale_ticks: int = 3) -> None:
+def _run(scenario: Scenario, max_stale_ticks: int = 3, estimates_shape: bool = True) -> None:
     link, compute = FakeLink(), FakeCompute()
     settings = DaemonSettings(
         period_s=PERIOD_S,
@@ -131,6 +131,7 @@ def _run(scenario: Scenario, max_stale_ticks: int = 3) -> None:
         recording_dir=Path("/nonexistent"),
         camera_source="fake",
         link_port="fake",
+        estimates_shape=estimates_shape,
     )
     daemon = Daemon(settings, link, compute)  # type: ignore[arg-type]
 
@@ -243,6 +244,24 @@ def test_moves_are_refused_unless_tracked_linked_clear_and_on_the_table() -> Non
         np.testing.assert_array_equal(daemon.setpoint.pose, [0.05, 0.0, 0.0])
 
     _run(scenario)
+
+
+@pytest.mark.parametrize("estimates_shape", [True, False])
+def test_flatten_holds_the_pose_and_needs_a_tracker_that_sees_the_shape(estimates_shape: bool) -> None:
+    async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
+        await _ticks(daemon, 3)
+        if not estimates_shape:
+            with pytest.raises(RequestError, match="mesh tracker"):
+                daemon.set_setpoint("flatten", None)
+            assert daemon.setpoint.mode == "idle"
+            return
+        daemon.set_setpoint("flatten", None)
+        assert daemon.setpoint.mode == "flatten" and daemon.setpoint.pose is not None
+        est = daemon.latest.estimate if daemon.latest else None
+        assert est is not None
+        np.testing.assert_array_equal(daemon.setpoint.pose, est.pose)
+
+    _run(scenario, estimates_shape=estimates_shape)
 
 
 def test_the_model_input_is_what_went_out_on_the_wire() -> None:

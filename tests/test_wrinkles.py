@@ -1,5 +1,6 @@
-"""Ridges laid into hwsim's cloth: anywhere, in any direction, without stretching the sheet; a ridge
-that would overhang is refused with its key."""
+"""Ridges in hwsim's cloth: laid anywhere, in any direction, without stretching the sheet; kept the way a
+table keeps a wrinkle while the belts are still, and flattened when the belts pull its two sides apart
+(docs/hwsim.md, "Friction"); an overhanging ridge is refused with its key."""
 
 import math
 
@@ -9,6 +10,57 @@ import pytest
 from hwsim import scenario as scenarios
 from hwsim.cloth import ClothGrid
 from hwsim.ridges import lay_ridges
+from hwsim.world import World
+
+CELL_CLOTH = {"spacing_m": 0.0075, "substep_s": 0.002}  # the live cell's cloth (cell.yaml), as `hwsim serve`
+
+
+def _world(ridges: list[dict[str, object]], **overrides: object) -> World:
+    data: dict[str, object] = {"name": "t", "duration_s": 90.0, "settle_s": 0.0, "cloth": CELL_CLOTH}
+    data["initial_pose"] = {"ridges": ridges}
+    data.update(overrides)
+    return World(scenarios.parse(data))
+
+
+def _height_m(world: World) -> float:
+    return float(world.cloth.positions_m()[..., 2].max())
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(
+    "ridge",
+    [
+        {"height_m": 0.010},
+        {"height_m": 0.020, "sigma_m": 0.016},
+        {"height_m": 0.012, "at_m": [0.0, 0.0], "direction_rad": 1.2},
+    ],
+    ids=["10mm", "20mm", "12mm-oblique"],
+)
+def test_a_laid_in_ridge_stays_for_a_minute_on_still_belts(ridge: dict[str, object]) -> None:
+    world = _world([ridge])
+    laid_m = _height_m(world)
+    assert laid_m > 0.005
+    lowest_m = laid_m
+    for _ in range(60 * round(world.scenario.fps)):
+        world.step()
+        lowest_m = min(lowest_m, _height_m(world))
+    assert lowest_m >= 0.9 * laid_m, f"laid {laid_m * 1e3:.2f} mm, lowest {lowest_m * 1e3:.2f} mm"
+
+
+@pytest.mark.slow
+def test_a_ridge_flattens_when_the_belts_pull_its_sides_apart() -> None:
+    pull_m_s = 0.03
+    left, right = [-0.3, -0.3, -0.01, 0.3], [0.01, -0.3, 0.3, 0.3]
+    timeline = [
+        {"t_s": 0.0, "modules": {"region_m": left}, "speed_m_s": pull_m_s, "heading_rad": math.pi},
+        {"t_s": 0.0, "modules": {"region_m": right}, "speed_m_s": pull_m_s, "heading_rad": 0.0},
+        {"t_s": 1.0, "modules": {"all": True}, "speed_m_s": 0.0, "heading_rad": 0.0},
+    ]
+    world = _world([{"height_m": 0.010}], timeline=timeline)
+    assert _height_m(world) > 0.005
+    for _ in range(round(2.0 * world.scenario.fps)):
+        world.step()
+    assert _height_m(world) < 0.001
 
 
 def test_ridges_are_laid_without_stretching_the_sheet() -> None:

@@ -35,7 +35,15 @@ class MoveSetpoint(_Strict):
     theta_rad: float = Field(ge=-math.pi, le=math.pi, allow_inf_nan=False)
 
 
-SetpointRequest = Annotated[IdleSetpoint | HoldSetpoint | MoveSetpoint, Field(discriminator="mode")]
+class FlattenSetpoint(_Strict):
+    """Flatten the cloth where it lies, holding its pose (needs the mesh tracker)."""
+
+    mode: Literal["flatten"]
+
+
+SetpointRequest = Annotated[
+    IdleSetpoint | HoldSetpoint | MoveSetpoint | FlattenSetpoint, Field(discriminator="mode")
+]
 
 
 # A name, or a relative path of names, each starting with a letter or digit: nothing absolute, no "."

@@ -1,7 +1,8 @@
 """From setpoint and estimate to module commands.
 
 Modes: `idle` stops every module; `hold` keeps the pose the cloth had when hold began; `move` drives it to
-a target pose [X_m, Y_m, theta_rad].
+a target pose [X_m, Y_m, theta_rad]; `flatten` holds the pose and flattens the cloth. hold and move
+flatten as they go when `control.flatten` is set (core/flattening.py).
 
 The cloth is moved as a rigid body. Its planned twist (vx, vy, ω about its centre) heads for the target
 at a speed that is the least of the configured maximum, the speed from which the acceleration limit
@@ -11,8 +12,8 @@ the velocity of the rigid field at its centre, v = V + ω ẑ × (c_m − X); fr
 it. Modules not under the cloth stop. If the fastest module would exceed its maximum speed, the whole
 field is scaled down, which keeps it rigid.
 
-The per-module velocity is where a flattening term will join the rigid field (docs/architecture.md):
-a velocity per module, added in `module_commands` before the speed limit is applied.
+The flattening regulator's per-module velocities join the rigid field in `module_commands`, before the
+speed limit is applied.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import numpy as np
 from clothd.config import CellConfig, ControlConfig
 from clothd.core.messages import ModuleCommands
 
-Mode = Literal["idle", "hold", "move"]
+Mode = Literal["idle", "hold", "move", "flatten"]
 STILL_SPEED_M_S = 1e-6  # slower than this a module is stopped and keeps its heading
 
 
@@ -82,12 +83,16 @@ class PoseController:
         self.twist = np.array([self.twist[0] + dv[0], self.twist[1] + dv[1], self.twist[2] + dw])
         return self.twist.copy()
 
-    def module_commands(self, pose: np.ndarray, twist: np.ndarray, outline_xy: np.ndarray) -> ModuleCommands:
-        """Commands for every module: the rigid field of `twist` about the cloth centre pose[:2] under the
-        cloth (outline_xy (k, 2), world, metres), zero elsewhere."""
-        under = self.modules_under(outline_xy)
+    def module_commands(
+        self, pose: np.ndarray, twist: np.ndarray, under: np.ndarray, shaping_m_s: np.ndarray | None = None
+    ) -> ModuleCommands:
+        """Commands for every module: the rigid field of `twist` about the cloth centre pose[:2], plus the
+        shaping velocities (n_modules, 2) when given, for the modules `under` the cloth (bool, n_modules);
+        zero elsewhere."""
         rel = self.centres_m - pose[:2]
         v = twist[:2] + twist[2] * np.stack([-rel[:, 1], rel[:, 0]], axis=1)
+        if shaping_m_s is not None:
+            v = v + shaping_m_s
         v[~under] = 0.0
         speed = np.linalg.norm(v, axis=1)
         fastest = float(speed.max(initial=0.0))

@@ -24,12 +24,15 @@ from clothd.config import FlatnessConfig
 @dataclass(frozen=True)
 class Ridge:
     """A wrinkle: where it is (world x, y of its highest node), the direction its line runs in (world,
-    [0, π)), its estimated height, and the direction across it in which the cloth is short."""
+    [0, π)), its estimated height, the rest area of its compressed quads, the slack it holds (the length
+    the cloth is short by across it, on average along it), and the centres of its quads (k, 2)."""
 
     position_m: tuple[float, float]
     direction_rad: float
     height_m: float
     area_m2: float
+    slack_m: float
+    quad_centres_m: np.ndarray
 
     @property
     def compressed_direction_rad(self) -> float:
@@ -86,6 +89,7 @@ def find_ridges(
         [nodes_m[:-1, :-1, 2], nodes_m[:-1, 1:, 2], nodes_m[1:, 1:, 2], nodes_m[1:, :-1, 2]]
     )
     rest_area = rest_spacing_m[0] * rest_spacing_m[1]
+    quad_centres = (xy[:-1, :-1] + xy[:-1, 1:] + xy[1:, 1:] + xy[1:, :-1]) / 4.0
     ridges = []
     for k in range(1, count):
         quads = labels == k
@@ -94,9 +98,19 @@ def find_ridges(
         peak = corners[np.argmax(corners[:, 2])]
         evals, evecs = np.linalg.eigh(tensor[quads].sum(axis=0))
         across = evecs[:, np.argmax(evals)]
-        along = math.atan2(across[0], -across[1]) % math.pi  # the line runs perpendicular to `across`
+        along = np.array([-across[1], across[0]])  # the line runs perpendicular to `across`
+        centres = quad_centres[quads]
+        reach = centres @ along
+        length = float(reach.max() - reach.min()) + math.sqrt(rest_area)
         ridges.append(
-            Ridge((float(peak[0]), float(peak[1])), along, float(peak[2]), float(quads.sum() * rest_area))
+            Ridge(
+                position_m=(float(peak[0]), float(peak[1])),
+                direction_rad=math.atan2(along[1], along[0]) % math.pi,
+                height_m=float(peak[2]),
+                area_m2=float(quads.sum() * rest_area),
+                slack_m=float((shortening[quads] * rest_area).sum()) / length,
+                quad_centres_m=centres,
+            )
         )
     return tuple(sorted(ridges, key=lambda r: (-r.height_m, -r.area_m2)))
 

@@ -1,0 +1,98 @@
+"""The flattening regulator against a synthetic ridge: which modules pull which way and how fast, no net
+rigid motion, and the strain guard (core/flattening.py, docs/flattening.md)."""
+
+import math
+
+import numpy as np
+import pytest
+
+from clothd.config import CellConfig, FlatnessConfig, FlattenConfig
+from clothd.core.conveyor import ConveyorLayout
+from clothd.core.flatness import FlatnessMonitor
+from clothd.core.flattening import FlatteningRegulator, rigid_part
+
+CELL = CellConfig()
+LAYOUT = ConveyorLayout.of_cell(CELL)
+SIZE_M = (0.25, 0.20)
+NX, NY = 12, 12
+SPACING_M = (SIZE_M[0] / (NX - 1), SIZE_M[1] / (NY - 1))
+STRAIN_LIMIT = 0.05
+
+
+def _mesh(
+    theta_rad: float, ridge_col: int | None, shortening: float = 0.4, stretch: float = 0.0
+) -> np.ndarray:
+    """A mesh centred on the origin; the edges of column ridge_col are `shortening` shorter in x, the rest
+    stretched by `stretch`; turned by theta."""
+    dx = np.full(NX - 1, SPACING_M[0] * (1 + stretch))
+    if ridge_col is not None:
+        dx[ridge_col] = SPACING_M[0] * (1 - shortening)
+    x = np.concatenate([[0.0], np.cumsum(dx)])
+    x -= x.mean()
+    y = (np.arange(NY) - (NY - 1) / 2) * SPACING_M[1]
+    xx, yy = np.meshgrid(x, y)
+    c, s = math.cos(theta_rad), math.sin(theta_rad)
+    z = np.zeros_like(xx)
+    if ridge_col is not None:
+        z[:, ridge_col + 1] = 0.01
+    return np.stack([c * xx - s * yy, s * xx + c * yy, z], axis=-1)
+
+
+def _field(nodes: np.ndarray, cfg: FlattenConfig | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    cfg = cfg or FlattenConfig()
+    flatness = FlatnessMonitor(FlatnessConfig()).update(nodes, SIZE_M)
+    regulator = FlatteningRegulator(cfg, LAYOUT.centres_m, LAYOUT.module_size_m, STRAIN_LIMIT)
+    # Modules under the cloth: within its rest rectangle (turned with it).
+    under = np.abs(LAYOUT.centres_m[:, 0]) < 0.12
+    under &= np.abs(LAYOUT.centres_m[:, 1]) < 0.10
+    slack = flatness.ridges[0].slack_m if flatness.ridges else 0.0
+    return regulator.velocities(flatness, nodes, SIZE_M, under, np.zeros(2)), under, slack
+
+
+def test_the_two_sides_of_a_ridge_are_pulled_apart_across_it() -> None:
+    v, under, slack = _field(_mesh(0.0, ridge_col=7))
+    assert slack == pytest.approx(0.4 * SPACING_M[0], rel=0.1)
+    ridge_x = float(_mesh(0.0, 7)[0, 7:9, 0].mean())
+    pulling = np.linalg.norm(v, axis=1) > 1e-9
+    assert pulling.sum() >= 4 and not pulling[~under].any()
+    for m in np.flatnonzero(pulling):
+        side = np.sign(LAYOUT.centres_m[m, 0] - ridge_x)
+        # Across the ridge (x), away from it; the rigid part taken out leaves the difference across it.
+        assert v[m, 0] * side > 0 and abs(v[m, 1]) < 1e-9
+    left, right = (
+        v[pulling & (LAYOUT.centres_m[:, 0] < ridge_x), 0],
+        v[pulling & (LAYOUT.centres_m[:, 0] > ridge_x), 0],
+    )
+    speed = min(FlattenConfig().max_speed_m_s, slack / (2 * FlattenConfig().time_constant_s))
+    assert right.mean() - left.mean() == pytest.approx(2 * speed, rel=1e-6)
+
+
+def test_the_field_has_no_rigid_part_and_turns_with_the_ridge() -> None:
+    v, under, _ = _field(_mesh(0.3, ridge_col=4))
+    assert np.abs(rigid_part(v[under], LAYOUT.centres_m[under], np.zeros(2))).max() < 1e-12
+    # Across the ridge (its compressed direction, turned by 0.3 rad), each side moves away from the other.
+    nodes = _mesh(0.3, ridge_col=4)
+    across = np.array([math.cos(0.3), math.sin(0.3)])
+    ridge_s = float(nodes[:, 4:6, :2].reshape(-1, 2).mean(axis=0) @ across)
+    side = np.sign(LAYOUT.centres_m[under] @ across - ridge_s)
+    along_c = v[under] @ across
+    assert along_c[side > 0].mean() - along_c[side < 0].mean() > 0.005
+
+
+def test_no_ridge_no_pull_and_a_stretched_cloth_is_not_pulled() -> None:
+    v, _, _ = _field(_mesh(0.0, ridge_col=None))
+    assert not v.any()
+    v, _, _ = _field(_mesh(0.0, ridge_col=7, stretch=STRAIN_LIMIT))
+    assert not v.any()
+    half = _field(_mesh(0.0, ridge_col=7, stretch=0.75 * STRAIN_LIMIT))[0]
+    full = _field(_mesh(0.0, ridge_col=7))[0]
+    assert np.abs(half).max() == pytest.approx(0.5 * np.abs(full).max(), rel=0.05)
+
+
+def test_the_pull_is_limited_and_fades_with_the_slack() -> None:
+    cfg = FlattenConfig(max_speed_m_s=0.01, time_constant_s=0.1)
+    v, _, _ = _field(_mesh(0.0, ridge_col=7), cfg)
+    assert np.linalg.norm(v, axis=1).max() <= 2 * cfg.max_speed_m_s  # each side's pull, less the rigid part
+    big = np.abs(_field(_mesh(0.0, ridge_col=7, shortening=0.4))[0]).max()
+    small = np.abs(_field(_mesh(0.0, ridge_col=7, shortening=0.2))[0]).max()
+    assert small == pytest.approx(big / 2, rel=0.1)
