@@ -36,6 +36,16 @@ def _cmd_bench_loop(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_flatten(args: argparse.Namespace) -> int:
+    from clothd.tools.bench_flatten import format_result, run_bench, write_json
+
+    result = run_bench(starts=args.starts, seed=args.seed, flatten_s=args.flatten_seconds)
+    print(format_result(result))
+    if args.json:
+        write_json(result, args.json)
+    return 0
+
+
 def _cmd_bench_faults(args: argparse.Namespace) -> int:
     import json
 
@@ -216,6 +226,16 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--load-seconds", type=float, default=30.0, help="how long to load the API")
     bl.add_argument("--json", type=Path, help="also write the figures as JSON")
     bl.set_defaults(func=_cmd_bench_loop)
+    bfl = bsub.add_parser(
+        "flatten", help="the closed loop flattens pushed-in ridges, judged by hwsim's truth"
+    )
+    bfl.add_argument("--starts", type=int, default=20, help="seeded starting states")
+    bfl.add_argument("--seed", type=int, default=0)
+    bfl.add_argument(
+        "--flatten-seconds", type=float, default=10.0, help="a start succeeds when flat within this"
+    )
+    bfl.add_argument("--json", type=Path, help="also write the figures and every run as JSON")
+    bfl.set_defaults(func=_cmd_bench_flatten)
     bf = bsub.add_parser(
         "faults", help="faults injected into a live simulated cell: detection, stop, no restart; reset memory"
     )

@@ -210,8 +210,17 @@ class FlatnessConfig(_Strict):
     compressed_strain: float = Field(
         0.05, gt=0, lt=1, description="a mesh quad this much smaller on the table than at rest holds slack"
     )
+    release_strain: float = Field(
+        0.025, gt=0, lt=1, description="... and keeps holding it, once it did, until less short than this"
+    )
     flat_height_m: float = Field(0.001, gt=0, le=0.1, description="estimated height of the highest node")
     flat_compressed_pct: float = Field(1.0, ge=0, le=100, description="share of the quads holding slack")
+
+    @model_validator(mode="after")
+    def _release_below_start(self) -> FlatnessConfig:
+        if self.release_strain >= self.compressed_strain:
+            raise ValueError(f"release_strain ({self.release_strain}) must be below compressed_strain")
+        return self
 
 
 class FlattenConfig(_Strict):
@@ -221,7 +230,7 @@ class FlattenConfig(_Strict):
     max_speed_m_s: float = Field(0.04, gt=0, le=1, description="the most a module pulls a ridge's side")
     reach_m: float = Field(0.12, gt=0, le=2, description="modules this far from a ridge, or nearer, pull")
     ridge_margin_m: float = Field(
-        0.01, ge=0, le=0.5, description="a module pulls on a ridge that passes its belt this far to the side"
+        0.01, ge=0, le=0.5, description="a module pulls once its centre is this far off a ridge's line"
     )
 
 

@@ -108,6 +108,8 @@ class ClothSim:
         self.inv_mass = ti.field(ti.f64, shape=shape)
         self.stuck = ti.field(ti.i32, shape=shape)  # 1: held by static friction, moving with its belt
         self.reaction = ti.Vector.field(3, ti.f64, shape=shape)  # impulse the constraints ask of a stuck node
+        self.held = ti.field(ti.i32, shape=shape)  # 1: pressed by a hand, moving with it (a push)
+        self.hand_v = ti.Vector.field(2, ti.f64, shape=shape)
         self.kick = ti.field(ti.f64, shape=shape)
         n_mod = table.modules_x * table.modules_y
         self.mod_speed = ti.field(ti.f64, shape=n_mod)
@@ -134,6 +136,15 @@ class ClothSim:
         self.x.from_numpy(np.ascontiguousarray(x_m, dtype=np.float64))
         self.v.fill(0.0)
         self.stuck.fill(0)
+
+    def hold(self, held: np.ndarray, velocity_m_s: np.ndarray) -> None:
+        """Hands press the nodes where `held` (ny, nx) is set onto the table and move them in the plane
+        at velocity_m_s (ny, nx, 2) until `release`."""
+        self.held.from_numpy(held.astype(np.int32))
+        self.hand_v.from_numpy(np.ascontiguousarray(velocity_m_s, dtype=np.float64))
+
+    def release(self) -> None:
+        self.held.fill(0)
 
     def positions_m(self) -> np.ndarray:
         return np.asarray(self.x.to_numpy())
@@ -183,8 +194,8 @@ class ClothSim:
 
     @ti.func
     def _free_inv_mass(self, a: ti.template()) -> ti.f64:
-        """A stuck node is anchored to its belt: the solve moves it not at all."""
-        return self.inv_mass[a] * ti.cast(1 - self.stuck[a], ti.f64)
+        """A stuck node is anchored to its belt, a held one to its hand: the solve moves them not at all."""
+        return self.inv_mass[a] * ti.cast(1 - ti.max(self.stuck[a], self.held[a]), ti.f64)
 
     @ti.func
     def _distance(self, a: ti.template(), b: ti.template(), rest: ti.f64, alpha: ti.f64):
@@ -264,7 +275,10 @@ class ClothSim:
                 self.x_prev[j, i] = self.x[j, i]
                 self.reaction[j, i] = ti.Vector([0.0, 0.0, 0.0])
                 belt = self._belt_velocity(self.x[j, i], pitch, half_belt)
-                if self.stuck[j, i] == 1 and belt[2] > 0.0:
+                if self.held[j, i] == 1:
+                    self.stuck[j, i] = 0
+                    self.v[j, i] = ti.Vector([self.hand_v[j, i][0], self.hand_v[j, i][1], 0.0])
+                elif self.stuck[j, i] == 1 and belt[2] > 0.0:
                     # Static friction: the node rides its belt, on the table.
                     self.v[j, i] = ti.Vector([belt[0], belt[1], 0.0])
                 else:
@@ -303,7 +317,9 @@ class ClothSim:
                 self._anchored_spring(ti.Vector([j, i + 1]), ti.Vector([j + 1, i]), diag, shear_k_h2)
             for j, i in ti.ndrange(ny, nx):
                 m = 1.0 / self.inv_mass[j, i]
-                if self.stuck[j, i] == 1:
+                if self.held[j, i] == 1:
+                    pass  # the hand holds it where it is
+                elif self.stuck[j, i] == 1:
                     # Coulomb: the anchor holds while the pull it resists stays within μ_static·N; the
                     # normal force is the weight less what the constraints lift (impulses over h).
                     r = self.reaction[j, i]

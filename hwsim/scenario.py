@@ -148,6 +148,18 @@ class Pose(_Strict):
     ridges: list[Ridge] = Field([], max_length=8)
 
 
+class Push(_Strict):
+    """Two hands push a ridge into the cloth: they press it down on either side of a line (world frame),
+    between a quarter of reach_m and reach_m from it, lift the strip between them a little, and move
+    towards the line until slack_m has gone into that strip."""
+
+    at_m: tuple[float, float] = Field(description="a point of the line, world x, y")
+    direction_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi, description="the line's direction, world")
+    slack_m: float = Field(gt=0, le=0.05, description="how much closer the two hands end up")
+    duration_s: float = Field(1.0, gt=0.05, le=10)
+    reach_m: float = Field(0.06, gt=0.01, le=0.5)
+
+
 class ModuleSelector(_Strict):
     """Which modules a command applies to. Exactly one way of choosing."""
 

@@ -5,7 +5,8 @@
 - Ground truth and module states at GET /truth (JSON), for tests and the truth overlay.
 - Test hooks: POST /unplug?seconds=S (serial cable), POST /camera/drop?seconds=S (video stream),
   POST /fault?code=C&module=M (a controller fault report), POST /cloth with a JSON pose as in a
-  scenario's `initial_pose` (lay the cloth down again there, ridges and all; 409 while a belt runs).
+  scenario's `initial_pose` (lay the cloth down again there, ridges and all; 409 while a belt runs),
+  POST /cloth/push with a JSON push (two hands push a ridge into the cloth where it lies).
 
 The world steps at the scenario's rate with absolute deadlines; the camera renders every
 `camera_every` steps. It moves only by what the firmware receives: the loop is closed through the real
@@ -32,7 +33,7 @@ from hwsim.camera import Camera
 from hwsim.firmware import Firmware
 from hwsim.recording import render_frame, write_table
 from hwsim.renderer import Renderer
-from hwsim.scenario import Pose, Scenario
+from hwsim.scenario import Pose, Push, Scenario
 from hwsim.taichi_runtime import ensure_taichi
 from hwsim.world import World
 
@@ -194,6 +195,11 @@ class _Handler(BaseHTTPRequestHandler):
             elif url.path == "/fault":
                 module = int(q.get("module", "65535"))
                 self.cell.firmware.report_fault(int(q["code"]), module, q.get("text", ""))
+            elif url.path == "/cloth/push":
+                length = int(self.headers.get("Content-Length", "0"))
+                push = Push.model_validate_json(self.rfile.read(length))
+                with self.cell.lock:
+                    self.cell.world.push(push)
             elif url.path == "/cloth":
                 length = int(self.headers.get("Content-Length", "0"))
                 pose = Pose.model_validate_json(self.rfile.read(length))

@@ -13,13 +13,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from hwsim.cloth import ClothSim
-from hwsim.scenario import Pose, Scenario
+from hwsim.scenario import Pose, Push, Scenario
 from hwsim.scene import SceneState, arms_at
 from hwsim.table import Table
 from hwsim.taichi_runtime import ensure_taichi
 from hwsim.timeline import Operator
 
 MODULE_STEPS_PER_FRAME = 5
+PUSH_LIFT_M_S = 0.1  # the hands lift the strip between them at the start of a push: the seed of its ridge
 
 
 @dataclass(frozen=True)
@@ -49,6 +50,7 @@ class World:
         self.frame_index = 0
         self.log_commands = log_commands  # a live cell runs for hours: it keeps no log
         self.command_log: list[CommandRow] = []
+        self._push_ends_s: float | None = None
         self._told_speed = np.full(self.table.n_modules, np.nan)
         self._told_heading = np.full(self.table.n_modules, np.nan)
         for _ in range(round(scenario.settle_s * scenario.fps)):
@@ -90,6 +92,19 @@ class World:
             "max_strain": strain,
         }
 
+    def push(self, push: Push) -> None:
+        """Start two hands pushing a ridge into the cloth (hwsim.scenario.Push); they let go by themselves."""
+        x = self.cloth.positions_m()
+        normal = np.array([-math.sin(push.direction_rad), math.cos(push.direction_rad)])
+        u = (x[..., :2] - np.asarray(push.at_m)) @ normal
+        held = (np.abs(u) >= push.reach_m / 4) & (np.abs(u) <= push.reach_m)
+        speed = push.slack_m / 2.0 / push.duration_s
+        self.cloth.hold(held, -np.sign(u)[..., None] * speed * normal)
+        v = self.cloth.velocities_m_s()
+        v[np.abs(u) < push.reach_m / 4, 2] += PUSH_LIFT_M_S
+        self.cloth.v.from_numpy(v)
+        self._push_ends_s = self.t_s + push.duration_s
+
     def lay(self, pose: Pose) -> None:
         """Lay the cloth down again at `pose` (its ridges laid in) on the belts as they are turned now."""
         self.cloth.lay(pose, self.table.heading_rad)
@@ -111,6 +126,9 @@ class World:
             self._log_commands()
         self._advance()
         self.frame_index += 1
+        if self._push_ends_s is not None and self.t_s >= self._push_ends_s - 1e-9:
+            self.cloth.release()
+            self._push_ends_s = None
 
     def _advance(self) -> None:
         dt = self.dt_s / MODULE_STEPS_PER_FRAME

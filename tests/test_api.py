@@ -20,7 +20,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from clothd.api.app import create_app
 from clothd.api.stream import Subscriber
-from clothd.config import ApiConfig, CameraSourceConfig, Config, RecordingConfig, parse_config
+from clothd.config import ApiConfig, CameraSourceConfig, Config, RecordingConfig, TrackerConfig, parse_config
 from clothd.core.camera_model import CameraModel
 from clothd.drivers.camera import redact_source
 from clothd.errors import ConfigError
@@ -73,6 +73,14 @@ def test_setpoint_validation_gives_reasons(client: TestClient) -> None:
     assert r.status_code == 422
     r = client.put("/api/v1/setpoint", json={"mode": "move", "x_m": 0.1, "y_m": 0, "theta_rad": 9})
     assert r.status_code == 422 and "theta_rad" in r.text
+
+
+def test_flatten_with_a_rigid_tracker_is_a_conflict_that_says_why() -> None:
+    parts = build(Config(tracker=TrackerConfig(model="rigid")))
+    c = TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
+    r = c.put("/api/v1/setpoint", json={"mode": "flatten"})
+    assert r.status_code == 409 and "mesh tracker" in r.json()["detail"]
+    assert c.get("/api/v1/status").json()["mode"] == "idle"
 
 
 def test_hold_before_the_daemon_runs_is_a_conflict(client: TestClient) -> None:

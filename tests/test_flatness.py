@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from clothd.config import FlatnessConfig
-from clothd.core.flatness import FlatnessMonitor, find_ridges
+from clothd.core.flatness import FlatnessMonitor, find_ridges, quad_shortening
 
 SIZE_M = (0.25, 0.20)
 NX, NY = 12, 12
@@ -40,7 +40,7 @@ def test_a_flat_mesh_has_no_ridge_and_is_flat() -> None:
 @pytest.mark.parametrize("theta_rad", [0.0, 0.5, -1.2])
 def test_a_ridge_is_found_with_its_position_direction_and_height(theta_rad: float) -> None:
     nodes = _mesh(theta_rad, ridge_cols=(7,), height_m=0.008)
-    (ridge,) = find_ridges(nodes, SPACING_M, 0.05)
+    (ridge,) = find_ridges(nodes, SPACING_M, quad_shortening(nodes[..., :2], SPACING_M) > 0.05)
     # The ridge runs along the cloth's t axis, turned by theta; the cloth is short across it.
     assert math.remainder(ridge.direction_rad - (math.pi / 2 + theta_rad), math.pi) == pytest.approx(
         0, abs=1e-6
@@ -55,7 +55,7 @@ def test_a_ridge_is_found_with_its_position_direction_and_height(theta_rad: floa
 def test_two_ridges_are_two_and_the_higher_comes_first() -> None:
     nodes = _mesh(0.0, ridge_cols=(2, 8), height_m=0.005)
     nodes[:, 9, 2] = 0.012
-    ridges = find_ridges(nodes, SPACING_M, 0.05)
+    ridges = find_ridges(nodes, SPACING_M, quad_shortening(nodes[..., :2], SPACING_M) > 0.05)
     assert len(ridges) == 2 and ridges[0].height_m == pytest.approx(0.012) and ridges[0].position_m[0] > 0
     monitor = FlatnessMonitor(FlatnessConfig())
     f = monitor.update(nodes, SIZE_M)
@@ -75,3 +75,14 @@ def test_the_flat_flag_has_hysteresis() -> None:
     assert not monitor.update(bumped, SIZE_M).flat
     monitor.reset()
     assert not monitor.flat
+
+
+def test_a_ridge_once_seen_is_followed_down_below_what_starts_one() -> None:
+    monitor = FlatnessMonitor(FlatnessConfig(compressed_strain=0.05, release_strain=0.025))
+    faint = _mesh(0.0, ridge_cols=(7,), height_m=0.0)
+    faint[:, 8:, 0] += 0.4 * SPACING_M[0] - 0.03 * SPACING_M[0]  # the ridge's column only 3 % short now
+    assert monitor.update(faint, SIZE_M).ridges == ()  # never seen: 3 % does not start a ridge
+    assert len(monitor.update(_mesh(0.0, ridge_cols=(7,), height_m=0.005), SIZE_M).ridges) == 1
+    assert len(monitor.update(faint, SIZE_M).ridges) == 1  # seen: followed down to 2.5 %
+    assert not monitor.update(faint, SIZE_M).flat
+    assert monitor.update(_mesh(), SIZE_M).ridges == ()

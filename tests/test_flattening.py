@@ -82,11 +82,16 @@ def test_the_field_has_no_rigid_part_and_turns_with_the_ridge() -> None:
 def test_no_ridge_no_pull_and_a_stretched_cloth_is_not_pulled() -> None:
     v, _, _ = _field(_mesh(0.0, ridge_col=None))
     assert not v.any()
-    v, _, _ = _field(_mesh(0.0, ridge_col=7, stretch=STRAIN_LIMIT))
+
+    # Rows that are, as a whole, at the strain limit (the ridge's slack more than paid for): no pull.
+    def stretch_for(row_strain: float) -> float:  # the other edges' stretch that gives rows this strain
+        return (row_strain * (NX - 1) + 0.4) / (NX - 2)
+
+    v, _, _ = _field(_mesh(0.0, ridge_col=7, stretch=stretch_for(STRAIN_LIMIT)))
     assert not v.any()
-    half = _field(_mesh(0.0, ridge_col=7, stretch=0.75 * STRAIN_LIMIT))[0]
+    half = _field(_mesh(0.0, ridge_col=7, stretch=stretch_for(0.75 * STRAIN_LIMIT)))[0]
     full = _field(_mesh(0.0, ridge_col=7))[0]
-    assert np.abs(half).max() == pytest.approx(0.5 * np.abs(full).max(), rel=0.05)
+    assert np.abs(half).max() == pytest.approx(0.5 * np.abs(full).max(), rel=0.1)
 
 
 def test_the_pull_is_limited_and_fades_with_the_slack() -> None:

@@ -77,13 +77,13 @@ def _compression_tensor(nodes_xy_m: np.ndarray, rest_spacing_m: tuple[float, flo
 
 
 def find_ridges(
-    nodes_m: np.ndarray, rest_spacing_m: tuple[float, float], tolerance_strain: float
+    nodes_m: np.ndarray, rest_spacing_m: tuple[float, float], compressed: np.ndarray
 ) -> tuple[Ridge, ...]:
-    """The ridges of the mesh nodes_m (ny, nx, 3), highest first."""
+    """The ridges of the mesh nodes_m (ny, nx, 3): the connected sets of the `compressed` quads (bool,
+    (ny-1, nx-1)), highest first."""
     xy = nodes_m[..., :2]
     shortening = quad_shortening(xy, rest_spacing_m)
-    compressed = (shortening > tolerance_strain).astype(np.uint8)
-    count, labels = cv2.connectedComponents(compressed, connectivity=8)
+    count, labels = cv2.connectedComponents(compressed.astype(np.uint8), connectivity=8)
     tensor = _compression_tensor(xy, rest_spacing_m)
     quad_height = np.maximum.reduce(
         [nodes_m[:-1, :-1, 2], nodes_m[:-1, 1:, 2], nodes_m[1:, 1:, 2], nodes_m[1:, :-1, 2]]
@@ -116,26 +116,34 @@ def find_ridges(
 
 
 class FlatnessMonitor:
-    """The flatness of each estimate; `flat` turns on below the configured height and compressed area and
-    off only past twice them."""
+    """The flatness of each estimate, with hysteresis twice over: a quad starts holding slack past
+    `compressed_strain` and stops only below `release_strain` (so the last millimetre of a ridge, below
+    what starts one, is still seen and pulled out); `flat` turns on below the configured height and
+    compressed area and off only past twice them."""
 
     def __init__(self, cfg: FlatnessConfig) -> None:
         self.cfg = cfg
         self.flat = False
+        self._compressed: np.ndarray | None = None
 
     def reset(self) -> None:
         self.flat = False
+        self._compressed = None
 
     def update(self, nodes_m: np.ndarray, cloth_size_m: tuple[float, float]) -> Flatness:
         ny, nx = nodes_m.shape[:2]
         spacing = (cloth_size_m[0] / (nx - 1), cloth_size_m[1] / (ny - 1))
         shortening = quad_shortening(nodes_m[..., :2], spacing)
-        compressed_pct = float(100.0 * np.mean(shortening > self.cfg.compressed_strain))
+        compressed = shortening > self.cfg.compressed_strain
+        if self._compressed is not None and self._compressed.shape == compressed.shape:
+            compressed |= self._compressed & (shortening > self.cfg.release_strain)
+        self._compressed = compressed
+        compressed_pct = float(100.0 * np.mean(compressed))
         max_height = float(max(nodes_m[..., 2].max(), 0.0))
         c = self.cfg
         if self.flat:
             self.flat = max_height <= 2 * c.flat_height_m and compressed_pct <= 2 * c.flat_compressed_pct
         else:
             self.flat = max_height <= c.flat_height_m and compressed_pct <= c.flat_compressed_pct
-        ridges = find_ridges(nodes_m, spacing, self.cfg.compressed_strain)
+        ridges = find_ridges(nodes_m, spacing, compressed)
         return Flatness(max_height, compressed_pct, self.flat, ridges)

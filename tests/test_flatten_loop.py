@@ -1,0 +1,55 @@
+"""Flattening in closed loop: the daemon and `hwsim serve` as separate processes, over the real pty and
+video. Hands push a ridge into the tracked cloth; it stays while nothing pulls it; `flatten` takes it out
+(docs/flattening.md)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Iterator
+
+import httpx
+import pytest
+from live_cell import Cell, Daemon, serve_cell, start_daemon, wait
+
+pytestmark = pytest.mark.slow
+cell = pytest.fixture(scope="module", name="cell")(serve_cell)
+
+
+@pytest.fixture(scope="module")
+def daemon(cell: Cell, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    d = start_daemon(cell, tmp_path_factory.mktemp("daemon"))
+    yield d
+    d.stop()
+
+
+def _ready(daemon: Daemon) -> bool:
+    s = daemon.status()
+    return bool(s["state"] == "tracking" and s["link"]["state"] == "connected")
+
+
+def test_a_pushed_in_ridge_is_seen_kept_and_flattened(cell: Cell, daemon: Daemon) -> None:
+    wait(lambda: _ready(daemon), 60, "tracking, link up")
+    push = {"at_m": [0.0, 0.0], "direction_rad": math.pi / 2, "slack_m": 0.008, "duration_s": 1.0}
+    httpx.post(f"{cell.http}/cloth/push", json=push, timeout=5).raise_for_status()
+    time.sleep(2.5)
+    laid = cell.truth()
+    assert laid["max_height_m"] > 0.005 and laid["area_ratio"] < 0.99
+    # The estimate sees it: one ridge, running along the push's line (world y), high.
+    f = daemon.status()["flatness"]
+    assert not f["flat"] and len(f["ridges"]) == 1
+    ridge = f["ridges"][0]
+    assert abs(math.remainder(ridge["direction_rad"] - math.pi / 2, math.pi)) < 0.3
+    assert abs(ridge["x_m"]) < 0.03 and ridge["height_mm"] > 5.0
+    # Nothing pulls it: it stays.
+    time.sleep(2.0)
+    assert cell.truth()["max_height_m"] > 0.9 * laid["max_height_m"]
+    daemon.put_setpoint({"mode": "flatten"})
+    t0 = time.monotonic()
+    wait(lambda: cell.truth()["area_ratio"] >= 0.995, 10, "the slack pulled out")
+    print(f"slack pulled out in {time.monotonic() - t0:.2f} s; truth {cell.truth()}")
+    end = cell.truth()
+    assert end["max_strain"] < 0.06
+    assert math.hypot(end["pose"][0], end["pose"][1]) < 0.005  # the pose was held
+    wait(lambda: daemon.status()["flatness"]["flat"], 5, "the estimate flat")
+    assert daemon.status()["mode"] == "flatten"
