@@ -150,7 +150,7 @@ class Compute:
         timing["compute"] = time.perf_counter() - t0
         jpeg = None
         if req.want_view and frame is not None:
-            jpeg = self.view.render(frame.image, est, req.setpoint)
+            jpeg = self.view.render(frame.image, est, req.setpoint, flatness)
         frame_t = frame.t_mono_s if frame is not None else None
         recording = None if self.recorder is None else self.recorder.status()
         return TickReply(

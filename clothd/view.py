@@ -2,7 +2,8 @@
 features as green crosses, measured ones red, a yellow line between each pair, and the mesh.
 
 `draw_estimate` serves `clothd replay`'s overlay video; `ViewRenderer` the live annotated view
-(GET /api/v1/view.mjpg), which adds the pose arrow and the setpoint as a ghost outline. The live view is
+(GET /api/v1/view.mjpg), which adds the pose arrow, the setpoint as a ghost outline, and each ridge the
+flatness finds as a magenta line along it, labelled with its height. The live view is
 drawn in the compute process, only on ticks when someone watches, at `api.view_fps`."""
 
 from __future__ import annotations
@@ -15,11 +16,12 @@ import numpy as np
 
 from clothd.core.camera_model import CameraModel
 from clothd.core.control import Setpoint
+from clothd.core.flatness import Flatness, Ridge
 from clothd.core.messages import Estimate
 from clothd.core.workspace import cloth_corners_m
 
 GREEN, RED, YELLOW, MESH_BGR = (0, 220, 0), (0, 0, 255), (0, 230, 255), (255, 160, 40)
-ARROW_BGR, GHOST_BGR = (255, 255, 255), (200, 120, 255)
+ARROW_BGR, GHOST_BGR, RIDGE_BGR = (255, 255, 255), (200, 120, 255), (255, 0, 255)
 ARROW_M = 0.08
 JPEG_QUALITY = 80
 _SHIFT = 2  # fractional bits for sub-pixel drawing
@@ -74,10 +76,14 @@ class ViewRenderer:
     def __init__(self, camera_model: CameraModel) -> None:
         self.camera_model = camera_model
 
-    def render(self, image: np.ndarray, est: Estimate | None, setpoint: Setpoint) -> bytes | None:
+    def render(
+        self, image: np.ndarray, est: Estimate | None, setpoint: Setpoint, flatness: Flatness | None = None
+    ) -> bytes | None:
         if est is not None and est.tracking:
             img = draw_estimate(image, est, self.camera_model, wall_clock_label(est.frame_t_s))
             self._arrow(img, est.pose)
+            for ridge in flatness.ridges if flatness is not None else ():
+                self._ridge(img, ridge)
         else:
             img = image.copy()
         if setpoint.pose is not None and est is not None and est.cloth_size_m is not None:
@@ -93,6 +99,18 @@ class ViewRenderer:
         a, b = self._project(np.stack([pose[:2], tip])).round().astype(int)
         start, end = (int(a[0]), int(a[1])), (int(b[0]), int(b[1]))
         cv2.arrowedLine(img, start, end, ARROW_BGR, 2, cv2.LINE_AA, 0, 0.25)
+
+    def _ridge(self, img: np.ndarray, ridge: Ridge) -> None:
+        along = np.array([math.cos(ridge.direction_rad), math.sin(ridge.direction_rad)])
+        middle = ridge.quad_centres_m.mean(axis=0)
+        reach = (ridge.quad_centres_m - middle) @ along
+        ends = middle + np.outer([reach.min(), reach.max()], along)
+        a, b = self._project(ends).round().astype(int)
+        cv2.line(img, (int(a[0]), int(a[1])), (int(b[0]), int(b[1])), RIDGE_BGR, 3, cv2.LINE_AA)
+        label = f"{ridge.height_m * 1e3:.1f} mm"
+        cv2.putText(
+            img, label, (int(b[0]) + 6, int(b[1])), cv2.FONT_HERSHEY_SIMPLEX, 0.5, RIDGE_BGR, 1, cv2.LINE_AA
+        )
 
     def _ghost(self, img: np.ndarray, pose: np.ndarray, size_m: tuple[float, float]) -> None:
         px = self._project(cloth_corners_m(pose, size_m)).round().astype(np.int32)

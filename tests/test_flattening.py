@@ -1,15 +1,21 @@
 """The flattening regulator against a synthetic ridge: which modules pull which way and how fast, no net
-rigid motion, and the strain guard (core/flattening.py, docs/flattening.md)."""
+rigid motion, and the strain guard (core/flattening.py, docs/flattening.md); the ridge in the live view."""
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
 from clothd.config import CellConfig, FlatnessConfig, FlattenConfig
+from clothd.core.camera_model import CameraModel
+from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
+from clothd.core.ekf import UpdateStats
 from clothd.core.flatness import FlatnessMonitor
 from clothd.core.flattening import FlatteningRegulator, rigid_part
+from clothd.core.messages import Estimate
+from clothd.view import ViewRenderer
 
 CELL = CellConfig()
 LAYOUT = ConveyorLayout.of_cell(CELL)
@@ -101,3 +107,36 @@ def test_the_pull_is_limited_and_fades_with_the_slack() -> None:
     big = np.abs(_field(_mesh(0.0, ridge_col=7, shortening=0.4))[0]).max()
     small = np.abs(_field(_mesh(0.0, ridge_col=7, shortening=0.2))[0]).max()
     assert small == pytest.approx(big / 2, rel=0.1)
+
+
+def test_the_live_view_draws_each_ridge_along_its_line() -> None:
+    nodes = _mesh(0.0, ridge_col=7)
+    flatness = FlatnessMonitor(FlatnessConfig()).update(nodes, SIZE_M)
+    camera = CameraModel.ideal(640, 480, 900.0, 1.0)
+    est = Estimate(
+        frame_t_s=0.0,
+        status="tracking",
+        pose=np.zeros(3),
+        pose_cov=np.eye(3),
+        nodes_m=nodes,
+        outline_m=None,
+        cloth_size_m=SIZE_M,
+        feature_id=np.zeros(0, int),
+        meas_px=np.zeros((0, 2)),
+        pred_px=np.zeros((0, 2)),
+        stats=UpdateStats(0, 0, 0.0),
+    )
+    grey = np.full((480, 640, 3), 90, np.uint8)
+    setpoint = Setpoint("flatten", np.zeros(3))
+    renderer = ViewRenderer(camera)
+    with_ridge = cv2.imdecode(
+        np.frombuffer(renderer.render(grey, est, setpoint, flatness) or b"", np.uint8), 1
+    )
+    without = cv2.imdecode(np.frombuffer(renderer.render(grey, est, setpoint) or b"", np.uint8), 1)
+    magenta = (with_ridge[..., 0] > 200) & (with_ridge[..., 1] < 80) & (with_ridge[..., 2] > 200)
+    assert not ((without[..., 0] > 200) & (without[..., 1] < 80) & (without[..., 2] > 200)).any()
+    # A line along the ridge: image columns where the ridge's world x projects, across many rows.
+    ridge_x_px = camera.project(np.array([[float(nodes[0, 7:9, 0].mean()), 0.0, 0.0]]))[0, 0]
+    rows, cols = np.nonzero(magenta)
+    near = np.abs(cols - ridge_x_px) < 15
+    assert near.sum() > 100 and np.ptp(rows[near]) > 100
