@@ -1,11 +1,13 @@
-"""Shared fixtures: short recordings of the shipped scenarios, made once per test session."""
+"""Shared fixtures: short recordings of the shipped scenarios, made once per test session; and, per test
+module that asks, a live simulated cell (`hwsim serve`) with the daemon running against it."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
+from live_cell import Cell, Daemon, serve_cell, start_daemon
 
 from hwsim import scenario as scenarios
 from hwsim.recording import record
@@ -26,3 +28,13 @@ def short_recording(tmp_path_factory: pytest.TempPathFactory) -> Callable[[str],
         return made[name]
 
     return get
+
+
+cell = pytest.fixture(scope="module", name="cell")(serve_cell)
+
+
+@pytest.fixture(scope="module")
+def daemon(cell: Cell, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
+    d = start_daemon(cell, tmp_path_factory.mktemp("daemon"))
+    yield d
+    d.stop()

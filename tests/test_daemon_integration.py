@@ -16,27 +16,18 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import httpx
 import numpy as np
 import pytest
 import websockets
-from live_cell import Cell, Daemon, serve_cell, start_daemon, wait
+from live_cell import Cell, Daemon, start_daemon, wait
 from websockets.exceptions import InvalidStatus
 from websockets.typing import Origin
 
 pytestmark = pytest.mark.slow
 TICK_S = 1 / 30
-cell = pytest.fixture(scope="module", name="cell")(serve_cell)
-
-
-@pytest.fixture(scope="module")
-def daemon(cell: Cell, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    d = start_daemon(cell, tmp_path_factory.mktemp("daemon"))
-    yield d
-    d.stop()
 
 
 def _pose_error(truth: list[float], pose: list[float]) -> tuple[float, float]:

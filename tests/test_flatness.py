@@ -85,4 +85,7 @@ def test_a_ridge_once_seen_is_followed_down_below_what_starts_one() -> None:
     assert len(monitor.update(_mesh(0.0, ridge_cols=(7,), height_m=0.005), SIZE_M).ridges) == 1
     assert len(monitor.update(faint, SIZE_M).ridges) == 1  # seen: followed down to 2.5 %
     assert not monitor.update(faint, SIZE_M).flat
+    moved = _mesh(0.0, ridge_cols=(8,), height_m=0.0)  # the faint ridge a column on
+    moved[:, 9:, 0] += 0.4 * SPACING_M[0] - 0.03 * SPACING_M[0]
+    assert len(monitor.update(moved, SIZE_M).ridges) == 1  # still followed, beside where it was
     assert monitor.update(_mesh(), SIZE_M).ridges == ()

@@ -6,21 +6,12 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Iterator
 
 import httpx
 import pytest
-from live_cell import Cell, Daemon, serve_cell, start_daemon, wait
+from live_cell import Cell, Daemon, wait
 
 pytestmark = pytest.mark.slow
-cell = pytest.fixture(scope="module", name="cell")(serve_cell)
-
-
-@pytest.fixture(scope="module")
-def daemon(cell: Cell, tmp_path_factory: pytest.TempPathFactory) -> Iterator[Daemon]:
-    d = start_daemon(cell, tmp_path_factory.mktemp("daemon"))
-    yield d
-    d.stop()
 
 
 def _ready(daemon: Daemon) -> bool:

@@ -117,8 +117,9 @@ def find_ridges(
 
 class FlatnessMonitor:
     """The flatness of each estimate, with hysteresis twice over: a quad starts holding slack past
-    `compressed_strain` and stops only below `release_strain` (so the last millimetre of a ridge, below
-    what starts one, is still seen and pulled out); `flat` turns on below the configured height and
+    `compressed_strain`, and a quad that held it, or lies beside one that did, holds it until below
+    `release_strain` (so the last millimetre of a ridge, below what starts one, is still seen and pulled
+    out, even as the ridge moves); `flat` turns on below the configured height and
     compressed area and off only past twice them."""
 
     def __init__(self, cfg: FlatnessConfig) -> None:
@@ -136,7 +137,10 @@ class FlatnessMonitor:
         shortening = quad_shortening(nodes_m[..., :2], spacing)
         compressed = shortening > self.cfg.compressed_strain
         if self._compressed is not None and self._compressed.shape == compressed.shape:
-            compressed |= self._compressed & (shortening > self.cfg.release_strain)
+            # A ridge moves a little as it is pulled: what held slack last tick, or lies beside it, keeps
+            # holding it down to the release strain.
+            near = cv2.dilate(self._compressed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+            compressed |= near & (shortening > self.cfg.release_strain)
         self._compressed = compressed
         compressed_pct = float(100.0 * np.mean(compressed))
         max_height = float(max(nodes_m[..., 2].max(), 0.0))
