@@ -1,5 +1,6 @@
 """Drawing what the tracker believes over a frame, in the original report's figure style: predicted
-features as green crosses, measured ones red, a yellow line between each pair, and the mesh.
+features as green crosses, measured ones red, a yellow line between each pair, and the mesh, its edges
+that have risen off the table coloured by height (yellow at 1 mm to red at 15 mm and above).
 
 `draw_estimate` serves `clothd replay`'s overlay video; `ViewRenderer` the live annotated view
 (GET /api/v1/view.mjpg), which adds the pose arrow, the setpoint as a ghost outline, and each ridge the
@@ -25,6 +26,7 @@ ARROW_BGR, GHOST_BGR, RIDGE_BGR = (255, 255, 255), (200, 120, 255), (255, 0, 255
 ARROW_M = 0.08
 JPEG_QUALITY = 80
 _SHIFT = 2  # fractional bits for sub-pixel drawing
+RAISED_M, RAISED_FULL_M = 0.001, 0.015  # edges this high are drawn yellow, this high and more red
 _CROSS_PX = 3
 
 
@@ -45,6 +47,21 @@ def _crosses(img: np.ndarray, px: np.ndarray, colour: tuple[int, int, int]) -> N
     _segments(img, np.concatenate([p - d, p + d * [-1, 1]]), np.concatenate([p + d, p + d * [1, -1]]), colour)
 
 
+def _raised_edges(img: np.ndarray, px: np.ndarray, z_m: np.ndarray) -> None:
+    """Over the mesh (px (ny, nx, 2), fixed point), its row and column edges higher than RAISED_M at
+    either end, thicker, coloured from yellow to red by that height."""
+    for a, b, za, zb in (
+        (px[:, :-1], px[:, 1:], z_m[:, :-1], z_m[:, 1:]),
+        (px[:-1], px[1:], z_m[:-1], z_m[1:]),
+    ):
+        height = np.maximum(za, zb)
+        for j, i in zip(*np.nonzero(height > RAISED_M), strict=True):
+            f = min(1.0, (height[j, i] - RAISED_M) / (RAISED_FULL_M - RAISED_M))
+            colour = (0, round(230 * (1.0 - f)), 255)
+            p0, p1 = (int(a[j, i, 0]), int(a[j, i, 1])), (int(b[j, i, 0]), int(b[j, i, 1]))
+            cv2.line(img, p0, p1, colour, 2, cv2.LINE_AA, _SHIFT)
+
+
 def draw_estimate(
     image: np.ndarray, est: Estimate, camera_model: CameraModel, when: str | None = None
 ) -> np.ndarray:
@@ -57,6 +74,7 @@ def draw_estimate(
         lines = [np.ascontiguousarray(g[j]) for j in range(ny)]
         lines += [np.ascontiguousarray(g[:, i]) for i in range(nx)]
         cv2.polylines(img, lines, False, MESH_BGR, 1, cv2.LINE_AA, _SHIFT)
+        _raised_edges(img, g, est.nodes_m[..., 2])
     ok = ~np.isnan(est.meas_px[:, 0]) if len(est.meas_px) else np.zeros(0, bool)
     _segments(img, est.meas_px[ok], est.pred_px[ok], YELLOW)
     _crosses(img, est.meas_px[ok], RED)

@@ -80,6 +80,11 @@ def test_page_loads_and_shows_the_live_state(page: Page) -> None:
     assert page.title() == "clothd"
     page.wait_for_function("document.getElementById('state').textContent === 'tracking'", timeout=20000)
     assert "ok" in (page.get_attribute("#link", "class") or "")
+    # The cloth lies flat on the live cell, and the page says so from the status's flatness block.
+    page.wait_for_function(
+        "document.getElementById('flatness').textContent.startsWith('flat ·')", timeout=10000
+    )
+    assert "0 ridges" in (page.text_content("#flatness") or "")
     assert page.is_visible("#estop")  # always visible at 1280 x 720
     box = page.locator("#estop").bounding_box()
     assert box is not None and box["y"] + box["height"] <= 720 and box["x"] + box["width"] <= 1280

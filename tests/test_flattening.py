@@ -140,3 +140,10 @@ def test_the_live_view_draws_each_ridge_along_its_line() -> None:
     rows, cols = np.nonzero(magenta)
     near = np.abs(cols - ridge_x_px) < 15
     assert near.sum() > 100 and np.ptp(rows[near]) > 100
+    # The edges beside the raised node column (10 mm) are drawn red-orange; a flat mesh has none.
+    red = (without[..., 2] > 200) & (without[..., 1] < 150) & (without[..., 0] < 60)
+    rows, cols = np.nonzero(red)
+    assert red.sum() > 100 and np.abs(cols - ridge_x_px).max() < 40 and np.ptp(rows) > 100
+    flat_est = Estimate(**{**est.__dict__, "nodes_m": _mesh(0.0, ridge_col=None)})
+    flat_img = cv2.imdecode(np.frombuffer(renderer.render(grey, flat_est, setpoint) or b"", np.uint8), 1)
+    assert not ((flat_img[..., 2] > 200) & (flat_img[..., 1] < 150) & (flat_img[..., 0] < 60)).any()

@@ -52,6 +52,10 @@ function show(s) {
   $("sp-x").textContent = fmt(sp.x_m); $("sp-y").textContent = fmt(sp.y_m);
   $("sp-t").textContent = sp.theta_rad === undefined ? "–" : `${fmt(sp.theta_rad * 180 / Math.PI, 2)}°`;
   $("features").textContent = s.features;
+  const f = s.flatness;
+  $("flatness").textContent = !f ? "–" : `${f.flat ? "flat" : "wrinkled"} · highest ${fmt(f.max_height_mm, 1)} mm · ` +
+    `${fmt(f.compressed_area_pct, 1)} % holds slack · ${f.ridges.length} ridge${f.ridges.length === 1 ? "" : "s"}`;
+  $("flatness").className = f && !f.flat ? "warn" : "";
   $("residual").textContent = `${fmt(s.residual.mean_px, 2)} / ${fmt(s.residual.worst_px, 2)} px`;
   const tick = s.timing.stages.compute || {};
   $("missed").textContent = s.timing.missed_ticks;
