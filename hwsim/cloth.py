@@ -11,10 +11,12 @@ per substep) on a mesh at least 3x finer, with
   i.e. the discrete curvature energy ½ B ∫ |∂²x|² dA of an (almost) inextensible sheet, with
   compliance h⁴ / (B · cell area);
 - table contact: z >= 0, its normal impulse m·Δz/h measured from the projection;
-- friction: Coulomb against the surface velocity of the belt under each node, bounded by μ times that
-  normal impulse (the belts stand proud of the deck, so a node over a gap between belts is supported
-  but feels no friction), with a regularised stick zone |v_rel| < stick_speed where the force is proportional
-  to the slip, applied implicitly so that it is stable at any step;
+- friction: Coulomb against the surface velocity of the belt under each node (the belts stand proud of
+  the deck, so a node over a gap between belts is supported but feels no friction). A sliding node's
+  slip shrinks by μ times the normal correction per substep; a node that comes to rest on its belt sticks:
+  it rides the belt, the solve does not move it, and the impulse the constraints ask of it is summed
+  (between two stuck nodes, the edge's true elastic force k·C). It slides again once that exceeds
+  μ_static times its normal force, or when the constraints lift it (docs/hwsim.md, "Friction");
 - gravity, and a linear velocity damping.
 
 Running belts shake the cloth a little (`vibration_m_s`, seeded): real modules do, and without any
