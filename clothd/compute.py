@@ -92,7 +92,7 @@ class Compute:
         self.tracker = Tracker(spec.tracker, spec.camera_model, spec.layout, clock=time.perf_counter)
         self.controller = PoseController(spec.control, spec.cell, spec.layout.centres_m)
         self.view = ViewRenderer(spec.camera_model)
-        self.flatness = FlatnessMonitor(spec.control.flatness)
+        self.flatness_monitor = FlatnessMonitor(spec.control.flatness)
         self.regulator = FlatteningRegulator(
             spec.control.flattening,
             spec.layout.centres_m,
@@ -100,6 +100,7 @@ class Compute:
             spec.tracker.physics.strain_limit,
         )
         self._estimate: Estimate | None = None
+        self._flatness: Flatness | None = None  # of _estimate: read once per frame, kept between frames
         self._last_frame_index = -1
 
     def start(self) -> None:
@@ -126,8 +127,9 @@ class Compute:
         if req.reset:
             self.tracker.reset()
             self.controller.reset()
-            self.flatness.reset()
+            self.flatness_monitor.reset()
             self._estimate = None
+            self._flatness = None
         self._record_requests(req)
         frame = self.frames.latest()
         timing: dict[str, float] = {}
@@ -136,6 +138,7 @@ class Compute:
         if frame is not None and new_frame:
             est = self.tracker.step(frame.image, frame.t_mono_s, req.commands_in_force)
             self._estimate = est
+            self._flatness = self._read_flatness(est)
             self._last_frame_index = frame.index
             timing.update({f"tracker_{k}": v for k, v in est.timing_s.items()})
             if self.recorder is not None:
@@ -144,7 +147,7 @@ class Compute:
                 self.recorder.add(frame.image, frame.t_mono_s, req.commands_in_force, est)
                 timing["record"] = time.perf_counter() - t_rec
         t1 = time.perf_counter()
-        flatness = self._flatness(est)
+        flatness = self._flatness
         state, commands, halt = self._control(frame is not None, est, req.setpoint, flatness)
         timing["control"] = time.perf_counter() - t1
         timing["compute"] = time.perf_counter() - t0
@@ -167,12 +170,13 @@ class Compute:
             flatness,
         )
 
-    def _flatness(self, est: Estimate | None) -> Flatness | None:
-        if not self.spec.tracker.estimates_shape or est is None or not est.tracking:
+    def _read_flatness(self, est: Estimate) -> Flatness | None:
+        """The flatness of a new estimate; None when its model does not follow the shape or it is lost."""
+        if not self.spec.tracker.estimates_shape or not est.tracking:
             return None
         if est.nodes_m is None or est.cloth_size_m is None:
             return None
-        return self.flatness.update(est.nodes_m, est.cloth_size_m)
+        return self.flatness_monitor.update(est.nodes_m, est.cloth_size_m)
 
     def _record_requests(self, req: TickRequest) -> None:
         if req.record_stop and self.recorder is not None:

@@ -148,6 +148,13 @@ class ClothSim:
     def release(self) -> None:
         self.held.fill(0)
 
+    def lift(self, where: np.ndarray, speed_m_s: float) -> None:
+        """Add an upward velocity of speed_m_s to the nodes where `where` (ny, nx) is set. A node stuck to
+        its belt keeps riding it (static friction holds it) until the solve lets it go."""
+        v = self.velocities_m_s()
+        v[where, 2] += speed_m_s
+        self.v.from_numpy(v)
+
     def positions_m(self) -> np.ndarray:
         return np.asarray(self.x.to_numpy())
 

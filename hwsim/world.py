@@ -100,9 +100,7 @@ class World:
         held = (np.abs(u) >= push.reach_m / 4) & (np.abs(u) <= push.reach_m)
         speed = push.slack_m / 2.0 / push.duration_s
         self.cloth.hold(held, -np.sign(u)[..., None] * speed * normal)
-        v = self.cloth.velocities_m_s()
-        v[np.abs(u) < push.reach_m / 4, 2] += PUSH_LIFT_M_S
-        self.cloth.v.from_numpy(v)
+        self.cloth.lift(np.abs(u) < push.reach_m / 4, PUSH_LIFT_M_S)
         self._push_ends_s = self.t_s + push.duration_s
 
     def lay(self, pose: Pose) -> None:

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from clothd.config import FlatnessConfig
-from clothd.core.flatness import FlatnessMonitor, find_ridges, quad_shortening
+from clothd.core.flatness import FlatnessMonitor, Ridge, find_ridges, quad_shortening
 
 SIZE_M = (0.25, 0.20)
 NX, NY = 12, 12
@@ -30,6 +30,11 @@ def _mesh(theta_rad: float = 0.0, ridge_cols: tuple[int, ...] = (), height_m: fl
     return np.stack([c * xx - s * yy, s * xx + c * yy, z], axis=-1)
 
 
+def _ridges(nodes: np.ndarray) -> tuple[Ridge, ...]:
+    shortening = quad_shortening(nodes[..., :2], SPACING_M)
+    return find_ridges(nodes, SPACING_M, shortening, shortening > 0.05)
+
+
 def test_a_flat_mesh_has_no_ridge_and_is_flat() -> None:
     monitor = FlatnessMonitor(FlatnessConfig())
     f = monitor.update(_mesh(0.4), SIZE_M)
@@ -40,7 +45,7 @@ def test_a_flat_mesh_has_no_ridge_and_is_flat() -> None:
 @pytest.mark.parametrize("theta_rad", [0.0, 0.5, -1.2])
 def test_a_ridge_is_found_with_its_position_direction_and_height(theta_rad: float) -> None:
     nodes = _mesh(theta_rad, ridge_cols=(7,), height_m=0.008)
-    (ridge,) = find_ridges(nodes, SPACING_M, quad_shortening(nodes[..., :2], SPACING_M) > 0.05)
+    (ridge,) = _ridges(nodes)
     # The ridge runs along the cloth's t axis, turned by theta; the cloth is short across it.
     assert math.remainder(ridge.direction_rad - (math.pi / 2 + theta_rad), math.pi) == pytest.approx(
         0, abs=1e-6
@@ -55,7 +60,7 @@ def test_a_ridge_is_found_with_its_position_direction_and_height(theta_rad: floa
 def test_two_ridges_are_two_and_the_higher_comes_first() -> None:
     nodes = _mesh(0.0, ridge_cols=(2, 8), height_m=0.005)
     nodes[:, 9, 2] = 0.012
-    ridges = find_ridges(nodes, SPACING_M, quad_shortening(nodes[..., :2], SPACING_M) > 0.05)
+    ridges = _ridges(nodes)
     assert len(ridges) == 2 and ridges[0].height_m == pytest.approx(0.012) and ridges[0].position_m[0] > 0
     monitor = FlatnessMonitor(FlatnessConfig())
     f = monitor.update(nodes, SIZE_M)

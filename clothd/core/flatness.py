@@ -1,7 +1,7 @@
 """How flat the cloth is, from the mesh estimate: its highest node, how much of it lies compressed, and
 the ridges it has.
 
-An overhead camera sees a wrinkle as cloth that is shorter on the table than at rest (docs/flatness.md):
+An overhead camera sees a wrinkle as cloth that is shorter on the table than at rest (docs/flattening.md):
 a quad of the mesh whose projected area is below (1 - tolerance) of its rest area holds slack, which has
 risen out of the plane. The node heights come from the same shortening (core/folds.py). A ridge is a
 connected set of compressed quads; it runs across its compressed direction, which is the principal axis
@@ -77,12 +77,11 @@ def _compression_tensor(nodes_xy_m: np.ndarray, rest_spacing_m: tuple[float, flo
 
 
 def find_ridges(
-    nodes_m: np.ndarray, rest_spacing_m: tuple[float, float], compressed: np.ndarray
+    nodes_m: np.ndarray, rest_spacing_m: tuple[float, float], shortening: np.ndarray, compressed: np.ndarray
 ) -> tuple[Ridge, ...]:
     """The ridges of the mesh nodes_m (ny, nx, 3): the connected sets of the `compressed` quads (bool,
-    (ny-1, nx-1)), highest first."""
+    (ny-1, nx-1)), highest first; `shortening` is quad_shortening's of the same nodes."""
     xy = nodes_m[..., :2]
-    shortening = quad_shortening(xy, rest_spacing_m)
     count, labels = cv2.connectedComponents(compressed.astype(np.uint8), connectivity=8)
     tensor = _compression_tensor(xy, rest_spacing_m)
     quad_height = np.maximum.reduce(
@@ -149,5 +148,5 @@ class FlatnessMonitor:
             self.flat = max_height <= 2 * c.flat_height_m and compressed_pct <= 2 * c.flat_compressed_pct
         else:
             self.flat = max_height <= c.flat_height_m and compressed_pct <= c.flat_compressed_pct
-        ridges = find_ridges(nodes_m, spacing, compressed)
+        ridges = find_ridges(nodes_m, spacing, shortening, compressed)
         return Flatness(max_height, compressed_pct, self.flat, ridges)

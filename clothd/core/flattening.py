@@ -1,15 +1,15 @@
 """The flattening regulator: per-module belt velocities that pull each ridge's two sides apart.
 
 The derivation is in docs/flattening.md. In short: a ridge holds the slack s (m) of the cloth that is
-short across it, along its compressed direction ĉ. A module under the cloth on the + side of the ridge
-(within `reach_m` of it, and not under the ridge itself) drives its material at +v ĉ, one on the - side
-at -v ĉ; friction carries the material, so the slack closes at 2v. With v = s / (2τ) the slack decays
-like exp(-t/τ) (a first-order loop), limited to `max_speed_m_s`; the pull fades as the ridge comes down
-and stops when it is gone. The field is then made free of rigid motion (its least-squares translation
-and rotation about the cloth's centre are taken out), so that it changes the cloth's shape and leaves
-its pose to the pose controller. As the cloth as a whole (the median row or column of the mesh) is
-stretched towards `strain_limit`, the whole field is scaled down to nothing, so that the cloth is never
-torn and never pulled to slip.
+short across it, along its compressed direction ĉ. A module under the cloth beside the ridge, on the +
+side of its line (more than `ridge_margin_m` off it and within `reach_m`), drives its material at +v ĉ,
+one on the - side at -v ĉ; friction carries the material, so the slack closes at 2v. With v = s / (2τ)
+the slack decays like exp(-t/τ) (a first-order loop), limited to `max_speed_m_s`; the pull fades as the
+ridge comes down and stops when it is gone. The field is then made free of rigid motion (its
+least-squares translation and rotation about the cloth's centre are taken out), so that it changes the
+cloth's shape and leaves its pose to the pose controller. As the cloth as a whole (the median row or
+column of the mesh) is stretched towards `strain_limit`, the whole field is scaled down to nothing, so
+that the cloth is never torn and never pulled to slip.
 """
 
 from __future__ import annotations
