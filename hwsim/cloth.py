@@ -111,7 +111,7 @@ class ClothSim:
         self.stuck = ti.field(ti.i32, shape=shape)  # 1: held by static friction, moving with its belt
         self.reaction = ti.Vector.field(3, ti.f64, shape=shape)  # impulse the constraints ask of a stuck node
         self.held = ti.field(ti.i32, shape=shape)  # 1: pressed by a hand, moving with it (a push)
-        self.hand_v = ti.Vector.field(2, ti.f64, shape=shape)
+        self.hand_v = ti.Vector.field(3, ti.f64, shape=shape)
         self.kick = ti.field(ti.f64, shape=shape)
         n_mod = table.modules_x * table.modules_y
         self.mod_speed = ti.field(ti.f64, shape=n_mod)
@@ -140,20 +140,21 @@ class ClothSim:
         self.stuck.fill(0)
 
     def hold(self, held: np.ndarray, velocity_m_s: np.ndarray) -> None:
-        """Hands press the nodes where `held` (ny, nx) is set onto the table and move them in the plane
-        at velocity_m_s (ny, nx, 2) until `release`."""
+        """Hands hold the nodes where `held` (ny, nx) is set and move them at velocity_m_s (ny, nx, 3) until
+        `release`."""
         self.held.from_numpy(held.astype(np.int32))
         self.hand_v.from_numpy(np.ascontiguousarray(velocity_m_s, dtype=np.float64))
 
     def release(self) -> None:
-        self.held.fill(0)
-
-    def lift(self, where: np.ndarray, speed_m_s: float) -> None:
-        """Add an upward velocity of speed_m_s to the nodes where `where` (ny, nx) is set. A node stuck to
-        its belt keeps riding it (static friction holds it) until the solve lets it go."""
+        """The hands let go where they stopped: what they pressed onto a belt stays there, held by static
+        friction (a hand lifts off a cloth at rest; it does not throw it)."""
+        held = self.held.to_numpy().astype(bool)
+        on_table = held & (self.positions_m()[..., 2] < _ON_TABLE_M)
         v = self.velocities_m_s()
-        v[where, 2] += speed_m_s
+        v[held] = 0.0
         self.v.from_numpy(v)
+        self.stuck.from_numpy((self.stuck.to_numpy().astype(bool) | on_table).astype(np.int32))
+        self.held.fill(0)
 
     def positions_m(self) -> np.ndarray:
         return np.asarray(self.x.to_numpy())
@@ -222,14 +223,15 @@ class ClothSim:
 
     @ti.func
     def _anchored_spring(self, a: ti.template(), b: ti.template(), rest: ti.f64, k_h2: ti.f64):
-        """Two stuck ends cannot move, so the edge's true elastic force k·C acts on both anchors."""
-        if self.stuck[a] == 1 and self.stuck[b] == 1:
+        """Neither end of an edge between two anchors (stuck, or held by a hand) can move, so the solve skips
+        it; its true elastic force k·C acts on each stuck end instead."""
+        if ti.max(self.stuck[a], self.held[a]) == 1 and ti.max(self.stuck[b], self.held[b]) == 1:
             d = self.x[a] - self.x[b]
             length = d.norm()
             if length > 1e-12:
                 impulse = -k_h2 * (length - rest) * d / length
-                self.reaction[a] += impulse
-                self.reaction[b] -= impulse
+                self.reaction[a] += ti.cast(self.stuck[a], ti.f64) * impulse
+                self.reaction[b] -= ti.cast(self.stuck[b], ti.f64) * impulse
 
     @ti.func
     def _bend(self, a: ti.template(), b: ti.template(), c: ti.template(), alpha: ti.f64):
@@ -286,7 +288,7 @@ class ClothSim:
                 belt = self._belt_velocity(self.x[j, i], pitch, half_belt)
                 if self.held[j, i] == 1:
                     self.stuck[j, i] = 0
-                    self.v[j, i] = ti.Vector([self.hand_v[j, i][0], self.hand_v[j, i][1], 0.0])
+                    self.v[j, i] = self.hand_v[j, i]
                 elif self.stuck[j, i] == 1 and belt[2] > 0.0:
                     # Static friction: the node rides its belt, on the table.
                     self.v[j, i] = ti.Vector([belt[0], belt[1], 0.0])

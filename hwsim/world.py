@@ -20,7 +20,6 @@ from hwsim.taichi_runtime import ensure_taichi
 from hwsim.timeline import Operator
 
 MODULE_STEPS_PER_FRAME = 5
-PUSH_LIFT_M_S = 0.1  # the hands lift the strip between them at the start of a push: the seed of its ridge
 
 
 @dataclass(frozen=True)
@@ -31,6 +30,15 @@ class CommandRow:
     module: int
     speed_m_s: float
     heading_rad: float
+
+
+@dataclass(frozen=True)
+class _PushInProgress:
+    push: Push
+    started_s: float
+    walls: np.ndarray  # (ny, nx) nodes the hands press down
+    crest: np.ndarray  # (ny, nx) nodes the fingers draw up
+    wall_velocity_m_s: np.ndarray  # (ny, nx, 3)
 
 
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -50,7 +58,7 @@ class World:
         self.frame_index = 0
         self.log_commands = log_commands  # a live cell runs for hours: it keeps no log
         self.command_log: list[CommandRow] = []
-        self._push_ends_s: float | None = None
+        self._push: _PushInProgress | None = None
         self._told_speed = np.full(self.table.n_modules, np.nan)
         self._told_heading = np.full(self.table.n_modules, np.nan)
         for _ in range(round(scenario.settle_s * scenario.fps)):
@@ -93,15 +101,34 @@ class World:
         }
 
     def push(self, push: Push) -> None:
-        """Start two hands pushing a ridge into the cloth (hwsim.scenario.Push); they let go by themselves."""
+        """Start two hands pushing a ridge into the cloth (hwsim.scenario.Push); they let go by themselves.
+        The hands press the cloth down on either side of the line and close in, while fingers draw the line
+        up as high as the slack pushed in so far allows (a tent over the strip between the hands): a flat
+        sheet squeezed exactly in its plane has nothing to buckle from (docs/hwsim.md, "Hands")."""
         x = self.cloth.positions_m()
         normal = np.array([-math.sin(push.direction_rad), math.cos(push.direction_rad)])
         u = (x[..., :2] - np.asarray(push.at_m)) @ normal
-        held = (np.abs(u) >= push.reach_m / 4) & (np.abs(u) <= push.reach_m)
-        speed = push.slack_m / 2.0 / push.duration_s
-        self.cloth.hold(held, -np.sign(u)[..., None] * speed * normal)
-        self.cloth.lift(np.abs(u) < push.reach_m / 4, PUSH_LIFT_M_S)
-        self._push_ends_s = self.t_s + push.duration_s
+        walls = (np.abs(u) >= push.reach_m / 4) & (np.abs(u) <= push.reach_m)
+        crest = np.abs(u) < 0.75 * self.cloth.grid.dx_m
+        closing = np.zeros(x.shape)
+        closing[..., :2] = -np.sign(u)[..., None] * (push.slack_m / 2.0 / push.duration_s) * normal
+        self._push = _PushInProgress(push, self.t_s, walls, crest, np.where(walls[..., None], closing, 0.0))
+        self._drive_hands()
+
+    def _drive_hands(self) -> None:
+        """Set the hands' velocities for the coming frame: walls closing in, the crest rising to the tent's
+        apex, sqrt(l² - (l - s/2)²) for half-strip l and slack s pushed in by the frame's end."""
+        p = self._push
+        assert p is not None
+        half_strip_m = p.push.reach_m / 4
+
+        def apex_m(t_s: float) -> float:
+            s = p.push.slack_m * min(1.0, (t_s - p.started_s) / p.push.duration_s)
+            return math.sqrt(max(0.0, half_strip_m**2 - (half_strip_m - s / 2.0) ** 2))
+
+        velocity = p.wall_velocity_m_s.copy()
+        velocity[p.crest, 2] = (apex_m(self.t_s + self.dt_s) - apex_m(self.t_s)) / self.dt_s
+        self.cloth.hold(p.walls | p.crest, velocity)
 
     def lay(self, pose: Pose) -> None:
         """Lay the cloth down again at `pose` (its ridges laid in) on the belts as they are turned now."""
@@ -124,9 +151,12 @@ class World:
             self._log_commands()
         self._advance()
         self.frame_index += 1
-        if self._push_ends_s is not None and self.t_s >= self._push_ends_s - 1e-9:
-            self.cloth.release()
-            self._push_ends_s = None
+        if self._push is not None:
+            if self.t_s >= self._push.started_s + self._push.push.duration_s - 1e-9:
+                self.cloth.release()
+                self._push = None
+            else:
+                self._drive_hands()
 
     def _advance(self) -> None:
         dt = self.dt_s / MODULE_STEPS_PER_FRAME

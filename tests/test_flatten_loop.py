@@ -51,5 +51,8 @@ def test_a_pushed_in_ridge_is_seen_kept_and_flattened(cell: Cell, daemon: Daemon
     )
     assert end["max_strain"] < 0.06
     assert math.hypot(end["pose"][0], end["pose"][1]) < 0.005  # the pose was held
-    wait(lambda: daemon.status()["flatness"]["flat"], 5, "the estimate flat")
+    try:
+        wait(lambda: daemon.status()["flatness"]["flat"], 5, "the estimate flat")
+    except AssertionError as err:
+        raise AssertionError(f"{err}; truth {cell.truth()}; status {daemon.status()['flatness']}") from None
     assert daemon.status()["mode"] == "flatten"

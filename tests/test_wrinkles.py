@@ -12,7 +12,7 @@ from hwsim.cloth import ClothGrid
 from hwsim.ridges import lay_ridges
 from hwsim.world import World
 
-CELL_CLOTH = {"spacing_m": 0.0075, "substep_s": 0.002}  # the live cell's cloth (cell.yaml), as `hwsim serve`
+CELL_CLOTH = scenarios.load("cell").cloth.model_dump()  # the live cell's cloth, as `hwsim serve` runs it
 
 
 def _world(ridges: list[dict[str, object]], **overrides: object) -> World:
