@@ -147,6 +147,96 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    import json
+
+    from clothd.formats import write_camera
+    from clothd.tools.calibrate import read_pictures, solve
+    from clothd.tools.calibration_report import format_report, picture_path, plot_report, report_json
+    from clothd.tools.charuco import Board
+
+    squares_x, squares_y = args.board
+    board = Board(squares_x, squares_y, args.square_m, args.marker_m, args.dictionary)
+    if args.camera is not None:
+        from clothd.tools.calibrate_live import capture_views
+
+        capture_views(args.camera, board, args.images, args.flat, args.views, args.timeout_s)
+    cal = solve(read_pictures(args.images, board, args.flat), board, args.flat_origin_m, fit_k3=args.k3)
+    write_camera(args.out, cal.camera)
+    picture = picture_path(args.out)
+    plot_report(cal, picture)
+    print(format_report(cal))
+    print(f"\ncamera written to {args.out}, residuals and coverage to {picture}")
+    if args.json:
+        args.json.write_text(json.dumps(report_json(cal) | {"picture": str(picture)}, indent=2) + "\n")
+    return 0
+
+
+def _cmd_bench_calibrate(args: argparse.Namespace) -> int:
+    from clothd.tools.bench_calibrate import format_result, run_bench, write_json
+
+    tracker = None
+    if args.tracker:
+        from clothd.taichi_runtime import start_taichi
+
+        cfg = load_config(args.config)
+        start_taichi(cfg.taichi.arch)
+        tracker = (
+            args.tracker,
+            with_overrides(cfg, {"tracker": {"model": "mesh", "use_input": True}}).tracker,
+        )
+    result = run_bench(args.out, args.views, args.seed, args.tilt_rad, args.yaw_rad, args.dist, tracker)
+    print(format_result(result))
+    if args.json:
+        write_json(result, args.json)
+    return 0
+
+
+def _numbers(text: str, count: int) -> tuple[float, ...]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != count:
+        raise argparse.ArgumentTypeError(f"{text!r}: {count} numbers separated by commas")
+    return values
+
+
+def _xy_m(text: str) -> tuple[float, float]:
+    """'-0.21,0.12' -> (-0.21, 0.12), for --flat-origin-m."""
+    x, y = _numbers(text, 2)
+    return x, y
+
+
+def _dist(text: str) -> tuple[float, float, float, float, float]:
+    """'k1,k2,p1,p2,k3', for --dist."""
+    k1, k2, p1, p2, k3 = _numbers(text, 5)
+    return k1, k2, p1, p2, k3
+
+
+def _board_size(text: str) -> tuple[int, int]:
+    """'9x6' -> (9, 6) squares, for --board."""
+    nx, sep, ny = text.lower().partition("x")
+    if not (sep and nx.isdigit() and ny.isdigit() and 3 <= int(nx) <= 40 and 3 <= int(ny) <= 40):
+        raise argparse.ArgumentTypeError(f"{text!r}: a board is SQUARES_XxSQUARES_Y, each 3..40 (e.g. 9x6)")
+    return int(nx), int(ny)
+
+
+# Options whose value is a comma-separated list that may start with a minus sign.
+_SIGNED_LISTS = ("--flat-origin-m", "--dist")
+
+
+def _glue_signed_lists(argv: list[str]) -> list[str]:
+    """argparse reads '-0.21,0.12' as an unknown option, not a value: join it to its flag with '='."""
+    out: list[str] = []
+    for arg in argv:
+        if out and out[-1] in _SIGNED_LISTS and arg.startswith("-") and "," in arg:
+            out[-1] = f"{out[-1]}={arg}"
+        else:
+            out.append(arg)
+    return out
+
+
 def _mesh_size(text: str) -> tuple[int, int]:
     """'32x24' -> (32, 24), for --mesh."""
     nx, sep, ny = text.lower().partition("x")
@@ -191,6 +281,52 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--mcap", type=Path, required=True, help="the MCAP file to write")
     e.add_argument("--estimates", type=Path, help="estimates.npz (default: the recording's own)")
     e.set_defaults(func=_cmd_export)
+    cal = sub.add_parser(
+        "calibrate",
+        help="the camera (K, distortion) and the table's pose from pictures of a ChArUco board",
+        description="Writes camera.json as the tracker reads it, and NAME-calibration.png beside it "
+        "(coverage and residuals). docs/commissioning.md describes the pictures to take.",
+    )
+    cal.add_argument(
+        "--images",
+        type=Path,
+        required=True,
+        metavar="DIR",
+        help="the pictures (with --camera: where to save them)",
+    )
+    cal.add_argument(
+        "--camera",
+        metavar="SOURCE",
+        help="take the pictures live: a device index, device, stream URL, video file or image directory",
+    )
+    cal.add_argument(
+        "--views", type=int, default=15, help="with --camera: pictures to take, the flat one first"
+    )
+    cal.add_argument(
+        "--timeout-s", type=float, default=600.0, help="with --camera: stop taking pictures after this"
+    )
+    cal.add_argument(
+        "--board", type=_board_size, default=(9, 6), metavar="NXxNY", help="squares (default 9x6)"
+    )
+    cal.add_argument("--square-m", type=float, default=0.060, help="side of a square, metres (default 0.060)")
+    cal.add_argument("--marker-m", type=float, default=0.045, help="side of a marker, metres (default 0.045)")
+    cal.add_argument(
+        "--dictionary", default="DICT_5X5_100", help="cv2.aruco dictionary (default DICT_5X5_100)"
+    )
+    cal.add_argument(
+        "--flat", required=True, metavar="NAME", help="the picture with the board flat on the table"
+    )
+    cal.add_argument(
+        "--flat-origin-m",
+        type=_xy_m,
+        required=True,
+        metavar="X,Y",
+        help="world x, y of ChArUco corner id 0 in the flat picture, metres",
+    )
+    cal.add_argument("--k3", action="store_true", help="also fit k3 (wide-angle lenses; default k3 = 0)")
+    cal.add_argument("--out", type=Path, required=True, metavar="CAMERA_JSON")
+    cal.add_argument("--json", type=Path, help="also write the report as JSON")
+    cal.set_defaults(func=_cmd_calibrate)
     b = sub.add_parser("bench", help="benchmarks against hwsim")
     bsub = b.add_subparsers(dest="bench", required=True)
     bs = bsub.add_parser("speed", help="per-stage tick time by feature count and mesh size, beside filterpy")
@@ -242,6 +378,27 @@ def build_parser() -> argparse.ArgumentParser:
     bf.add_argument("--resets", type=int, default=500, help="POST /reset this many times (10 a second)")
     bf.add_argument("--json", type=Path, help="also write the figures as JSON")
     bf.set_defaults(func=_cmd_bench_faults)
+    bc = bsub.add_parser(
+        "calibrate", help="calibrate on pictures hwsim renders through a tilted, distorted camera it knows"
+    )
+    bc.add_argument("--views", type=int, default=15, help="tilted views besides the flat one")
+    bc.add_argument("--seed", type=int, default=0)
+    bc.add_argument("--tilt-rad", type=float, default=0.15, help="hwsim camera tilt about world x")
+    bc.add_argument("--yaw-rad", type=float, default=0.3, help="hwsim camera yaw about its view axis")
+    bc.add_argument(
+        "--dist", type=_dist, default=(-0.12, 0.05, 0.001, -0.0005, 0.0), metavar="K1,K2,P1,P2,K3"
+    )
+    bc.add_argument(
+        "--out", type=Path, default=Path("out/bench/calibrate"), help="where the pictures and cameras go"
+    )
+    bc.add_argument(
+        "--tracker",
+        metavar="SCENARIO",
+        help="also track this shipped scenario through that camera, given the true and the calibrated one",
+    )
+    bc.add_argument("--config", type=Path, help="the tracker's configuration, with --tracker (model: mesh)")
+    bc.add_argument("--json", type=Path, help="also write the figures as JSON")
+    bc.set_defaults(func=_cmd_bench_calibrate)
     bab = bsub.add_parser("abuse", help="slow-header and slow-body floods: e-stop round trip, missed ticks")
     bab.add_argument("--connections", type=int, default=1100, help="sockets held open during each flood")
     bab.add_argument("--seconds", type=float, default=20.0, help="how long each flood lasts")
@@ -251,7 +408,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(_glue_signed_lists(sys.argv[1:] if argv is None else argv))
     try:
         return int(args.func(args))
     except ClothdError as err:

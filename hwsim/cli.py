@@ -55,6 +55,44 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_charuco(args: argparse.Namespace) -> int:
+    from hwsim.calibration_set import FLAT_NAME, centred_origin, write_calibration_set
+    from hwsim.camera import Camera
+    from hwsim.charuco import BoardSpec
+
+    sc = scenarios.load(args.scenario)
+    squares_x, squares_y = args.board
+    board = BoardSpec(squares_x, squares_y, args.square_m, args.marker_m, args.dictionary)
+    origin = args.flat_origin_m or centred_origin(Camera.from_spec(sc.camera), board)
+    names = write_calibration_set(sc, args.out, board, args.views, origin, args.seed)
+    x, y = origin
+    print(
+        f"rendered {len(names)} pictures of a {board.squares_x}x{board.squares_y} ChArUco board through "
+        f"{sc.name}'s camera to {args.out} (true camera: {args.out / 'camera.json'}); calibrate with\n"
+        f"  clothd calibrate --images {args.out} --board {board.squares_x}x{board.squares_y} "
+        f"--square-m {board.square_m:g} --marker-m {board.marker_m:g} --dictionary {board.dictionary} "
+        f"--flat {FLAT_NAME} --flat-origin-m={x:g},{y:g} --out camera.json"
+    )
+    return 0
+
+
+def _board_size(text: str) -> tuple[int, int]:
+    """'9x6' -> (9, 6) squares, for --board."""
+    nx, sep, ny = text.lower().partition("x")
+    if not (sep and nx.isdigit() and ny.isdigit() and 3 <= int(nx) <= 40 and 3 <= int(ny) <= 40):
+        raise argparse.ArgumentTypeError(f"{text!r}: a board is SQUARES_XxSQUARES_Y, each 3..40 (e.g. 9x6)")
+    return int(nx), int(ny)
+
+
+def _xy_m(text: str) -> tuple[float, float]:
+    """'-0.21,0.12' -> (-0.21, 0.12); write it --flat-origin-m=-0.21,0.12 when it starts with a minus."""
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: X,Y in metres (e.g. -0.21,0.12)") from None
+    return x, y
+
+
 def _cmd_serve(args: argparse.Namespace) -> int:
     import contextlib
     import signal
@@ -97,6 +135,26 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--record-seconds", type=float, default=10.0)
     b.add_argument("--json", type=Path)
     b.set_defaults(func=_cmd_bench)
+    ch = sub.add_parser(
+        "charuco", help="render ChArUco calibration pictures through a scenario's camera, with the truth"
+    )
+    ch.add_argument("--scenario", default="cell", help="whose camera, noise and light (default: cell)")
+    ch.add_argument("--out", type=Path, required=True, help="directory for the pictures and camera.json")
+    ch.add_argument("--views", type=int, default=15, help="tilted views besides the flat one")
+    ch.add_argument(
+        "--board", type=_board_size, default=(9, 6), metavar="NXxNY", help="squares (default 9x6)"
+    )
+    ch.add_argument("--square-m", type=float, default=0.060)
+    ch.add_argument("--marker-m", type=float, default=0.045)
+    ch.add_argument("--dictionary", default="DICT_5X5_100")
+    ch.add_argument(
+        "--flat-origin-m",
+        type=_xy_m,
+        metavar="X,Y",
+        help="world x, y of corner id 0 in the flat view (default: the board centred in the picture)",
+    )
+    ch.add_argument("--seed", type=int, default=0, help="poses and sensor noise")
+    ch.set_defaults(func=_cmd_charuco)
     s = sub.add_parser("serve", help="run the cell in real time: firmware on a pty, camera over HTTP")
     s.add_argument("--scenario", default="cell", help="a scenario file or shipped name (default: cell)")
     s.add_argument("--port", type=int, default=0, help="HTTP port on 127.0.0.1 (default: any free one)")

@@ -23,6 +23,7 @@ from clothd.core.binding import cloth_coordinates
 from clothd.core.camera_model import CameraModel
 from clothd.core.mesh import QuadMesh
 from clothd.core.messages import Estimate
+from clothd.formats import read_camera
 from clothd.tools.grading import material_coordinates, true_positions
 from clothd.tools.offline import OfflineTracking
 from hwsim.truth import Truth
@@ -108,13 +109,17 @@ def _node_errors_mm(truth: Truth, ests: list[Estimate]) -> np.ndarray | None:
     return np.asarray(errs) if errs else None
 
 
-def grade(recording: Path, scenario: str, mode: str, cfg: TrackerConfig) -> Graded:
+def grade(
+    recording: Path, scenario: str, mode: str, cfg: TrackerConfig, camera_json: Path | None = None
+) -> Graded:
+    """One mode on one recording. camera_json: the camera the tracker is given instead of the
+    recording's (a calibrated one); the grading itself always goes through the recording's true camera."""
     truth = Truth.load(recording)
-    run = OfflineTracking(recording, cfg, read_ahead=False, progress=f"{scenario}: {mode}")
+    run = OfflineTracking(recording, cfg, camera_json, read_ahead=False, progress=f"{scenario}: {mode}")
     start = time.perf_counter()
     ests = [est for _, _, est in run]
     wall = time.perf_counter() - start
-    true_px = _feature_truth_pixels(truth, run.camera_model, ests)
+    true_px = _feature_truth_pixels(truth, read_camera(recording / "camera.json"), ests)
     means, worsts = np.full(len(ests), np.nan), np.full(len(ests), np.nan)
     for k, e in enumerate(ests):
         errs = [
