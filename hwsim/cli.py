@@ -55,6 +55,21 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_stretch(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from hwsim.stretch import format_stretch, stretch_under_turn
+
+    rows = []
+    for config in args.config:
+        substep_ms, sweeps = config.split(":")
+        rows.append(stretch_under_turn(args.scenario, float(substep_ms) / 1e3, int(sweeps)))
+    print(format_stretch(rows, args.scenario))
+    if args.json:
+        args.json.write_text(json.dumps([asdict(r) for r in rows], indent=2) + "\n")
+    return 0
+
+
 def _cmd_charuco(args: argparse.Namespace) -> int:
     from hwsim.calibration_set import FLAT_NAME, centred_origin, write_calibration_set
     from hwsim.camera import Camera
@@ -135,6 +150,16 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--record-seconds", type=float, default=10.0)
     b.add_argument("--json", type=Path)
     b.set_defaults(func=_cmd_bench)
+    st = sub.add_parser("stretch", help="the truth solver's stretch of a rigidly turned cloth, per substep")
+    st.add_argument("--scenario", default="cell")
+    st.add_argument(
+        "--config",
+        nargs="+",
+        default=["2:5", "1:5", "1:2", "0.75:2", "0.5:1", "0.5:2"],
+        help="substep ms:sweeps per substep, one or more",
+    )
+    st.add_argument("--json", type=Path)
+    st.set_defaults(func=_cmd_stretch)
     ch = sub.add_parser(
         "charuco", help="render ChArUco calibration pictures through a scenario's camera, with the truth"
     )

@@ -82,6 +82,12 @@ class ClothGrid:
         y = s * xy[..., 0] + c * xy[..., 1] + pose.y_m
         return np.stack([x, y, z], axis=-1)
 
+    def edge_strains(self, x_m: np.ndarray) -> np.ndarray:
+        """Strain of every grid edge of nodes (ny, nx, 3), those along rows then along columns, flattened."""
+        along_x = np.linalg.norm(np.diff(x_m, axis=1), axis=-1) / self.dx_m - 1.0
+        along_y = np.linalg.norm(np.diff(x_m, axis=0), axis=-1) / self.dy_m - 1.0
+        return np.concatenate([along_x.ravel(), along_y.ravel()])
+
     def node_masses_kg(self, areal_density_kg_m2: float) -> np.ndarray:
         """Lumped masses (ny, nx): each node carries the area of the cell quarters around it."""
         wx = np.full(self.nx, self.dx_m)

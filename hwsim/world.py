@@ -90,14 +90,10 @@ class World:
         a, b, c, d = p[:-1, :-1], p[:-1, 1:], p[1:, 1:], p[1:, :-1]
         area = 0.5 * np.abs(_cross(a, b) + _cross(b, c) + _cross(c, d) + _cross(d, a)).sum()
         rest_area = (g.nx - 1) * g.dx_m * (g.ny - 1) * g.dy_m
-        strain = max(
-            float((np.linalg.norm(np.diff(x, axis=axis), axis=-1) / rest - 1.0).max())
-            for axis, rest in ((1, g.dx_m), (0, g.dy_m))
-        )
         return {
             "max_height_m": float(x[..., 2].max()),
             "area_ratio": float(area / rest_area),
-            "max_strain": strain,
+            "max_strain": float(g.edge_strains(x).max()),
         }
 
     def push(self, push: Push) -> None:
