@@ -150,8 +150,8 @@ class Pose(_Strict):
 
 class Push(_Strict):
     """Two hands push a ridge into the cloth: they press it down on either side of a line (world frame),
-    between a quarter of reach_m and reach_m from it, lift the strip between them a little, and move
-    towards the line until slack_m has gone into that strip."""
+    between a quarter of reach_m and reach_m from it, and move towards the line until slack_m has gone into
+    the strip between them, while fingers draw the line up (hwsim.world.World.push)."""
 
     at_m: tuple[float, float] = Field(description="a point of the line, world x, y")
     direction_rad: float = Field(ge=-2 * math.pi, le=2 * math.pi, description="the line's direction, world")

@@ -10,7 +10,8 @@ ridges into it (POST /cloth/push) while the daemon watches, as wrinkles arise in
    1° for 0.5 s (or at the timeout).
 
 Throughout, the true cloth's most stretched edge, kept apart for the flatten and the move. A push that
-leaves the cloth flat (it slid instead of buckling) is tried again from the start. The same starts run
+leaves the cloth flat (it slid instead of buckling) is tried again from the start; a start still flat after
+that is counted, not judged. The same starts run
 again with `control.flatten: false` and `hold` instead of `flatten`: the rigid controller, as the
 baseline.
 """
@@ -133,10 +134,11 @@ class _Cell:
         time.sleep(PUSH_S + 1.0)
 
 
-def _wrinkle(cell: _Cell, start: dict[str, Any]) -> int:
+def _wrinkle(cell: _Cell, start: dict[str, Any]) -> int | None:
     """Lay the cloth and push its ridges in; pushes that leave the cloth flat (it slid instead of
     buckling) are tried again from the start with PUSH_MORE_M more slack each, at most PUSH_TRIES times.
-    Returns the tries it took."""
+    Returns the tries it took, or None when none left a wrinkle: hwsim's hands depend on the belts
+    under them, which the previous start's move left turned (docs/benchmarks.md)."""
     for tries in range(1, PUSH_TRIES + 1):
         cell.lay(start["pose"])
         for push in start["pushes"]:
@@ -144,13 +146,15 @@ def _wrinkle(cell: _Cell, start: dict[str, Any]) -> int:
             cell.push(_world_push(start["pose"], more))
         if cell.truth()["max_height_m"] >= WRINKLED_M:
             return tries
-    raise RuntimeError(f"start {start}: the pushes left no wrinkle in {PUSH_TRIES} tries")
+    return None
 
 
 def _run_start(
     cell: _Cell, start: dict[str, Any], mode: str, flatten_s: float, move_s: float
 ) -> dict[str, Any]:
     tries = _wrinkle(cell, start)
+    if tries is None:
+        return {"wrinkled": False}
     before = cell.truth()
     cell.setpoint({"mode": mode})
     t0 = time.monotonic()
@@ -190,6 +194,7 @@ def _run_start(
     end = cell.truth()
     status = cell.status()
     return {
+        "wrinkled": True,
         "start_height_mm": before["max_height_m"] * 1e3,
         "start_area_ratio": before["area_ratio"],
         "ridges": len(start["pushes"]),
@@ -207,10 +212,13 @@ def _run_start(
     }
 
 
-def _summary(rows: list[dict[str, Any]], flatten_s: float) -> dict[str, Any]:
+def _summary(runs: list[dict[str, Any]], flatten_s: float) -> dict[str, Any]:
+    """Over the starts that were wrinkled; the others are counted, not judged."""
+    rows = [r for r in runs if r["wrinkled"]]
     times = np.array([r["time_to_flat_s"] if r["time_to_flat_s"] is not None else math.inf for r in rows])
     return {
         "starts": len(rows),
+        "not_wrinkled": len(runs) - len(rows),
         "success_pct": 100.0 * float(np.mean(times <= flatten_s)),
         # A sample, not an interpolation: a start that never went flat counts as infinitely slow.
         "time_to_flat_p50_s": float(np.percentile(times, 50, method="inverted_cdf")),
@@ -253,16 +261,17 @@ def run_bench(
 
 def format_result(result: dict[str, Any]) -> str:
     lines = [
-        f"{'controller':10} {'success':>8} {'flat p50':>9} {'flat p90':>9} {'max strain':>10} "
+        f"{'controller':10} {'starts':>6} {'success':>8} {'flat p50':>9} {'flat p90':>9} {'max strain':>10} "
         f"{'pose err max':>16} {'start heights':>15}"
     ]
     for variant in ("flatten", "rigid"):
         s = result[variant]["summary"]
         lo, hi = s["start_height_mm_range"]
         lines.append(
-            f"{variant:10} {s['success_pct']:7.0f}% {s['time_to_flat_p50_s']:8.2f}s "
+            f"{variant:10} {s['starts']:6d} {s['success_pct']:7.0f}% {s['time_to_flat_p50_s']:8.2f}s "
             f"{s['time_to_flat_p90_s']:8.2f}s {s['max_strain_pct']:9.2f}% {s['final_err_mm_max']:7.2f} mm "
             f"{s['final_err_deg_max']:4.2f}° {lo:6.1f}-{hi:4.1f} mm"
+            + (f"  ({s['not_wrinkled']} start(s) the hands could not wrinkle)" if s["not_wrinkled"] else "")
         )
     return "\n".join(lines)
 
