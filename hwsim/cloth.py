@@ -33,14 +33,17 @@ import taichi as ti
 
 from hwsim.belt_geometry import belt_at, belt_hit
 from hwsim.ridges import lay_ridges
-from hwsim.scenario import ClothSpec, Pose, TableSpec
+from hwsim.scenario import ClothSpec, Flap, Pose, TableSpec
 
 GRAVITY_M_S2 = 9.81
 vec2d = ti.types.vector(2, ti.f64)
 # Laying a cloth with ridges down: quasi-static (velocity decays within 10 ms) until they have settled.
 _LAY_IN_S = 0.5
 _LAY_IN_DAMPING_1_S = 100.0
-_ON_TABLE_M = 1e-4  # a node laid lower than this rests on the table
+_ON_TABLE_M = 1e-4  # a node laid lower than this (above its floor) rests on the table
+# A flap lies on the cloth beneath it: its nodes' floor is one cloth thickness up (hwsim has no
+# self-contact; the floor stays with those nodes wherever they go).
+FLAP_THICKNESS_M = 0.001
 # A belt this fast shakes the cloth with the full vibration_m_s; slower belts proportionally less.
 _VIBRATION_REF_SPEED_M_S = 0.05
 
@@ -74,9 +77,12 @@ class ClothGrid:
 
     def placed(self, pose: Pose) -> np.ndarray:
         """World positions (ny, nx, 3) of the cloth with its centre at (x, y), rotated by theta: flat, or
-        with the pose's ridges laid in (hwsim/ridges.py), which keeps the sheet's lengths."""
+        with the pose's ridges laid in (hwsim/ridges.py), which keeps the sheet's lengths, and its flaps
+        folded over."""
         centre = np.array([(self.nx - 1) * self.dx_m, (self.ny - 1) * self.dy_m]) / 2.0
         xy, z = lay_ridges(self.st_m - centre, pose.ridges)
+        for flap in pose.flaps:
+            xy, z = self._fold(flap, xy, z, centre)
         c, s = np.cos(pose.theta_rad), np.sin(pose.theta_rad)
         x = c * xy[..., 0] - s * xy[..., 1] + pose.x_m
         y = s * xy[..., 0] + c * xy[..., 1] + pose.y_m
@@ -87,6 +93,36 @@ class ClothGrid:
         along_x = np.linalg.norm(np.diff(x_m, axis=1), axis=-1) / self.dx_m - 1.0
         along_y = np.linalg.norm(np.diff(x_m, axis=0), axis=-1) / self.dy_m - 1.0
         return np.concatenate([along_x.ravel(), along_y.ravel()])
+
+    def folded(self, pose: Pose) -> np.ndarray:
+        """(ny, nx) the nodes that the pose's flaps fold over."""
+        mask = np.zeros((self.ny, self.nx), dtype=bool)
+        for flap in pose.flaps:
+            mask |= self._flap_local_m(flap).sum(axis=-1) < flap.size_m
+        return mask
+
+    def _flap_local_m(self, flap: Flap) -> np.ndarray:
+        """Material distances (ny, nx, 2) of the nodes from the flap's corner, along its two edges."""
+        size = np.array([(self.nx - 1) * self.dx_m, (self.ny - 1) * self.dy_m])
+        high = np.array([flap.corner[0] == "+", flap.corner[2] == "+"])
+        return np.abs(self.st_m - np.where(high, size, 0.0))
+
+    def _fold(
+        self, flap: Flap, xy: np.ndarray, z: np.ndarray, centre: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Fold the corner over along a + b = size (a, b: distances from the corner along its edges):
+        a node at (a, b) lands on the material point at (size - b, size - a), one thickness up."""
+        ab = self._flap_local_m(flap)
+        over = ab.sum(axis=-1) < flap.size_m
+        high = np.array([flap.corner[0] == "+", flap.corner[2] == "+"])
+        size = np.array([(self.nx - 1) * self.dx_m, (self.ny - 1) * self.dy_m])
+        corner = np.where(high, size, 0.0)
+        inward = np.where(high, -1.0, 1.0)
+        landing = corner + inward * (flap.size_m - ab[..., ::-1])
+        xy = xy.copy()
+        xy[over] = landing[over] - centre
+        z = np.where(over, z + FLAP_THICKNESS_M, z)
+        return xy, z
 
     def node_masses_kg(self, areal_density_kg_m2: float) -> np.ndarray:
         """Lumped masses (ny, nx): each node carries the area of the cell quarters around it."""
@@ -119,6 +155,8 @@ class ClothSim:
         self.held = ti.field(ti.i32, shape=shape)  # 1: pressed by a hand, moving with it (a push)
         self.hand_v = ti.Vector.field(3, ti.f64, shape=shape)
         self.kick = ti.field(ti.f64, shape=shape)
+        self.floor = ti.field(ti.f64, shape=shape)  # what a node rests on: the table, or a flap's cloth
+        self.folded = ti.field(ti.i32, shape=shape)  # 1: folded over by a flap
         n_mod = table.modules_x * table.modules_y
         self.mod_speed = ti.field(ti.f64, shape=n_mod)
         self.mod_direction = ti.Vector.field(2, ti.f64, shape=n_mod)  # cos, sin of heading
@@ -132,8 +170,12 @@ class ClothSim:
         weight and stiffness give it, held by that friction alone."""
         x = self.grid.placed(pose)
         self.set_positions(x)
-        self.stuck.from_numpy((x[..., 2] < _ON_TABLE_M).astype(np.int32))
-        if pose.ridges:
+        folded = self.grid.folded(pose)
+        self.folded.from_numpy(folded.astype(np.int32))
+        floor = np.where(folded, FLAP_THICKNESS_M, 0.0)
+        self.floor.from_numpy(floor)
+        self.stuck.from_numpy((x[..., 2] < floor + _ON_TABLE_M).astype(np.int32))
+        if pose.ridges or pose.flaps:
             stopped = np.zeros(len(module_heading_rad))
             self.advance(_LAY_IN_S, stopped, module_heading_rad, damping_1_s=_LAY_IN_DAMPING_1_S)
             self.v.fill(0.0)
@@ -155,7 +197,7 @@ class ClothSim:
         """The hands let go where they stopped: what they pressed onto a belt stays there, held by static
         friction (a hand lifts off a cloth at rest; it does not throw it)."""
         held = self.held.to_numpy().astype(bool)
-        on_table = held & (self.positions_m()[..., 2] < _ON_TABLE_M)
+        on_table = held & (self.positions_m()[..., 2] < self.floor.to_numpy() + _ON_TABLE_M)
         v = self.velocities_m_s()
         v[held] = 0.0
         self.v.from_numpy(v)
@@ -215,10 +257,12 @@ class ClothSim:
 
     @ti.func
     def _distance(self, a: ti.template(), b: ti.template(), rest: ti.f64, alpha: ti.f64):
+        """An edge across a flap's fold is bent round the crease, not compressed: it only resists stretch."""
         wa, wb = self._free_inv_mass(a), self._free_inv_mass(b)
         d = self.x[a] - self.x[b]
         length = d.norm()
-        if length > 1e-12 and wa + wb > 0.0:
+        slack_in_crease = self.folded[a] != self.folded[b] and length < rest
+        if length > 1e-12 and wa + wb > 0.0 and not slack_in_crease:
             dlam = -(length - rest) / (wa + wb + alpha)
             n = d / length
             self.x[a] += wa * dlam * n
@@ -241,8 +285,10 @@ class ClothSim:
 
     @ti.func
     def _bend(self, a: ti.template(), b: ti.template(), c: ti.template(), alpha: ti.f64):
+        """Across a flap's fold the crease is set (a plastic crease): it carries no bending moment."""
         wa, wb, wc = self._free_inv_mass(a), self._free_inv_mass(b), self._free_inv_mass(c)
-        if wa + wb + wc > 0.0:
+        creased = self.folded[a] != self.folded[b] or self.folded[b] != self.folded[c]
+        if wa + wb + wc > 0.0 and not creased:
             dlam = -(self.x[a] - 2.0 * self.x[b] + self.x[c]) / (wa + 4.0 * wb + wc + alpha)
             self.x[a] += wa * dlam
             self.x[b] -= 2.0 * wb * dlam
@@ -301,7 +347,7 @@ class ClothSim:
                 else:
                     self.stuck[j, i] = 0
                     self.v[j, i][2] -= GRAVITY_M_S2 * h
-                    if step == 0 and self.x[j, i][2] <= 1e-6:
+                    if step == 0 and self.x[j, i][2] <= self.floor[j, i] + 1e-6:
                         shake = ti.min(1.0, vec2d(belt[0], belt[1]).norm() / _VIBRATION_REF_SPEED_M_S)
                         self.v[j, i][2] += shake * ti.abs(self.kick[j, i])
                 self.x[j, i] += h * self.v[j, i]
@@ -343,9 +389,9 @@ class ClothSim:
                     normal = m * GRAVITY_M_S2 * h * h - r[2]
                     if normal <= 0.0 or vec2d(r[0], r[1]).norm() > mu_static * normal:
                         self.stuck[j, i] = 0
-                elif self.x[j, i][2] < 0.0:
-                    depth = -self.x[j, i][2]  # the normal correction; its impulse is m·depth/h
-                    self.x[j, i][2] = 0.0
+                elif self.x[j, i][2] < self.floor[j, i]:
+                    depth = self.floor[j, i] - self.x[j, i][2]  # the normal correction; impulse m·depth/h
+                    self.x[j, i][2] = self.floor[j, i]
                     belt = self._belt_velocity(self.x[j, i], pitch, half_belt)
                     if belt[2] > 0.0:
                         # Kinetic friction (Macklin et al. 2014): the substep's slip against the belt shrinks

@@ -141,11 +141,20 @@ class Ridge(_Strict):
         return self
 
 
+class Flap(_Strict):
+    """A corner folded over onto the cloth along a line at 45° to its edges: the triangle within size_m of
+    the corner (along either edge) lies face down on the cloth, one cloth thickness up."""
+
+    corner: Literal["-s-t", "+s-t", "+s+t", "-s+t"] = Field(description="which corner, in the cloth frame")
+    size_m: float = Field(gt=0.005, le=0.2, description="how far along each edge from the corner the fold is")
+
+
 class Pose(_Strict):
     x_m: float = Field(0.0, ge=-5, le=5)
     y_m: float = Field(0.0, ge=-5, le=5)
     theta_rad: float = Field(0.0, ge=-2 * math.pi, le=2 * math.pi)
     ridges: list[Ridge] = Field([], max_length=8)
+    flaps: list[Flap] = Field([], max_length=4)
 
 
 class Push(_Strict):
@@ -243,6 +252,12 @@ class Scenario(_Strict):
         return math.floor(self.duration_s * self.fps + 1e-9) + 1
 
     @model_validator(mode="after")
+    def _flaps_fit(self) -> Scenario:
+        for i, flap in enumerate(self.initial_pose.flaps):
+            check_flap(flap, self.cloth, f"initial_pose.flaps.{i}")
+        return self
+
+    @model_validator(mode="after")
     def _module_ids_exist(self) -> Scenario:
         n_modules = self.table.modules_x * self.table.modules_y
         for i, cmd in enumerate(self.timeline):
@@ -250,6 +265,15 @@ class Scenario(_Strict):
             if bad:
                 raise ValueError(f"timeline[{i}].modules.ids: {bad} out of range (table has {n_modules})")
         return self
+
+
+def check_flap(flap: Flap, cloth: ClothSpec, key: str) -> None:
+    """A flap folds over at most half of the cloth's shorter side, so it lies on the cloth."""
+    most_m = min(cloth.size_m) / 2.0
+    if flap.size_m > most_m:
+        raise ValueError(
+            f"{key}.size_m ({flap.size_m}) must be at most {most_m}, half the cloth's shorter side"
+        )
 
 
 def _format_errors(source: str, err: ValidationError) -> str:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hwsim.cloth import ClothSim
-from hwsim.scenario import Pose, Push, Scenario
+from hwsim.scenario import Pose, Push, Scenario, check_flap
 from hwsim.scene import SceneState, arms_at
 from hwsim.table import Table
 from hwsim.taichi_runtime import ensure_taichi
@@ -83,16 +83,18 @@ class World:
 
     def sheet_measures(self) -> dict[str, float]:
         """How flat and how stretched the truth cloth is: its highest node (m), its area projected on the
-        table over its rest area (the quads' shoelace areas), and its most stretched grid edge (strain)."""
+        table over its rest area (the quads' shoelace areas, a folded-over quad's counted where it lies),
+        the share of that area folded over (quads the wrong way up), and its most stretched grid edge."""
         x = self.cloth.positions_m()
         g = self.cloth.grid
         p = x[..., :2]
         a, b, c, d = p[:-1, :-1], p[:-1, 1:], p[1:, 1:], p[1:, :-1]
-        area = 0.5 * np.abs(_cross(a, b) + _cross(b, c) + _cross(c, d) + _cross(d, a)).sum()
+        signed = 0.5 * (_cross(a, b) + _cross(b, c) + _cross(c, d) + _cross(d, a))
         rest_area = (g.nx - 1) * g.dx_m * (g.ny - 1) * g.dy_m
         return {
             "max_height_m": float(x[..., 2].max()),
-            "area_ratio": float(area / rest_area),
+            "area_ratio": float(np.abs(signed).sum() / rest_area),
+            "folded_ratio": float(-signed[signed < 0].sum() / rest_area),
             "max_strain": float(g.edge_strains(x).max()),
         }
 
@@ -127,7 +129,10 @@ class World:
         self.cloth.hold(p.walls | p.crest, velocity)
 
     def lay(self, pose: Pose) -> None:
-        """Lay the cloth down again at `pose` (its ridges laid in) on the belts as they are turned now."""
+        """Lay the cloth down again at `pose` (its ridges laid in, its flaps folded over) on the belts as
+        they are turned now. A flap larger than the cloth allows is a ValueError naming it."""
+        for i, flap in enumerate(pose.flaps):
+            check_flap(flap, self.scenario.cloth, f"flaps.{i}")
         self.cloth.lay(pose, self.table.heading_rad)
 
     def scene_state(self, before_s: float = 0.0) -> SceneState:

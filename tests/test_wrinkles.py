@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hwsim import scenario as scenarios
-from hwsim.cloth import ClothGrid
+from hwsim.cloth import FLAP_THICKNESS_M, ClothGrid
 from hwsim.ridges import lay_ridges
 from hwsim.stretch import stretch_under_turn
 from hwsim.world import World
@@ -97,6 +97,25 @@ def test_ridges_are_laid_without_stretching_the_sheet() -> None:
     assert np.abs(grid.edge_strains(x)).max() < 0.01
     assert z.max() == pytest.approx(0.012, rel=0.02)
     assert z[grid.ny // 2, grid.nx // 2 - round(0.08 / grid.dx_m)] == pytest.approx(0.008, rel=0.02)
+
+
+@pytest.mark.slow
+def test_a_folded_corner_stays_folded_on_still_belts() -> None:
+    world = _world([], initial_pose={"theta_rad": 0.2, "flaps": [{"corner": "+s+t", "size_m": 0.06}]})
+    laid = world.sheet_measures()["folded_ratio"]
+    # The triangle's share of the rest area, less the quads the fold line cuts.
+    assert 0.7 * 0.06**2 / 2 / (0.25 * 0.20) < laid < 0.06**2 / 2 / (0.25 * 0.20)
+    for _ in range(30 * round(world.scenario.fps)):
+        world.step()
+    assert world.sheet_measures()["folded_ratio"] >= 0.95 * laid
+    assert world.sheet_measures()["max_height_m"] == pytest.approx(FLAP_THICKNESS_M, abs=2e-4)
+
+
+def test_a_flap_larger_than_half_the_cloth_is_refused_with_its_key() -> None:
+    with pytest.raises(scenarios.ScenarioError, match=r"initial_pose\.flaps\.0\.size_m"):
+        scenarios.parse(
+            {"name": "t", "duration_s": 1.0, "initial_pose": {"flaps": [{"corner": "-s-t", "size_m": 0.15}]}}
+        )
 
 
 def test_an_overhanging_ridge_is_refused_with_its_key() -> None:
