@@ -176,7 +176,7 @@ class Compute:
             return None
         if est.nodes_m is None or est.cloth_size_m is None:
             return None
-        return self.flatness_monitor.update(est.nodes_m, est.cloth_size_m)
+        return self.flatness_monitor.update(est.nodes_m, est.cloth_size_m, est.quad_seen)
 
     def _record_requests(self, req: TickRequest) -> None:
         if req.record_stop and self.recorder is not None:

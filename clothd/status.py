@@ -118,11 +118,21 @@ class RidgeState(BaseModel):
     area_m2: float = Field(description="rest area of the compressed quads it covers")
 
 
+class FlapState(BaseModel):
+    kind: Literal["flap"] = "flap"
+    x_m: float = Field(description="world position of the middle of the cloth missing where it folded over")
+    y_m: float
+    area_m2: float = Field(description="rest area of the mesh quads not seen")
+
+
 class FlatnessState(BaseModel):
     max_height_mm: float = Field(description="the highest node of the estimate")
     compressed_area_pct: float = Field(description="share of the mesh quads that hold slack")
-    flat: bool = Field(description="with hysteresis: on below control.flatness's bars, off past twice them")
+    flat: bool = Field(
+        description="with hysteresis: on below control.flatness's bars, off past twice them; off with a flap"
+    )
     ridges: list[RidgeState] = Field(description="highest first")
+    flaps: list[FlapState] = Field(description="folded-over corners or edges, largest first; not pulled")
 
     @classmethod
     def of(cls, f: Flatness) -> FlatnessState:
@@ -140,6 +150,7 @@ class FlatnessState(BaseModel):
                 )
                 for r in f.ridges
             ],
+            flaps=[FlapState(x_m=p.position_m[0], y_m=p.position_m[1], area_m2=p.area_m2) for p in f.flaps],
         )
 
 

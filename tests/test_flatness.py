@@ -94,3 +94,34 @@ def test_a_ridge_once_seen_is_followed_down_below_what_starts_one() -> None:
     moved[:, 9:, 0] += 0.4 * SPACING_M[0] - 0.03 * SPACING_M[0]
     assert len(monitor.update(moved, SIZE_M).ridges) == 1  # still followed, beside where it was
     assert monitor.update(_mesh(), SIZE_M).ridges == ()
+
+
+def _corner_unseen(quads: int) -> np.ndarray:
+    """quad_seen for the default mesh with the top-right corner's triangle of `quads` rows unseen."""
+    seen = np.ones((NY - 1, NX - 1), dtype=bool)
+    for k in range(quads):
+        seen[-1 - k, NX - 1 - quads + k :] = False
+    return seen
+
+
+def test_a_folded_corner_is_a_flap_where_the_cloth_is_missing() -> None:
+    nodes = _mesh()
+    flatness = FlatnessMonitor(FlatnessConfig()).update(nodes, SIZE_M, _corner_unseen(3))
+    assert len(flatness.flaps) == 1
+    flap = flatness.flaps[0]
+    assert flap.area_m2 == pytest.approx(6 * SPACING_M[0] * SPACING_M[1])
+    # In the corner the unseen quads' centres lie in: their mean.
+    centres = (nodes[:-1, :-1, :2] + nodes[1:, 1:, :2]) / 2.0
+    assert flap.position_m == pytest.approx(tuple(centres[~_corner_unseen(3)].mean(axis=0)))
+    assert flap.position_m[0] > 0.05 and flap.position_m[1] > 0.05
+    assert not flatness.flat and not flatness.ridges
+
+
+def test_unseen_quads_inside_the_cloth_or_a_single_one_at_its_edge_are_no_flap() -> None:
+    inside = np.ones((NY - 1, NX - 1), dtype=bool)
+    inside[4:6, 4:6] = False  # an arm's shadow, say: the cloth is there, only hidden
+    single = _corner_unseen(1)
+    monitor = FlatnessMonitor(FlatnessConfig())
+    assert monitor.update(_mesh(), SIZE_M, inside).flaps == ()
+    flatness = monitor.update(_mesh(), SIZE_M, single)
+    assert flatness.flaps == () and flatness.flat

@@ -147,3 +147,24 @@ def test_the_live_view_draws_each_ridge_along_its_line() -> None:
     flat_est = Estimate(**{**est.__dict__, "nodes_m": _mesh(0.0, ridge_col=None)})
     flat_img = cv2.imdecode(np.frombuffer(renderer.render(grey, flat_est, setpoint) or b"", np.uint8), 1)
     assert not ((flat_img[..., 2] > 200) & (flat_img[..., 1] < 150) & (flat_img[..., 0] < 60)).any()
+
+
+def test_the_modules_under_a_flap_are_left_alone() -> None:
+    nodes = _mesh(0.0, ridge_col=7)
+    seen = np.ones((NY - 1, NX - 1), dtype=bool)
+    seen[-3:, -3:] = False  # the +x +y corner folded over
+    flatness = FlatnessMonitor(FlatnessConfig()).update(nodes, SIZE_M, seen)
+    assert len(flatness.flaps) == 1
+    regulator = FlatteningRegulator(FlattenConfig(), LAYOUT.centres_m, LAYOUT.module_size_m, STRAIN_LIMIT)
+    under = (np.abs(LAYOUT.centres_m[:, 0]) < 0.12) & (np.abs(LAYOUT.centres_m[:, 1]) < 0.10)
+    v = regulator.velocities(flatness, nodes, SIZE_M, under, np.zeros(2))
+    flap_xy = flatness.flaps[0].quad_centres_m
+    gap = np.linalg.norm(LAYOUT.centres_m[:, None] - flap_xy[None], axis=-1).min(axis=1)
+    near = gap <= LAYOUT.module_size_m / 2 + FlattenConfig().ridge_margin_m
+    assert (near & under).any()
+    assert np.all(v[near] == 0.0)
+    # The ridge is still pulled, by the modules away from the flap.
+    assert np.abs(v[under & ~near]).max() > 0.0
+    without_flap = FlatnessMonitor(FlatnessConfig()).update(nodes, SIZE_M)
+    v_all = regulator.velocities(without_flap, nodes, SIZE_M, under, np.zeros(2))
+    assert np.abs(v_all[near & under]).max() > 0.0  # without the flap those modules would pull

@@ -77,6 +77,7 @@ class StatusCollector(Collector):
             yield GaugeMetricFamily(
                 "clothd_ridges", "Ridges found in the estimate", value=float(len(f.ridges))
             )
+            yield GaugeMetricFamily("clothd_flaps", "Folded-over corners found", value=float(len(f.flaps)))
 
 
 def registry_for(hub: StreamHub) -> CollectorRegistry:

@@ -7,6 +7,11 @@ risen out of the plane. The node heights come from the same shortening (core/fol
 connected set of compressed quads; it runs across its compressed direction, which is the principal axis
 of the quads' compression tensor Σ (1 - d/L) e eᵀ over their shortened edges e.
 
+A flap, a corner folded over onto the cloth, shows no slack: it shows as cloth missing where the estimate
+puts some. The tracker reports, per quad, whether the cloth is seen at its centre (Estimate.quad_seen); a
+flap is a connected set of unseen quads at the mesh's border. Belts cannot unfold it, so the regulator
+leaves the modules under it alone.
+
 `FlatnessMonitor` adds hysteresis to the `flat` flag, so that it does not chatter at the threshold.
 """
 
@@ -40,11 +45,48 @@ class Ridge:
 
 
 @dataclass(frozen=True)
+class Flap:
+    """A corner or edge folded over: the centre of its unseen quads (world x, y), their rest area, and
+    their centres (k, 2)."""
+
+    position_m: tuple[float, float]
+    area_m2: float
+    quad_centres_m: np.ndarray
+
+
+@dataclass(frozen=True)
 class Flatness:
     max_height_m: float
     compressed_area_pct: float
     flat: bool
     ridges: tuple[Ridge, ...]
+    flaps: tuple[Flap, ...] = ()
+
+
+MIN_FLAP_QUADS = 2  # one unseen quad at the border is too little to tell from an edge misplaced by a pixel
+
+
+def find_flaps(
+    nodes_m: np.ndarray, rest_spacing_m: tuple[float, float], quad_seen: np.ndarray
+) -> tuple[Flap, ...]:
+    """The flaps of the mesh nodes_m (ny, nx, 3): connected sets of at least MIN_FLAP_QUADS quads, not seen
+    (quad_seen False, (ny-1, nx-1)), that reach the mesh's border; largest first."""
+    unseen = ~quad_seen
+    count, labels = cv2.connectedComponents(unseen.astype(np.uint8), connectivity=8)
+    xy = nodes_m[..., :2]
+    quad_centres = (xy[:-1, :-1] + xy[:-1, 1:] + xy[1:, 1:] + xy[1:, :-1]) / 4.0
+    border = np.ones_like(unseen)
+    border[1:-1, 1:-1] = False
+    flaps = []
+    for k in range(1, count):
+        quads = labels == k
+        if quads.sum() < MIN_FLAP_QUADS or not (quads & border).any():
+            continue
+        centres = quad_centres[quads]
+        middle = centres.mean(axis=0)
+        area = float(quads.sum() * rest_spacing_m[0] * rest_spacing_m[1])
+        flaps.append(Flap((float(middle[0]), float(middle[1])), area, centres))
+    return tuple(sorted(flaps, key=lambda f: -f.area_m2))
 
 
 def quad_shortening(nodes_xy_m: np.ndarray, rest_spacing_m: tuple[float, float]) -> np.ndarray:
@@ -130,7 +172,10 @@ class FlatnessMonitor:
         self.flat = False
         self._compressed = None
 
-    def update(self, nodes_m: np.ndarray, cloth_size_m: tuple[float, float]) -> Flatness:
+    def update(
+        self, nodes_m: np.ndarray, cloth_size_m: tuple[float, float], quad_seen: np.ndarray | None = None
+    ) -> Flatness:
+        """The flatness of mesh nodes_m (ny, nx, 3); quad_seen (ny-1, nx-1) where known finds flaps."""
         ny, nx = nodes_m.shape[:2]
         spacing = (cloth_size_m[0] / (nx - 1), cloth_size_m[1] / (ny - 1))
         shortening = quad_shortening(nodes_m[..., :2], spacing)
@@ -143,10 +188,12 @@ class FlatnessMonitor:
         self._compressed = compressed
         compressed_pct = float(100.0 * np.mean(compressed))
         max_height = float(max(nodes_m[..., 2].max(), 0.0))
+        flaps = () if quad_seen is None else find_flaps(nodes_m, spacing, quad_seen)
         c = self.cfg
         if self.flat:
             self.flat = max_height <= 2 * c.flat_height_m and compressed_pct <= 2 * c.flat_compressed_pct
         else:
             self.flat = max_height <= c.flat_height_m and compressed_pct <= c.flat_compressed_pct
+        self.flat = self.flat and not flaps  # a folded corner is not flat, and stays until a hand lifts it
         ridges = find_ridges(nodes_m, spacing, shortening, compressed)
-        return Flatness(max_height, compressed_pct, self.flat, ridges)
+        return Flatness(max_height, compressed_pct, self.flat, ridges, flaps)

@@ -75,13 +75,20 @@ class FlatteningRegulator:
         under: np.ndarray,
         centre_m: np.ndarray,
     ) -> np.ndarray:
-        """The flattening field for the modules `under` the cloth (bool, n_modules); zero elsewhere."""
+        """The flattening field for the modules `under` the cloth (bool, n_modules), less those under or
+        beside a flap; zero elsewhere."""
+        # Belts cannot unfold a flap, and a belt under one would drag it about: the modules under a flap,
+        # or at its edge, are left out.
+        shaping = under.copy()
+        for flap in flatness.flaps:
+            gap = np.linalg.norm(self.centres_m[:, None, :] - flap.quad_centres_m[None], axis=-1).min(axis=1)
+            shaping &= gap > self.half_belt_m + self.cfg.ridge_margin_m
         v = np.zeros_like(self.centres_m)
         for ridge in flatness.ridges:
-            v[under] += self._pull(ridge, self.centres_m[under])
+            v[shaping] += self._pull(ridge, self.centres_m[shaping])
         if not v.any():
             return v
-        v[under] -= rigid_part(v[under], self.centres_m[under], centre_m)
+        v[shaping] -= rigid_part(v[shaping], self.centres_m[shaping], centre_m)
         ny, nx = nodes_m.shape[:2]
         spacing = (cloth_size_m[0] / (nx - 1), cloth_size_m[1] / (ny - 1))
         strain = overall_strain(nodes_m[..., :2], spacing)

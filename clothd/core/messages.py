@@ -53,6 +53,9 @@ class Estimate:
     pred_px: np.ndarray  # (n, 2)
     stats: UpdateStats
     timing_s: dict[str, float] = field(default_factory=dict)
+    # (ny - 1, nx - 1): whether the cloth is seen at each mesh quad's centre; None without a model or when
+    # the cloth's colour is not known (a folded-over corner leaves its quads' place showing the table).
+    quad_seen: np.ndarray | None = None
 
     @property
     def tracking(self) -> bool:

@@ -15,7 +15,7 @@ Pixel coordinates follow OpenCV: the centre of the top-left pixel is (0, 0).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -49,16 +49,47 @@ _MAX_AREA_FRACTION = 0.6
 
 
 @dataclass(frozen=True)
+class ClothColour:
+    """How find_cloth told cloth from background in a frame: the background's colour (a, b) in 8-bit Lab
+    and the chroma distance from it (Lab units) where cloth begins."""
+
+    background_ab: tuple[float, float]
+    edge_chroma: float
+
+    def is_cloth(self, image_bgr: np.ndarray, points_px: np.ndarray, half_px: int = 2) -> np.ndarray:
+        """Whether the mean colour of the (2 half_px + 1)² patch at each point (k, 2) is the cloth's, bool
+        (k,); a patch that leaves the frame is not. Cheap: only the patches are converted."""
+        h, w = image_bgr.shape[:2]
+        c = np.round(np.asarray(points_px, np.float64)).astype(int)
+        inside = np.all((c >= half_px) & (c < np.array([w, h]) - half_px), axis=1)
+        seen = np.zeros(len(c), dtype=bool)
+        if not inside.any():
+            return seen
+        offsets = np.arange(-half_px, half_px + 1)
+        cx, cy = c[inside, 0], c[inside, 1]
+        patches = image_bgr[
+            cy[:, None, None] + offsets[None, :, None], cx[:, None, None] + offsets[None, None, :]
+        ]
+        mean = patches.reshape(len(cx), -1, 3).mean(axis=1).astype(np.uint8)
+        lab = cv2.cvtColor(mean.reshape(1, -1, 3), cv2.COLOR_BGR2Lab).reshape(-1, 3).astype(np.float32)
+        a0, b0 = self.background_ab
+        seen[inside] = np.hypot(lab[:, 1] - a0, lab[:, 2] - b0) > self.edge_chroma
+        return seen
+
+
+@dataclass(frozen=True)
 class ClothRegion:
     """Where the cloth is in one frame.
 
     mask: uint8 (h, w), 255 on the cloth. corners_px: (4, 2) float32, the minimum-area rectangle around
-    the cloth in cv2.boxPoints order, pixels. area_px: the number of cloth pixels.
+    the cloth in cv2.boxPoints order, pixels. area_px: the number of cloth pixels. colour: how the cloth
+    was told from the background (None when it was not: the whole frame taken as cloth).
     """
 
     mask: np.ndarray
     corners_px: np.ndarray
     area_px: int
+    colour: ClothColour | None = None
 
 
 def _disk(diameter_px: int) -> np.ndarray:
@@ -147,7 +178,8 @@ def find_cloth(image_bgr: np.ndarray) -> ClothRegion | None:
     outline = max(contours, key=cv2.contourArea)
     filled = np.zeros((h, w), np.uint8)
     cv2.drawContours(filled, [outline], -1, 255, thickness=cv2.FILLED)
-    region = _region(filled, outline.reshape(-1, 2))
+    colour = ClothColour((a0, b0), level / _CHROMA_SCALE)
+    region = replace(_region(filled, outline.reshape(-1, 2)), colour=colour)
     if region.area_px > _MAX_AREA_FRACTION * h * w:
         return None
     on = filled > 0

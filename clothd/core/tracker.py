@@ -28,7 +28,13 @@ from clothd.core.feature_set import FeatureSet
 from clothd.core.features import FeatureEngine, GrayFrame, coverage_holes
 from clothd.core.mesh import QuadMesh
 from clothd.core.messages import Estimate, ModuleCommands
-from clothd.core.segmentation import ClothRegion, cloth_mask_from_outline, find_cloth, full_frame_region
+from clothd.core.segmentation import (
+    ClothColour,
+    ClothRegion,
+    cloth_mask_from_outline,
+    find_cloth,
+    full_frame_region,
+)
 
 Clock = Callable[[], float]
 MIN_DT_S = 1e-3  # two frames with the same time stamp still advance the model a little
@@ -75,6 +81,7 @@ class Tracker:
         self.prev_t_s = 0.0
         self.mesh: QuadMesh | None = None
         self.features: FeatureSet | None = None
+        self.colour: ClothColour | None = None  # the cloth's colour against the background, from the start
 
     def step(self, image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None) -> Estimate:
         """Track one BGR frame captured at frame_t_s, with `commands` the modules' commands in force while
@@ -101,7 +108,7 @@ class Tracker:
         t4 = self.clock()
         meas = np.where(keep[:, None], result.px, np.nan)[keep]
         features.keep(keep, result.px)
-        estimate = self._estimate(frame_t_s, meas, stats, timing)
+        estimate = self._estimate(frame_t_s, meas, stats, timing, image)
         if self._diverged(stats):
             self.reset()
             estimate = _lost(frame_t_s, timing)
@@ -136,13 +143,17 @@ class Tracker:
         self.features = FeatureSet(self.mesh)
         self.prev, self.prev_t_s = frame, t_s
         f = self.cfg.features
-        mask = cloth_mask_from_outline(region.corners_px, w, h, int(f.edge_margin_px))
+        self.colour = region.colour
+        # Features on the cloth seen, not on whatever its rectangle holds besides (a folded-over corner's
+        # place shows the belts).
+        outline_mask = cloth_mask_from_outline(region.corners_px, w, h, int(f.edge_margin_px))
+        mask = cv2.bitwise_and(outline_mask, region.mask)
         px = self.engine.detect(frame, mask, f.max_features).astype(np.float64)
         # Cloth space is where the cloth lies now.
         self.features.add(px, self.camera_model.backproject_to_plane(px)[:, :2], np.ones(len(px), bool))
         timing["tick"] = self.clock() - t0
         stats = UpdateStats(len(self.features), 0, 0.0)
-        return self._estimate(t_s, self.features.px.astype(np.float64), stats, timing)
+        return self._estimate(t_s, self.features.px.astype(np.float64), stats, timing, image)
 
     def _diverged(self, stats: UpdateStats) -> bool:
         """Lost: too few features survive, or the innovations are far beyond what the filter expects."""
@@ -174,11 +185,17 @@ class Tracker:
             features.add(px, *self.estimator.cloth_coordinates(px))
 
     def _estimate(
-        self, t_s: float, meas: np.ndarray, stats: UpdateStats, timing: dict[str, float]
+        self, t_s: float, meas: np.ndarray, stats: UpdateStats, timing: dict[str, float], image: np.ndarray
     ) -> Estimate:
         assert self.features is not None and self.mesh is not None
         state = self.estimator.estimate()
         pred = self.estimator.feature_pixels(self.features)
+        quad_seen = None
+        if state.nodes_m is not None and self.colour is not None:
+            n = state.nodes_m
+            centres = (n[:-1, :-1] + n[:-1, 1:] + n[1:, :-1] + n[1:, 1:]) / 4.0
+            seen = self.colour.is_cloth(image, self.camera_model.project(centres.reshape(-1, 3)))
+            quad_seen = seen.reshape(centres.shape[:2])
         return Estimate(
             t_s,
             "tracking",
@@ -192,6 +209,7 @@ class Tracker:
             self.features.px.astype(np.float64) if pred is None else pred,
             stats,
             timing,
+            quad_seen,
         )
 
 

@@ -54,7 +54,8 @@ function show(s) {
   $("features").textContent = s.features;
   const f = s.flatness;
   $("flatness").textContent = !f ? "–" : `${f.flat ? "flat" : "wrinkled"} · highest ${fmt(f.max_height_mm, 1)} mm · ` +
-    `${fmt(f.compressed_area_pct, 1)} % holds slack · ${f.ridges.length} ridge${f.ridges.length === 1 ? "" : "s"}`;
+    `${fmt(f.compressed_area_pct, 1)} % holds slack · ${f.ridges.length} ridge${f.ridges.length === 1 ? "" : "s"}` +
+    (f.flaps.length ? ` · ${f.flaps.length} flap${f.flaps.length === 1 ? "" : "s"} (fold back by hand)` : "");
   $("flatness").className = f && !f.flat ? "warn" : "";
   $("residual").textContent = `${fmt(s.residual.mean_px, 2)} / ${fmt(s.residual.worst_px, 2)} px`;
   const tick = s.timing.stages.compute || {};
