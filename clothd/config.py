@@ -208,10 +208,10 @@ class FlatnessConfig(_Strict):
     past twice either."""
 
     compressed_strain: float = Field(
-        0.05, gt=0, lt=1, description="a mesh quad this much smaller on the table than at rest holds slack"
+        0.05, gt=0, lt=1, description="a mesh quad this much shorter on the table than at rest holds slack"
     )
     release_strain: float = Field(
-        0.035, gt=0, lt=1, description="... and keeps holding it, once it did, until less short than this"
+        0.025, gt=0, lt=1, description="... and keeps holding it, once it did, until less short than this"
     )
     flat_height_m: float = Field(0.001, gt=0, le=0.1, description="estimated height of the highest node")
     flat_compressed_pct: float = Field(1.0, ge=0, le=100, description="share of the quads holding slack")

@@ -2,10 +2,11 @@
 the ridges it has.
 
 An overhead camera sees a wrinkle as cloth that is shorter on the table than at rest (docs/flattening.md):
-a quad of the mesh whose projected area is below (1 - tolerance) of its rest area holds slack, which has
-risen out of the plane. The node heights come from the same shortening (core/folds.py). A ridge is a
-connected set of compressed quads; it runs across its compressed direction, which is the principal axis
-of the quads' compression tensor Σ (1 - d/L) e eᵀ over their shortened edges e.
+a quad of the mesh whose edges along some direction are shorter on the table than at rest by more than a
+tolerance holds slack, which has risen out of the plane (a quad only sheared has lost area, not length).
+The node heights come from the same shortening (core/folds.py). A ridge is a connected set of compressed
+quads; it runs across its compressed direction, which is the principal axis of the quads' compression
+tensor Σ (1 - d/L) e eᵀ over their shortened edges e.
 
 A flap, a corner folded over onto the cloth, shows no slack: it shows as cloth missing where the estimate
 puts some. The tracker reports, per quad, whether the cloth is seen at its centre (Estimate.quad_seen); a
@@ -90,17 +91,11 @@ def find_flaps(
 
 
 def quad_shortening(nodes_xy_m: np.ndarray, rest_spacing_m: tuple[float, float]) -> np.ndarray:
-    """(ny-1, nx-1): for each quad, 1 - its projected area / its rest area (positive: compressed)."""
-    p = nodes_xy_m
-    a, b, c, d = p[:-1, :-1], p[:-1, 1:], p[1:, 1:], p[1:, :-1]
-    # Shoelace over the quad a-b-c-d; the mesh keeps its orientation, so the sign is the rest sign.
-    area = 0.5 * (_cross(a, b) + _cross(b, c) + _cross(c, d) + _cross(d, a))
-    rest = rest_spacing_m[0] * rest_spacing_m[1]
-    return np.asarray(1.0 - np.abs(area) / rest)
-
-
-def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return np.asarray(u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0])
+    """(ny-1, nx-1): for each quad, how much shorter it is on the table than at rest in its most shortened
+    direction: half the largest eigenvalue of its compression tensor (its two edges along that direction,
+    on average). A ridge across a quad shortens the edges it crosses; a quad only sheared (its area
+    smaller, no edge shorter) holds no slack, and is not counted."""
+    return np.asarray(np.linalg.eigvalsh(_compression_tensor(nodes_xy_m, rest_spacing_m))[..., -1] / 2.0)
 
 
 def _compression_tensor(nodes_xy_m: np.ndarray, rest_spacing_m: tuple[float, float]) -> np.ndarray:
