@@ -89,7 +89,9 @@ def test_a_ridge_once_seen_is_followed_down_below_what_starts_one() -> None:
     assert monitor.update(faint, SIZE_M).ridges == ()  # never seen: 3 % does not start a ridge
     assert len(monitor.update(_mesh(0.0, ridge_cols=(7,), height_m=0.005), SIZE_M).ridges) == 1
     assert len(monitor.update(faint, SIZE_M).ridges) == 1  # seen: followed down to 2.5 %
-    assert not monitor.update(faint, SIZE_M).flat
+    # ... and pulled at, but the cloth counts as flat again: one column 3 % short and nothing risen is
+    # within the bench's flat (0.3 % of the area), and hwsim's cloth keeps as much after a ridge has gone.
+    assert monitor.update(faint, SIZE_M).flat
     moved = _mesh(0.0, ridge_cols=(8,), height_m=0.0)  # the faint ridge a column on
     moved[:, 9:, 0] += 0.4 * SPACING_M[0] - 0.03 * SPACING_M[0]
     assert len(monitor.update(moved, SIZE_M).ridges) == 1  # still followed, beside where it was

@@ -19,13 +19,35 @@ def _ready(daemon: Daemon) -> bool:
     return bool(s["state"] == "tracking" and s["link"]["state"] == "connected")
 
 
+def _lay_flat(cell: Cell, daemon: Daemon, pose: dict[str, object]) -> None:
+    """Stop the belts, have hwsim lay the cloth at `pose`, and the tracker start on it."""
+    daemon.put_setpoint({"mode": "idle"})
+    wait(lambda: not any(cell.truth()["module_speed_m_s"]), 5, "belts stopped")
+    httpx.post(f"{cell.http}/cloth", json=pose, timeout=5).raise_for_status()
+    daemon.post("/reset")
+    wait(lambda: _ready(daemon), 30, "tracking again")
+
+
+def _push_ridge(cell: Cell, daemon: Daemon, tries: int = 3) -> dict[str, object]:
+    """hwsim's hands push a ridge across the middle; what is left depends on how the belts under the hands
+    happen to be turned (docs/benchmarks.md), so a push that left none is tried again on a cloth laid anew,
+    as the bench does."""
+    push = {"at_m": [0.0, 0.0], "direction_rad": math.pi / 2, "slack_m": 0.008, "duration_s": 1.0}
+    for k in range(tries):
+        if k:
+            _lay_flat(cell, daemon, {})
+        httpx.post(f"{cell.http}/cloth/push", json=push, timeout=5).raise_for_status()
+        time.sleep(2.5)
+        laid = cell.truth()
+        print(f"push {k + 1}: {laid['max_height_m'] * 1e3:.2f} mm high, area {laid['area_ratio']:.4f}")
+        if laid["max_height_m"] > 0.005:
+            break
+    return laid
+
+
 def test_a_pushed_in_ridge_is_seen_kept_and_flattened(cell: Cell, daemon: Daemon) -> None:
     wait(lambda: _ready(daemon), 60, "tracking, link up")
-    push = {"at_m": [0.0, 0.0], "direction_rad": math.pi / 2, "slack_m": 0.008, "duration_s": 1.0}
-    httpx.post(f"{cell.http}/cloth/push", json=push, timeout=5).raise_for_status()
-    time.sleep(2.5)
-    laid = cell.truth()
-    print(f"pushed in: {laid['max_height_m'] * 1e3:.2f} mm high, area {laid['area_ratio']:.4f} of rest")
+    laid = _push_ridge(cell, daemon)
     assert laid["max_height_m"] > 0.005 and laid["area_ratio"] < 0.99
     # The estimate sees it: one ridge, running along the push's line (world y), high.
     f = daemon.status()["flatness"]
@@ -60,14 +82,10 @@ def test_a_pushed_in_ridge_is_seen_kept_and_flattened(cell: Cell, daemon: Daemon
 
 def test_a_folded_corner_is_reported_as_a_flap_and_not_pulled(cell: Cell, daemon: Daemon) -> None:
     wait(lambda: _ready(daemon), 60, "tracking, link up")
-    daemon.put_setpoint({"mode": "idle"})
-    wait(lambda: not any(cell.truth()["module_speed_m_s"]), 5, "belts stopped")
-    flap = {"corner": "+s+t", "size_m": 0.06}
-    httpx.post(f"{cell.http}/cloth", json={"flaps": [flap]}, timeout=5).raise_for_status()
+    _lay_flat(cell, daemon, {"flaps": [{"corner": "+s+t", "size_m": 0.06}]})
     folded = cell.truth()["folded_ratio"]
     assert folded > 0.02
-    daemon.post("/reset")
-    wait(lambda: _ready(daemon) and bool(daemon.status()["flatness"]["flaps"]), 30, "the flap reported")
+    wait(lambda: bool(daemon.status()["flatness"]["flaps"]), 10, "the flap reported")
     seen = daemon.status()["flatness"]
     assert len(seen["flaps"]) == 1 and not seen["flat"]
     # The cloth lies square at the origin: its +s+t corner is the +x +y one, 60 mm legs.

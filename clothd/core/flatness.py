@@ -155,8 +155,8 @@ class FlatnessMonitor:
     """The flatness of each estimate, with hysteresis twice over: a quad starts holding slack past
     `compressed_strain`, and a quad that held it, or lies beside one that did, holds it until below
     `release_strain` (so the last millimetre of a ridge, below what starts one, is still seen and pulled
-    out, even as the ridge moves); `flat` turns on below the configured height and
-    compressed area and off only past twice them."""
+    out, even as the ridge moves); `flat` turns on below the configured height and share of quads past
+    `compressed_strain` (those kept by the hysteresis do not count) and off only past twice them."""
 
     def __init__(self, cfg: FlatnessConfig) -> None:
         self.cfg = cfg
@@ -175,6 +175,9 @@ class FlatnessMonitor:
         spacing = (cloth_size_m[0] / (nx - 1), cloth_size_m[1] / (ny - 1))
         shortening = quad_shortening(nodes_m[..., :2], spacing)
         compressed = shortening > self.cfg.compressed_strain
+        # `flat` reads only what starts a ridge: a quad kept by the hysteresis below is for the regulator to
+        # finish pulling; lying flat with no more than that is lying flat (the cloth's crimp, docs).
+        starting_pct = float(100.0 * np.mean(compressed))
         if self._compressed is not None and self._compressed.shape == compressed.shape:
             # A ridge moves a little as it is pulled: what held slack last tick, or lies beside it, keeps
             # holding it down to the release strain.
@@ -186,9 +189,9 @@ class FlatnessMonitor:
         flaps = () if quad_seen is None else find_flaps(nodes_m, spacing, quad_seen)
         c = self.cfg
         if self.flat:
-            self.flat = max_height <= 2 * c.flat_height_m and compressed_pct <= 2 * c.flat_compressed_pct
+            self.flat = max_height <= 2 * c.flat_height_m and starting_pct <= 2 * c.flat_compressed_pct
         else:
-            self.flat = max_height <= c.flat_height_m and compressed_pct <= c.flat_compressed_pct
+            self.flat = max_height <= c.flat_height_m and starting_pct <= c.flat_compressed_pct
         self.flat = self.flat and not flaps  # a folded corner is not flat, and stays until a hand lifts it
         ridges = find_ridges(nodes_m, spacing, shortening, compressed)
         return Flatness(max_height, compressed_pct, self.flat, ridges, flaps)
