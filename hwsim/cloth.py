@@ -37,9 +37,10 @@ from hwsim.scenario import ClothSpec, Flap, Pose, TableSpec
 
 GRAVITY_M_S2 = 9.81
 vec2d = ti.types.vector(2, ti.f64)
-# Laying a cloth with ridges down: quasi-static (velocity decays within 10 ms) until they have settled.
+# Laying a cloth with ridges down, and hands letting go of one: quasi-static (velocity decays within
+# 10 ms) until its ridges have settled.
 _LAY_IN_S = 0.5
-_LAY_IN_DAMPING_1_S = 100.0
+LAY_IN_DAMPING_1_S = 100.0
 _ON_TABLE_M = 1e-4  # a node laid lower than this (above its floor) rests on the table
 # A flap lies on the cloth beneath it: its nodes' floor is one cloth thickness up (hwsim has no
 # self-contact; the floor stays with those nodes wherever they go).
@@ -169,6 +170,7 @@ class ClothSim:
         hand does: what lies on a belt sticks to it, and a ridge settles quasi-statically into the shape its
         weight and stiffness give it, held by that friction alone."""
         x = self.grid.placed(pose)
+        self.held.fill(0)
         self.set_positions(x)
         folded = self.grid.folded(pose)
         self.folded.from_numpy(folded.astype(np.int32))
@@ -177,7 +179,7 @@ class ClothSim:
         self.stuck.from_numpy((x[..., 2] < floor + _ON_TABLE_M).astype(np.int32))
         if pose.ridges or pose.flaps:
             stopped = np.zeros(len(module_heading_rad))
-            self.advance(_LAY_IN_S, stopped, module_heading_rad, damping_1_s=_LAY_IN_DAMPING_1_S)
+            self.advance(_LAY_IN_S, stopped, module_heading_rad, damping_1_s=LAY_IN_DAMPING_1_S)
             self.v.fill(0.0)
 
     def set_positions(self, x_m: np.ndarray) -> None:
@@ -194,14 +196,12 @@ class ClothSim:
         self.hand_v.from_numpy(np.ascontiguousarray(velocity_m_s, dtype=np.float64))
 
     def release(self) -> None:
-        """The hands let go where they stopped: what they pressed onto a belt stays there, held by static
-        friction (a hand lifts off a cloth at rest; it does not throw it)."""
-        held = self.held.to_numpy().astype(bool)
-        on_table = held & (self.positions_m()[..., 2] < self.floor.to_numpy() + _ON_TABLE_M)
-        v = self.velocities_m_s()
-        v[held] = 0.0
-        self.v.from_numpy(v)
-        self.stuck.from_numpy((self.stuck.to_numpy().astype(bool) | on_table).astype(np.int32))
+        """The hands let go where they stopped. The cloth comes to rest with them (what they dragged along
+        slid no faster than they moved), so whatever lies on a belt stays there, held by static friction:
+        a hand lifts off a cloth at rest; it does not throw it."""
+        on_table = self.positions_m()[..., 2] < self.floor.to_numpy() + _ON_TABLE_M
+        self.v.fill(0.0)
+        self.stuck.from_numpy(on_table.astype(np.int32))
         self.held.fill(0)
 
     def positions_m(self) -> np.ndarray:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hwsim.cloth import ClothSim
+from hwsim.cloth import LAY_IN_DAMPING_1_S, ClothSim
 from hwsim.scenario import Pose, Push, Scenario, check_flap
 from hwsim.scene import SceneState, arms_at
 from hwsim.table import Table
@@ -20,6 +20,9 @@ from hwsim.taichi_runtime import ensure_taichi
 from hwsim.timeline import Operator
 
 MODULE_STEPS_PER_FRAME = 5
+# Hands let go of a pushed ridge slowly, lowering it until it carries itself: its settling is quasi-static
+# for this long (as when a cloth is laid down with ridges), not a drop from the tent they held.
+LET_GO_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -59,6 +62,7 @@ class World:
         self.log_commands = log_commands  # a live cell runs for hours: it keeps no log
         self.command_log: list[CommandRow] = []
         self._push: _PushInProgress | None = None
+        self._letting_go_until_s = -math.inf
         self._told_speed = np.full(self.table.n_modules, np.nan)
         self._told_heading = np.full(self.table.n_modules, np.nan)
         for _ in range(round(scenario.settle_s * scenario.fps)):
@@ -133,6 +137,8 @@ class World:
         they are turned now. A flap larger than the cloth allows is a ValueError naming it."""
         for i, flap in enumerate(pose.flaps):
             check_flap(flap, self.scenario.cloth, f"flaps.{i}")
+        self._push = None
+        self._letting_go_until_s = -math.inf
         self.cloth.lay(pose, self.table.heading_rad)
 
     def scene_state(self, before_s: float = 0.0) -> SceneState:
@@ -156,14 +162,16 @@ class World:
             if self.t_s >= self._push.started_s + self._push.push.duration_s - 1e-9:
                 self.cloth.release()
                 self._push = None
+                self._letting_go_until_s = self.t_s + LET_GO_S
             else:
                 self._drive_hands()
 
     def _advance(self) -> None:
         dt = self.dt_s / MODULE_STEPS_PER_FRAME
+        damping_1_s = LAY_IN_DAMPING_1_S if self.t_s < self._letting_go_until_s - 1e-9 else None
         for _ in range(MODULE_STEPS_PER_FRAME):
             self.table.step(dt)
-            self.cloth.advance(dt, self.table.speed_m_s, self.table.heading_rad)
+            self.cloth.advance(dt, self.table.speed_m_s, self.table.heading_rad, damping_1_s)
 
     def _log_commands(self) -> None:
         t = self.table

@@ -85,6 +85,23 @@ def test_a_push_leaves_a_ridge_that_stays(slack_m: float, direction_rad: float) 
     assert measures["area_ratio"] < 0.985
 
 
+def test_a_push_on_belts_turned_every_which_way_stays() -> None:
+    """The hands let go slowly (docs/hwsim.md, "Hands"): dropped from the tent they held, this ridge slid
+    out within 3 s on these belts, while it stood on belts all at heading 0."""
+    world = _world([])
+    rng = np.random.default_rng(2)
+    world.table.heading_rad[:] = world.table.cmd_heading_rad[:] = rng.uniform(-math.pi, math.pi, 48)
+    world.push(scenarios.Push(at_m=(0.01, -0.005), direction_rad=0.32, slack_m=0.008))
+    fps = round(world.scenario.fps)
+    for _ in range(round(1.5 * fps)):
+        world.step()
+    pushed_m = _height_m(world)
+    for _ in range(3 * fps):
+        world.step()
+    assert pushed_m > 0.008
+    assert _height_m(world) >= 0.9 * pushed_m
+
+
 def test_ridges_are_laid_without_stretching_the_sheet() -> None:
     grid = ClothGrid.from_spec(scenarios.ClothSpec())
     ridges = [
