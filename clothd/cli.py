@@ -93,6 +93,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         args.source, args.out, tracker_cfg, roi=args.roi, camera_json=args.camera, commands_csv=args.commands
     )
     source_input = "on" if tracker_cfg.use_input else "off"
+    print(f"camera: {result.camera}")
     print(
         f"replayed {result.frames} frames ({tracker_cfg.model}, input {source_input}) "
         f"in {result.wall_s:.1f} s, {result.realtime_factor:.1f}x real time "

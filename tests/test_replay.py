@@ -41,13 +41,25 @@ def test_replay_writes_estimates_summary_and_overlay(
     cap.release()
 
 
-def test_replay_of_an_image_directory_with_an_ideal_camera(short_recording: Recorder, tmp_path: Path) -> None:
+def test_replay_of_an_image_directory_says_which_camera_it_assumed(
+    short_recording: Recorder, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    recording = short_recording("translate")
     src = tmp_path / "imgs"
     src.mkdir()
-    for k, p in enumerate(sorted((short_recording("translate") / "frames").glob("*.png"))[:8]):
+    for k, p in enumerate(sorted((recording / "frames").glob("*.png"))[:8]):
         (src / f"img_{k}.png").write_bytes(p.read_bytes())
     assert main(["replay", str(src), "--out", str(tmp_path / "o"), "--model", "rigid"]) == 0
-    assert json.loads((tmp_path / "o" / "summary.json").read_text())["frames"] == 8
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["frames"] == 8
+    assert summary["camera"].startswith("assumed ideal (no camera.json): straight down from 1.0 m")
+    assert "camera: assumed ideal" in capsys.readouterr().out
+    camera = recording / "camera.json"
+    assert (
+        main(["replay", str(src), "--out", str(tmp_path / "c"), "--model", "rigid", "--camera", str(camera)])
+        == 0
+    )
+    assert json.loads((tmp_path / "c" / "summary.json").read_text())["camera"] == str(camera)
 
 
 def test_replay_of_a_missing_source_is_a_clear_error(

@@ -49,19 +49,26 @@ class OfflineTracking:
         except StopIteration:
             raise InputError(f"{source}: no frames") from None
         self.frame_shape = self._first[1].shape[:2]
-        self.camera_model = self._camera_model(camera_json, cfg)
+        self.camera_model, self.camera_source = self._camera(camera_json, cfg)
         table = self.footage.table_json
         self.layout = read_layout(table) if table else None
         commands = commands_csv or self.footage.commands_csv
         self.schedule = CommandSchedule(commands, self.layout.n_modules) if commands and self.layout else None
         self.tracker = Tracker(cfg, self.camera_model, self.layout, roi=roi, clock=clock)
 
-    def _camera_model(self, override: Path | None, cfg: TrackerConfig) -> CameraModel:
+    def _camera(self, override: Path | None, cfg: TrackerConfig) -> tuple[CameraModel, str]:
+        """The camera, and which it is: a user must know when one was assumed."""
         path = override or self.footage.camera_json
         if path is not None:
-            return read_camera(path)
+            return read_camera(path), str(path)
         h, w = self.frame_shape
-        return CameraModel.ideal(w, h, cfg.camera.f_px, cfg.camera.distance_m)
+        c = cfg.camera
+        source = (
+            f"assumed ideal (no camera.json): straight down from {c.distance_m} m onto the table, f "
+            f"{c.f_px} px, principal point at the centre of the {w}x{h} image, no distortion "
+            "(tracker.camera; --camera FILE for a calibrated one)"
+        )
+        return CameraModel.ideal(w, h, c.f_px, c.distance_m), source
 
     def __iter__(self) -> Iterator[tuple[float, np.ndarray, Estimate]]:
         frames = itertools.chain([self._first], self._frames)

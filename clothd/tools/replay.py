@@ -37,6 +37,7 @@ _OVERLAYS_AHEAD = 4  # frames queued for the drawing thread before tracking wait
 
 @dataclass(frozen=True)
 class ReplayResult:
+    camera: str  # the camera.json used, or the ideal camera assumed
     frames: int
     wall_s: float
     footage_s: float
@@ -92,7 +93,12 @@ def replay(
     write_estimates(out_dir / "estimates.npz", estimates)
     steady_frames = max(len(estimates) - _STARTUP_TICKS, 0)
     result = ReplayResult(
-        len(estimates), end - start, len(estimates) / fps, end - steady_start, steady_frames / fps
+        run.camera_source,
+        len(estimates),
+        end - start,
+        len(estimates) / fps,
+        end - steady_start,
+        steady_frames / fps,
     )
     _write_summary(out_dir / "summary.json", estimates, result, cfg)
     return result
@@ -134,6 +140,7 @@ def _write_summary(path: Path, estimates: list[Estimate], result: ReplayResult, 
             }
         )
     summary = {
+        "camera": result.camera,
         "model": cfg.model,
         "use_input": cfg.use_input,
         "frames": result.frames,
