@@ -22,7 +22,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     configure_logging()
     flags = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
-    cfg = load_config(args.config, {"api": flags})
+    opcua = {"endpoint": args.opcua_endpoint} if args.opcua_endpoint else {}
+    cfg = load_config(args.config, {"api": flags, "opcua": opcua})
     return run(cfg, args.sim, args.record)
 
 
@@ -255,6 +256,11 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--config", type=Path, help="configuration file (default: every default)")
     rn.add_argument("--host", help="API address (overrides api.host)")
     rn.add_argument("--port", type=int, help="API port (overrides api.port)")
+    rn.add_argument(
+        "--opcua-endpoint",
+        metavar="URL",
+        help="OPC UA endpoint, opc.tcp://HOST:PORT/PATH (overrides opcua.endpoint)",
+    )
     rn.add_argument(
         "--sim",
         nargs="?",
