@@ -5,7 +5,8 @@
 - With api.token set, method calls need user `clothd` with the token as password; without one (loopback
   only) anyone who can reach loopback may call, as with the REST API (docs/api.md says why).
 - Off loopback the only policy is Basic256Sha256 SignAndEncrypt, with a self-signed certificate made on
-  first start in opcua.cert_dir (the state directory under systemd) and kept there.
+  first start in opcua.cert_dir (the state directory under systemd) and kept there. A None channel that
+  is not offered serves discovery only (DiscoveryOnly: asyncua alone would serve it everything).
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any
 from asyncua import ua
 from asyncua.crypto.cert_gen import setup_self_signed_certificate
 from asyncua.crypto.permission_rules import USER_TYPES, SimpleRoleRuleset, User, UserRole
+from asyncua.crypto.security_policies import SecurityPolicyFactory, SecurityPolicyNone
 from asyncua.server.user_managers import UserManager
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
@@ -60,6 +62,32 @@ class CellRules(SimpleRoleRuleset):
 
     def check_validity(self, user: User, action_type_id: ua.NodeId, body: Any) -> bool:
         return action_type_id in self.allowed.get(user.role, set())
+
+
+class DiscoveryOnly(SecurityPolicyFactory):
+    """Put after the offered policies: a channel asking for a policy none of them matched gets the None
+    policy for discovery (GetEndpoints, FindServers: how a client learns the server's certificate, Part 4
+    5.4) and is refused everything a session does.
+
+    asyncua 2.1 opens each connection with the None policy and keeps it when a client asks for None and
+    no offered policy matches (SecureConnection.select_policy), with no permission ruleset at all: without
+    this, a client could read and call in plain text on a server that offers only SignAndEncrypt."""
+
+    def __init__(self) -> None:
+        super().__init__(SecurityPolicyNone, ua.MessageSecurityMode.None_, permission_ruleset=_NOTHING)
+
+    def matches(self, uri: str, mode: ua.MessageSecurityMode | None = None) -> bool:
+        return uri == SecurityPolicyNone.URI
+
+
+class _Nothing(SimpleRoleRuleset):
+    """No session service for anyone (discovery is never checked against a ruleset)."""
+
+    def check_validity(self, user: User, action_type_id: ua.NodeId, body: Any) -> bool:
+        return False
+
+
+_NOTHING = _Nothing()
 
 
 async def server_certificate(cert_dir: Path, app_uri: str) -> tuple[Path, Path]:

@@ -22,7 +22,7 @@ from asyncua import Server, ua
 
 from clothd.api.commands import Commands
 from clothd.api.opcua_nodes import NAMESPACE_URI, CellNodes, node_id
-from clothd.api.opcua_security import CellRules, TokenUsers, server_certificate
+from clothd.api.opcua_security import CellRules, DiscoveryOnly, TokenUsers, server_certificate
 from clothd.api.schemas import FlattenSetpoint, HoldSetpoint, IdleSetpoint
 from clothd.api.stream import StreamHub
 from clothd.config import OPCUA_SIGN_AND_ENCRYPT, OpcUaConfig, is_loopback, opcua_host_port
@@ -75,6 +75,13 @@ MOVE_ARGS = [
 ]
 
 
+class _Server(Server):
+    async def _setup_server_nodes(self) -> None:
+        """asyncua's policies for the offered endpoints, then None for discovery only (DiscoveryOnly)."""
+        await super()._setup_server_nodes()
+        self._policies.append(DiscoveryOnly())  # after ours: a None that we offer matches first
+
+
 class OpcUaServer:
     def __init__(self, cfg: OpcUaConfig, token: str | None, hub: StreamHub, commands: Commands) -> None:
         self.cfg = cfg
@@ -82,7 +89,7 @@ class OpcUaServer:
         self.commands = commands
         host, _ = opcua_host_port(cfg.endpoint)
         loopback = is_loopback(host)
-        self.server = Server(user_manager=TokenUsers(token, anonymous=loopback))
+        self.server = _Server(user_manager=TokenUsers(token, anonymous=loopback))
         self.token_set = token is not None
         self.loopback = loopback
         self.nodes: CellNodes | None = None
