@@ -45,10 +45,13 @@ def free_port() -> int:
 
 
 class DaemonProcess:
-    """`clothd run --sim` in its own process group; its first lines name the URLs."""
+    """`clothd run --sim` in its own process group; its first lines name the URLs. Its OPC UA server
+    listens on a free port of its own (opcua_url), so that benches and tests never share 4840."""
 
     def __init__(self, config: Path | None, port: int) -> None:
+        self.opcua_url = f"opc.tcp://127.0.0.1:{free_port()}/clothd/"
         cmd = [sys.executable, "-m", "clothd.cli", "run", "--sim", "--port", str(port)]
+        cmd += ["--opcua-endpoint", self.opcua_url]
         if config is not None:
             cmd += ["--config", str(config)]
         self.base = f"http://127.0.0.1:{port}"
