@@ -7,7 +7,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import math
+import socket
 import stat
+import subprocess
+import sys
 from collections.abc import AsyncIterator, Iterator
 from pathlib import Path
 from typing import Any
@@ -345,3 +348,17 @@ def test_a_wrong_password_is_refused_by_the_live_daemon(live: DaemonProcess) -> 
                 await _call(anonymous, "Reset")
 
     asyncio.run(main())
+
+
+def test_a_taken_opcua_port_ends_the_start_at_once_and_clearly() -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        endpoint = f"opc.tcp://127.0.0.1:{taken.getsockname()[1]}/clothd/"
+        cmd = ["run", "--sim", "--port", str(free_port()), "--opcua-endpoint", endpoint]
+        done = subprocess.run(
+            [sys.executable, "-m", "clothd.cli", *cmd], capture_output=True, text=True, timeout=60
+        )
+    assert done.returncode == 2
+    assert f"cannot listen on {endpoint}" in done.stderr and "opcua.endpoint" in done.stderr
+    assert "hwsim" not in done.stdout  # nothing was started
