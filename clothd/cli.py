@@ -30,7 +30,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_bench_loop(args: argparse.Namespace) -> int:
     from clothd.tools.bench_loop import format_result, run_bench, write_json
 
-    result = run_bench(args.config, run_s=args.run_seconds, load_s=args.load_seconds)
+    result = run_bench(args.config, run_s=args.run_seconds, load_s=args.load_seconds, opcua=args.opcua)
     print(format_result(result))
     if args.json:
         write_json(result, args.json)
@@ -366,6 +366,11 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--config", type=Path, help="configuration for the daemon (default: every default)")
     bl.add_argument("--run-seconds", type=float, default=60.0, help="how long to count missed ticks")
     bl.add_argument("--load-seconds", type=float, default=30.0, help="how long to load the API")
+    bl.add_argument(
+        "--opcua",
+        action="store_true",
+        help="add an OPC UA client subscribed to the Cell at 10 Hz to the load",
+    )
     bl.add_argument("--json", type=Path, help="also write the figures as JSON")
     bl.set_defaults(func=_cmd_bench_loop)
     bfl = bsub.add_parser(
