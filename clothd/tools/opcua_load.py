@@ -9,8 +9,7 @@ from typing import Any
 
 from asyncua import Client, Node, ua
 
-from clothd.api.opcua_nodes import NAMESPACE_URI, VARIABLES, node_id
-
+NAMESPACE_URI = "urn:clothd:cell"  # as a client knows it, from docs/opcua.md
 PUBLISH_MS = 100.0  # 10 Hz: the server's own publish rate
 
 
@@ -24,15 +23,30 @@ class _Count:
 
 async def subscribe(url: str, seconds: float) -> int:
     """Data-change notifications received in `seconds`."""
-    async with Client(url) as client:
+    client = Client(url)
+    client.session_timeout = 600_000  # ms: what asyncua's server grants at most (else it warns)
+    async with client:
         idx = await client.get_namespace_index(NAMESPACE_URI)
-        nodes = [client.get_node(node_id("Cell." + v.path.replace("/", "."), idx)) for v in VARIABLES]
+        nodes = await _variables(await client.nodes.objects.get_child(f"{idx}:Cell"), idx)
         count = _Count()
         sub = await client.create_subscription(PUBLISH_MS, count)
         await sub.subscribe_data_change(nodes, queuesize=1)
         await asyncio.sleep(seconds)
         await sub.delete()
         return count.notifications
+
+
+async def _variables(node: Node, idx: int) -> list[Node]:
+    """Every variable of ours below `node`, found by browsing as an HMI would."""
+    found = []
+    for child in await node.get_children():
+        if child.nodeid.NamespaceIndex != idx:
+            continue
+        if await child.read_node_class() == ua.NodeClass.Variable:
+            found.append(child)
+        else:
+            found += await _variables(child, idx)
+    return found
 
 
 def subscriber_process(url: str, seconds: float, result: Any) -> None:
