@@ -22,14 +22,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
     configure_logging()
     flags = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
-    cfg = load_config(args.config, {"api": flags})
+    opcua = {"endpoint": args.opcua_endpoint} if args.opcua_endpoint else {}
+    cfg = load_config(args.config, {"api": flags, "opcua": opcua})
     return run(cfg, args.sim, args.record)
 
 
 def _cmd_bench_loop(args: argparse.Namespace) -> int:
     from clothd.tools.bench_loop import format_result, run_bench, write_json
 
-    result = run_bench(args.config, run_s=args.run_seconds, load_s=args.load_seconds)
+    result = run_bench(args.config, run_s=args.run_seconds, load_s=args.load_seconds, opcua=args.opcua)
     print(format_result(result))
     if args.json:
         write_json(result, args.json)
@@ -257,6 +258,11 @@ def build_parser() -> argparse.ArgumentParser:
     rn.add_argument("--host", help="API address (overrides api.host)")
     rn.add_argument("--port", type=int, help="API port (overrides api.port)")
     rn.add_argument(
+        "--opcua-endpoint",
+        metavar="URL",
+        help="OPC UA endpoint, opc.tcp://HOST:PORT/PATH (overrides opcua.endpoint)",
+    )
+    rn.add_argument(
         "--sim",
         nargs="?",
         const="cell",
@@ -361,6 +367,11 @@ def build_parser() -> argparse.ArgumentParser:
     bl.add_argument("--config", type=Path, help="configuration for the daemon (default: every default)")
     bl.add_argument("--run-seconds", type=float, default=60.0, help="how long to count missed ticks")
     bl.add_argument("--load-seconds", type=float, default=30.0, help="how long to load the API")
+    bl.add_argument(
+        "--opcua",
+        action="store_true",
+        help="add an OPC UA client subscribed to the Cell at 10 Hz to the load",
+    )
     bl.add_argument("--json", type=Path, help="also write the figures as JSON")
     bl.set_defaults(func=_cmd_bench_loop)
     bfl = bsub.add_parser(

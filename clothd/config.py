@@ -9,9 +9,10 @@ from __future__ import annotations
 import ipaddress
 from pathlib import Path
 from typing import Any, Literal
+from urllib.parse import urlsplit
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from clothd.errors import ConfigError
 
@@ -285,6 +286,53 @@ class ApiConfig(_Strict):
         return self
 
 
+OPCUA_SIGN_AND_ENCRYPT = "Basic256Sha256_SignAndEncrypt"
+
+
+def opcua_host_port(endpoint: str) -> tuple[str, int]:
+    """The host and port an opc.tcp:// endpoint binds to (4840, OPC UA's registered port, when none)."""
+    url = urlsplit(endpoint)
+    return url.hostname or "", url.port or 4840
+
+
+class OpcUaConfig(_Strict):
+    """The OPC UA server (docs/opcua.md). Loopback: anonymous reads, no security policy needed. Anywhere
+    else: Basic256Sha256 SignAndEncrypt only, with a certificate made on first start in `cert_dir`."""
+
+    enabled: bool = True
+    endpoint: str = Field("opc.tcp://127.0.0.1:4840/clothd/", min_length=1, max_length=255)
+    security_policies: tuple[Literal["None", "Basic256Sha256_SignAndEncrypt"], ...] = Field(
+        ("None",), min_length=1, max_length=2, description="offered to clients; None only on loopback"
+    )
+    cert_dir: Path = Field(
+        Path("opcua"), description="server key and certificate; relative: to the state directory (systemd)"
+    )
+    publish_hz: float = Field(10.0, gt=0, le=10, description="how often the variables follow the status")
+
+    @field_validator("endpoint")
+    @classmethod
+    def _opc_tcp_url(cls, endpoint: str) -> str:
+        try:
+            host, _ = opcua_host_port(endpoint)  # a port that is no number, or out of range, raises
+        except ValueError as err:
+            raise ValueError(f"{endpoint!r} is not a URL: {err}") from None
+        if urlsplit(endpoint).scheme != "opc.tcp" or not host:
+            raise ValueError(f"{endpoint!r}: an endpoint is opc.tcp://HOST:PORT/PATH")
+        return endpoint
+
+    @model_validator(mode="after")
+    def _secure_off_loopback(self) -> OpcUaConfig:
+        """Off loopback, the None policy (plain text, no server identity) is refused at start."""
+        host, _ = opcua_host_port(self.endpoint)
+        if not is_loopback(host) and self.security_policies != (OPCUA_SIGN_AND_ENCRYPT,):
+            raise ValueError(
+                f"opcua.endpoint: {self.endpoint} is reachable from other machines; set "
+                f"opcua.security_policies to [{OPCUA_SIGN_AND_ENCRYPT}] (no None policy off loopback), "
+                "or bind to 127.0.0.1"
+            )
+        return self
+
+
 class RecordingConfig(_Strict):
     dir: Path = Field(Path("recordings"), description="where POST /record/start puts sessions by default")
     max_bytes: int = Field(2_000_000_000, ge=100_000, le=10**13, description="a recording stops at this size")
@@ -299,7 +347,20 @@ class Config(_Strict):
     cell: CellConfig = CellConfig()
     control: ControlConfig = ControlConfig()
     api: ApiConfig = ApiConfig()
+    opcua: OpcUaConfig = OpcUaConfig()
     recording: RecordingConfig = RecordingConfig()
+
+    @model_validator(mode="after")
+    def _opcua_token_off_loopback(self) -> Config:
+        """Off loopback, OPC UA clients log in as `clothd` with api.token as the password: no token, no
+        start (as for the HTTP API)."""
+        host, _ = opcua_host_port(self.opcua.endpoint)
+        if self.opcua.enabled and not is_loopback(host) and self.api.token is None:
+            raise ValueError(
+                f"opcua.endpoint: {self.opcua.endpoint} is reachable from other machines; set api.token "
+                "(16+ characters): OPC UA clients then log in as user clothd with it as the password"
+            )
+        return self
 
 
 def _describe(err: ValidationError, source: str) -> str:

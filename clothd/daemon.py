@@ -325,6 +325,7 @@ class Daemon:
             camera_source=s.camera_source,
             link=self.link,
             link_port=s.link_port,
+            commands=self._in_force,
             recording=self.latest.recording if self.latest else None,
         )
         if self.on_status is not None:

@@ -1,13 +1,13 @@
 """Logging for the daemon's processes: one line per event, the level and the logger's name.
 
 Under systemd (JOURNAL_STREAM set) journald stamps every line itself, so we add no time of our own.
-Libraries that log every request at INFO (httpx, uvicorn's access log) are kept to warnings.
+Libraries that log every request at INFO (httpx, uvicorn's access log, asyncua) are kept to warnings.
 """
 
 import logging
 import os
 
-QUIET_LIBRARIES = ("httpx", "httpcore", "uvicorn.access")
+QUIET_LIBRARIES = ("httpx", "httpcore", "uvicorn.access", "asyncua")
 
 
 def configure_logging() -> None:

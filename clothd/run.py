@@ -4,7 +4,7 @@ only what it needs: the daemon its settings, the stepper link (a ModuleLink) and
 the compute process its spec, with the camera (a FrameSource) as a factory it opens itself.
 
 Order on the way out, whatever the cause (signal, error, end): the modules stop first (the daemon's
-shutdown), then the API server, then the hwsim child.
+shutdown), then the API servers (HTTP and OPC UA), then the hwsim child.
 """
 
 from __future__ import annotations
@@ -30,11 +30,13 @@ import uvicorn
 
 from clothd.api.app import create_app
 from clothd.api.bridge import DaemonBridge
+from clothd.api.commands import Commands
 from clothd.api.connections import BoundedH11Protocol
+from clothd.api.opcua_server import OpcUaServer
 from clothd.api.stream import StreamHub
 from clothd.compute import ComputeSpec
 from clothd.compute_process import ComputeProcess
-from clothd.config import ApiConfig, Config, with_overrides
+from clothd.config import ApiConfig, Config, OpcUaConfig, opcua_host_port, with_overrides
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.workspace import Workspace
@@ -166,6 +168,53 @@ def bind_api(api: ApiConfig) -> socket.socket:
     return sock
 
 
+def check_opcua_port(opcua: OpcUaConfig) -> None:
+    """The OPC UA port is free (asyncua binds it itself, later): a taken one ends the start with one clear
+    line, before hwsim, the compute process or any hardware is opened."""
+    if not opcua.enabled:
+        return
+    host, port = opcua_host_port(opcua.endpoint)
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    except OSError as err:
+        raise ConfigError(f"opcua.endpoint: cannot resolve {host}: {err.strerror or err}") from None
+    for family, kind, proto, _, address in infos:
+        with socket.socket(family, kind, proto) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as asyncio's server will
+            try:
+                probe.bind(address)
+            except OSError as err:
+                raise ConfigError(
+                    f"cannot listen on {opcua.endpoint}: {err.strerror or err}; "
+                    "choose another address with --opcua-endpoint or opcua.endpoint"
+                ) from None
+
+
+class ApiThread(threading.Thread):
+    """The HTTP API and the OPC UA server on a thread and event loop of their own (api/bridge.py); an
+    error that ends them is kept for the main thread to raise."""
+
+    def __init__(self, server: uvicorn.Server, listener: socket.socket, opcua: OpcUaServer | None) -> None:
+        super().__init__(name="api")
+        self.server, self.listener, self.opcua = server, listener, opcua
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        try:
+            asyncio.run(self._serve())
+        except BaseException as err:  # handed to the main thread, which stops the daemon first
+            self.error = err
+
+    async def _serve(self) -> None:
+        if self.opcua is not None:
+            await self.opcua.start()
+        try:
+            await self.server.serve(sockets=[self.listener])
+        finally:
+            if self.opcua is not None:
+                await self.opcua.stop()
+
+
 class _Server(uvicorn.Server):
     """uvicorn without its own signal handling: clothd's handler stops the modules first."""
 
@@ -190,6 +239,9 @@ async def serve(
     a = cfg.api
     protocol = BoundedH11Protocol.bounded(a.max_connections, a.request_timeout_s)
     server = _Server(uvicorn.Config(app, host=a.host, port=a.port, log_level="warning", http=protocol))
+    opcua = None
+    if cfg.opcua.enabled:
+        opcua = OpcUaServer(cfg.opcua, a.token, parts.hub, Commands(daemon, bridge))
     loop = asyncio.get_running_loop()
     bridge.loop = loop
     # Everything built so far lives as long as the daemon: out of the collector's sight, a full collection
@@ -204,8 +256,8 @@ async def serve(
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, _stop)
     loop_task = asyncio.create_task(daemon.run())
-    # The API on a thread and event loop of its own: HTTP work never delays a tick (api/bridge.py).
-    api = threading.Thread(target=asyncio.run, args=(server.serve(sockets=[listener]),), name="api")
+    # The APIs on a thread and event loop of their own: their work never delays a tick (api/bridge.py).
+    api = ApiThread(server, listener, opcua)
     api.start()
     api_done = loop.run_in_executor(None, api.join)
     while not server.started and api.is_alive():
@@ -218,6 +270,8 @@ async def serve(
     await asyncio.gather(loop_task, api_done, return_exceptions=True)
     if loop_task.exception() is not None:
         raise loop_task.exception()  # type: ignore[misc]
+    if api.error is not None:
+        raise api.error
 
 
 def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -> int:
@@ -226,6 +280,11 @@ def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -
     # The tick's thread waits at most this long for the GIL while the API's thread computes (default 5 ms).
     sys.setswitchinterval(GIL_SWITCH_S)
     listener = bind_api(cfg.api)
+    try:
+        check_opcua_port(cfg.opcua)
+    except ConfigError:
+        listener.close()
+        raise
     sim = start_sim(sim_scenario) if sim_scenario is not None else None
     try:
         if sim is not None:
@@ -237,6 +296,8 @@ def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -
             f"clothd: annotated view {base}/api/v1/view.mjpg\n"
             f"clothd: API docs {base}/docs"
         )
+        if cfg.opcua.enabled:
+            urls += f"\nclothd: OPC UA {cfg.opcua.endpoint}"
         if sim is not None:
             urls += f"\nclothd: simulated cell truth {sim.ready['truth_url']}"
         truth_url = None if sim is None else str(sim.ready["truth_url"])

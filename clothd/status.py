@@ -15,7 +15,7 @@ from pydantic import BaseModel, Field
 
 from clothd.core.control import Setpoint
 from clothd.core.flatness import Flatness
-from clothd.core.messages import Estimate
+from clothd.core.messages import Estimate, ModuleCommands
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
 from clothd.recorder import RecordingStatus
 
@@ -92,6 +92,11 @@ class LinkState(BaseModel):
     last_error: str | None
     controller_estop: bool
     counters: LinkCounters
+
+
+class Modules(BaseModel):
+    speed_m_s: list[float] = Field(description="each module's belt speed in force, by module id")
+    heading_rad: list[float] = Field(description="each module's heading in force, by module id")
 
 
 class FaultReport(BaseModel):
@@ -172,6 +177,7 @@ class Status(BaseModel):
     timing: Timing
     camera: CameraState
     link: LinkState
+    modules: Modules = Field(description="what the modules were last told (stopped while the link is down)")
     faults: list[FaultReport]
     recording: Recording | None
 
@@ -188,6 +194,7 @@ def build_status(
     camera_source: str,
     link: ModuleLink,
     link_port: str,
+    commands: ModuleCommands,
     recording: RecordingStatus | None,
 ) -> Status:
     """The status from the parts the daemon holds; the estimate counts only while it is tracking."""
@@ -230,6 +237,7 @@ def build_status(
             controller_estop=link.controller_estopped,
             counters=LinkCounters.model_validate(link.counters.snapshot()),
         ),
+        modules=Modules(speed_m_s=commands.speed_m_s.tolist(), heading_rad=commands.heading_rad.tolist()),
         faults=[FaultReport(**asdict(f)) for f in link.faults],
         recording=None if recording is None else Recording(**asdict(recording)),
     )

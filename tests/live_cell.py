@@ -104,6 +104,7 @@ def start_daemon(cell: Cell, tmp_path: Path, env: dict[str, str] | None = None) 
         "camera": {"source": cell.ready["video_url"], "calibration": cell.ready["camera_json"]},
         "stepper": {"port": cell.ready["serial"]},
         "api": {"port": port},
+        "opcua": {"endpoint": f"opc.tcp://127.0.0.1:{_free_port()}/clothd/"},  # never the shared 4840
         # A few frames: recordings in these tests get cut short.
         "recording": {"max_bytes": 3_000_000, "dir": str(tmp_path / "recordings")},
     }

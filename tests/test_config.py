@@ -28,6 +28,17 @@ def test_defaults_are_valid() -> None:
             "tracker: {physics: {slack_strain: 0.06}}\n",
             ["tracker.physics", "slack_strain (0.06) must be below strain_limit (0.05)"],
         ),
+        ("opcua: {endpoint: 'http://127.0.0.1:4840/'}\n", ["opcua.endpoint", "opc.tcp://HOST:PORT/PATH"]),
+        ("opcua: {endpoint: 'opc.tcp://127.0.0.1:99999/'}\n", ["opcua.endpoint", "Port out of range"]),
+        (
+            "opcua: {endpoint: 'opc.tcp://0.0.0.0:4840/clothd/'}\n",
+            ["opcua.endpoint", "reachable from other machines", "[Basic256Sha256_SignAndEncrypt]"],
+        ),
+        (
+            "opcua: {endpoint: 'opc.tcp://0.0.0.0:1/', security_policies: [Basic256Sha256_SignAndEncrypt]}",
+            ["opcua.endpoint", "set api.token"],
+        ),
+        ("opcua: {security_policies: [Basic128Rsa15]}\n", ["opcua.security_policies"]),
         ("- a\n- list\n", ["a mapping"]),
         ("tracker: [unclosed\n", ["not valid YAML"]),
     ],

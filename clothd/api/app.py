@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import httpx
-import numpy as np
 from fastapi import APIRouter, FastAPI, Query, Request, WebSocket
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
@@ -24,9 +23,10 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.websockets import WebSocketDisconnect
 
 from clothd.api.bridge import DaemonBridge
+from clothd.api.commands import Commands, describe_invalid
 from clothd.api.guard import GuardPolicy, RequestGuard
 from clothd.api.metrics import registry_for
-from clothd.api.schemas import CameraInfo, ErrorResponse, MoveSetpoint, Ok, RecordStart, SetpointRequest
+from clothd.api.schemas import CameraInfo, ErrorResponse, Ok, RecordStart, SetpointRequest
 from clothd.api.stream import StreamHub
 from clothd.config import ApiConfig
 from clothd.core.camera_model import CameraModel
@@ -79,6 +79,7 @@ def create_app(
     """The app over a daemon whose statuses `hub` receives, behind the request guard (guard.py).
     sim_truth_url: hwsim's ground truth, relayed for the dashboard when running against hwsim."""
     bridge = bridge or DaemonBridge()
+    commands = Commands(daemon, bridge)
     registry = registry_for(hub)
     app = FastAPI(title="clothd", version="1", description="Real-time cloth tracking and control")
     c = api_cfg
@@ -94,11 +95,8 @@ def create_app(
 
     @app.exception_handler(RequestValidationError)
     async def _invalid(request: Request, err: RequestValidationError) -> JSONResponse:
-        """Where and what, never the input: a body is not echoed back (it may be huge, or not even
-        serialisable: NaN, a lone surrogate)."""
-        where = (".".join(str(part) for part in e["loc"]) for e in err.errors())
-        reasons = [f"{w}: {e['msg']} ({e['type']})" for w, e in zip(where, err.errors(), strict=True)]
-        return JSONResponse({"detail": "; ".join(reasons)}, status_code=422)
+        """Where and what, never the input: a body is not echoed back."""
+        return JSONResponse({"detail": describe_invalid(err.errors())}, status_code=422)
 
     for error, status_code in ERROR_STATUS.items():
         app.add_exception_handler(error, _detail_response(status_code))
@@ -113,30 +111,21 @@ def create_app(
 
     @api.put("/setpoint", responses=ERROR_DOC)
     async def setpoint(body: SetpointRequest) -> Ok:
-        pose = (
-            np.array([body.x_m, body.y_m, body.theta_rad], dtype=float)
-            if isinstance(body, MoveSetpoint)
-            else None
-        )
-        await bridge.call(daemon.set_setpoint, body.mode, pose)
-        return Ok(detail=f"mode {body.mode}")
+        return Ok(detail=await commands.setpoint(body))
 
     @api.post("/estop", responses=ERROR_DOC)
     async def estop() -> Ok:
         """Stop every module now; latched until /estop/clear."""
-        await bridge.call(daemon.estop)
-        return Ok(detail="emergency stop latched")
+        return Ok(detail=await commands.estop())
 
     @api.post("/estop/clear", responses=ERROR_DOC)
     async def estop_clear() -> Ok:
-        await bridge.call(daemon.estop_clear)
-        return Ok(detail="emergency stop cleared; mode is idle")
+        return Ok(detail=await commands.estop_clear())
 
     @api.post("/reset", responses=ERROR_DOC)
     async def reset() -> Ok:
         """Re-initialise tracking from the next frame; the mode becomes idle."""
-        await bridge.call(daemon.reset)
-        return Ok(detail="tracking re-initialises on the next frame")
+        return Ok(detail=await commands.reset())
 
     @api.post("/record/start", responses=ERROR_DOC)
     async def record_start(body: RecordStart | None = None) -> Ok:

@@ -68,6 +68,7 @@ class Cell:
             "camera": {"source": self.ready["video_url"], "calibration": self.ready["camera_json"]},
             "stepper": {"port": str(self.relay.link_path)},
             "api": {"port": port},
+            "opcua": {"endpoint": f"opc.tcp://127.0.0.1:{free_port()}/clothd/"},  # never the shared 4840
         }
         (work / "clothd.yaml").write_text(yaml.safe_dump(cfg))
         self.daemon = subprocess.Popen(

@@ -8,7 +8,8 @@ both over HTTP, as supervisory software would; the true cloth pose comes from hw
   are at the end of that window.
 - missed ticks over a run of `run_s` seconds at the configured tick, and frame-to-command latency.
 - load: 50 requests/s to GET /status and 4 WebSocket clients, one of them stalled (it never reads),
-  for `load_s` seconds: /status p99 and the missed ticks meanwhile.
+  for `load_s` seconds: /status p99 and the missed ticks meanwhile. With `opcua`, also an OPC UA client
+  subscribed to every variable of the Cell at 10 Hz (tools/opcua_load.py).
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ import numpy as np
 import websockets
 from tqdm import tqdm
 
+from clothd.tools.opcua_load import subscriber_process
+
 POS_TOL_M = 0.005
 ANGLE_TOL_RAD = math.radians(1.0)
 OFFSET = (0.10, 0.0, math.radians(30.0))
@@ -45,10 +48,13 @@ def free_port() -> int:
 
 
 class DaemonProcess:
-    """`clothd run --sim` in its own process group; its first lines name the URLs."""
+    """`clothd run --sim` in its own process group; its first lines name the URLs. Its OPC UA server
+    listens on a free port of its own (opcua_url), so that benches and tests never share 4840."""
 
     def __init__(self, config: Path | None, port: int) -> None:
+        self.opcua_url = f"opc.tcp://127.0.0.1:{free_port()}/clothd/"
         cmd = [sys.executable, "-m", "clothd.cli", "run", "--sim", "--port", str(port)]
+        cmd += ["--opcua-endpoint", self.opcua_url]
         if config is not None:
             cmd += ["--config", str(config)]
         self.base = f"http://127.0.0.1:{port}"
@@ -239,13 +245,22 @@ class StatusPoller:
             self.writer.close()
 
 
-async def measure_load(client: httpx.AsyncClient, base: str, load_s: float) -> dict[str, float]:
-    """The WebSocket clients run in their own process, so that their traffic does not delay the
-    /status timer here and inflate the latencies measured."""
+async def measure_load(
+    client: httpx.AsyncClient, base: str, load_s: float, opcua_url: str | None = None
+) -> dict[str, float]:
+    """The WebSocket clients (and the OPC UA subscriber) run in processes of their own, so that their
+    traffic does not delay the /status timer here and inflate the latencies measured."""
     ws_url = base.replace("http://", "ws://") + "/api/v1/stream"
     received = multiprocessing.Value("l", 0)
     clients = multiprocessing.Process(target=_websocket_process, args=(ws_url, load_s + 2.0, received))
     clients.start()
+    notified = multiprocessing.Value("l", 0)
+    subscriber = None
+    if opcua_url is not None:
+        subscriber = multiprocessing.Process(
+            target=subscriber_process, args=(opcua_url, load_s + 2.0, notified)
+        )
+        subscriber.start()
     await asyncio.sleep(1.0)
     before = await _timing(client, base)
     latencies: list[float] = []
@@ -264,8 +279,11 @@ async def measure_load(client: httpx.AsyncClient, base: str, load_s: float) -> d
         poller.close()
     after = await _timing(client, base)
     await asyncio.get_running_loop().run_in_executor(None, clients.join)
+    if subscriber is not None:
+        await asyncio.get_running_loop().run_in_executor(None, subscriber.join)
     lat = np.asarray(latencies) * 1e3
-    return {
+    opcua = {} if subscriber is None else {"loaded_opcua_notifications": float(notified.value)}
+    return opcua | {
         "loaded_status_p50_ms": float(np.median(lat)),
         "loaded_status_p99_ms": float(np.percentile(lat, 99)),
         "loaded_missed_tick_pct": _missed_pct(before, after),
@@ -275,7 +293,9 @@ async def measure_load(client: httpx.AsyncClient, base: str, load_s: float) -> d
     }
 
 
-async def _bench(config: Path | None, run_s: float, load_s: float, hold_s: float) -> dict[str, Any]:
+async def _bench(
+    config: Path | None, run_s: float, load_s: float, hold_s: float, opcua: bool
+) -> dict[str, Any]:
     d = DaemonProcess(config, free_port())
     try:
         await asyncio.get_running_loop().run_in_executor(None, d.wait_ready)
@@ -290,7 +310,7 @@ async def _bench(config: Path | None, run_s: float, load_s: float, hold_s: float
                 bar.update()
                 result.update(await measure_run(client, d.base, run_s))
                 bar.update()
-                result.update(await measure_load(client, d.base, load_s))
+                result.update(await measure_load(client, d.base, load_s, d.opcua_url if opcua else None))
                 bar.update()
             return result
     finally:
@@ -298,9 +318,9 @@ async def _bench(config: Path | None, run_s: float, load_s: float, hold_s: float
 
 
 def run_bench(
-    config: Path | None, run_s: float = 60.0, load_s: float = 30.0, hold_s: float = 3.0
+    config: Path | None, run_s: float = 60.0, load_s: float = 30.0, hold_s: float = 3.0, opcua: bool = False
 ) -> dict[str, Any]:
-    return asyncio.run(_bench(config, run_s, load_s, hold_s))
+    return asyncio.run(_bench(config, run_s, load_s, hold_s, opcua))
 
 
 def format_result(r: dict[str, Any]) -> str:
@@ -308,6 +328,10 @@ def format_result(r: dict[str, Any]) -> str:
         v = r.get(key)
         return "n/a" if v is None else f"{v:{fmt}} {unit}"
 
+    opcua = ""
+    if "loaded_opcua_notifications" in r:
+        notes = f("loaded_opcua_notifications", "notifications", ".0f")
+        opcua = f", an OPC UA client subscribed at 10 Hz: {notes}"
     return "\n".join(
         [
             "clothd bench loop (closed loop against hwsim serve)",
@@ -319,7 +343,7 @@ def format_result(r: dict[str, Any]) -> str:
             f"  missed ticks {f('missed_tick_pct', '%', '.3f')} (bar 0.5 %); frame-to-command latency "
             f"p50 {f('latency_p50_ms', 'ms', '.1f')}, p99 {f('latency_p99_ms', 'ms', '.1f')}; "
             f"ticks resending the last commands {f('compute_overrun_pct', '%', '.2f')}",
-            f"  under load (50 req/s /status, 4 WebSocket clients, 1 stalled): /status p50 "
+            f"  under load (50 req/s /status, 4 WebSocket clients, 1 stalled{opcua}): /status p50 "
             f"{f('loaded_status_p50_ms', 'ms')}, p99 {f('loaded_status_p99_ms', 'ms')} (bar 10 ms); "
             f"missed ticks {f('loaded_missed_tick_pct', '%', '.3f')}, "
             f"resending {f('loaded_compute_overrun_pct', '%', '.2f')}",

@@ -1,0 +1,63 @@
+"""The daemon's commands as every API gives them: the REST handlers (app.py) and the OPC UA methods
+(opcua_server.py) call these, so both answer and refuse alike.
+
+Each runs on the daemon's loop (DaemonBridge) and returns the answer in words, or raises the daemon's
+ClothdError: RequestError (not possible in the present state: HTTP 409), InvalidRequestError (never
+possible as given: 422). Each API maps those to its own codes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from pydantic import ValidationError
+
+from clothd.api.bridge import DaemonBridge
+from clothd.api.schemas import MoveSetpoint, SetpointRequest
+from clothd.daemon import Daemon
+from clothd.errors import InvalidRequestError
+
+
+def describe_invalid(errors: Sequence[Any]) -> str:
+    """pydantic's errors as one line: where and what, never the input (it may be huge, or not even
+    serialisable: NaN, a lone surrogate)."""
+    where = (".".join(str(part) for part in e["loc"]) for e in errors)
+    return "; ".join(f"{w}: {e['msg']} ({e['type']})" for w, e in zip(where, errors, strict=True))
+
+
+class Commands:
+    def __init__(self, daemon: Daemon, bridge: DaemonBridge) -> None:
+        self.daemon = daemon
+        self.bridge = bridge
+
+    async def setpoint(self, body: SetpointRequest) -> str:
+        pose = (
+            np.array([body.x_m, body.y_m, body.theta_rad], dtype=float)
+            if isinstance(body, MoveSetpoint)
+            else None
+        )
+        await self.bridge.call(self.daemon.set_setpoint, body.mode, pose)
+        return f"mode {body.mode}"
+
+    async def move(self, x_m: float, y_m: float, theta_rad: float) -> str:
+        """A move validated as PUT /setpoint validates its body (the same bounds, the same words)."""
+        try:
+            move = {"mode": "move", "x_m": x_m, "y_m": y_m, "theta_rad": theta_rad}
+            body = MoveSetpoint.model_validate(move)
+        except ValidationError as err:
+            raise InvalidRequestError(describe_invalid(err.errors())) from None
+        return await self.setpoint(body)
+
+    async def estop(self) -> str:
+        await self.bridge.call(self.daemon.estop)
+        return "emergency stop latched"
+
+    async def estop_clear(self) -> str:
+        await self.bridge.call(self.daemon.estop_clear)
+        return "emergency stop cleared; mode is idle"
+
+    async def reset(self) -> str:
+        await self.bridge.call(self.daemon.reset)
+        return "tracking re-initialises on the next frame"
