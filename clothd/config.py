@@ -58,6 +58,16 @@ class FeatureConfig(_Strict):
     resample_below_fraction: float = Field(0.7, gt=0, le=1, description="of max_features")
     resample_cell_px: int = Field(48, ge=8, le=640, description="a cell of the cloth with no feature")
     edge_margin_px: float = Field(6.0, ge=0, le=100, description="keep new features this far inside")
+    # Drift correction (clothd/core/anchors.py): every frame-to-frame result refined from its anchor frame.
+    anchor: bool = Field(True, description="hold each feature to its appearance in an anchor frame")
+    anchor_max_px: float = Field(
+        0.5, gt=0, le=10, description="the anchored and frame-to-frame positions must agree this well"
+    )
+    anchor_still_px: float = Field(
+        1.0, gt=0, le=100, description="a feature this far off its anchor has moved: it is anchored anew"
+    )
+    anchor_adopt_frames: int = Field(15, ge=1, le=10000, description="anchor loose features this often")
+    anchor_max_frames: int = Field(4, ge=1, le=64, description="anchor frames kept; past this, all re-anchor")
 
 
 class MeshConfig(_Strict):

@@ -162,6 +162,23 @@ class FeatureEngine:
         ok[converged] &= ncc[converged] >= self.cfg.lk_min_ncc
         return TrackResult(p1, ok, fb, ncc)
 
+    def refine_to_anchor(
+        self, anchor: GrayFrame, cur: GrayFrame, anchor_px: np.ndarray, tracked_px: np.ndarray, max_px: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """LK from the points anchor_px (n, 2) of the anchor frame into cur, started at tracked_px (n, 2),
+        the frame-to-frame answer: positions (n, 2) float32, and (n,) bool where the pass converged within
+        max_px of tracked_px and the patch there still looks like the anchor's (NCC >= lk_min_ncc)."""
+        p0 = np.ascontiguousarray(anchor_px, dtype=np.float32).reshape(-1, 2)
+        start = np.ascontiguousarray(tracked_px, dtype=np.float32).reshape(-1, 2)
+        p1, converged = self._lk(anchor.gray, cur.gray, p0, start)
+        converged &= np.isfinite(p1).all(axis=1)
+        agrees = converged.copy()
+        agrees[converged] = np.linalg.norm(p1[converged] - start[converged], axis=1) <= max_px
+        if agrees.any():
+            ncc = _patch_ncc(anchor.gray, cur.gray, p0[agrees], p1[agrees], self.cfg.ncc_window_px)
+            agrees[agrees] = ncc >= self.cfg.lk_min_ncc
+        return p1, agrees
+
     def _lk(
         self, a: np.ndarray, b: np.ndarray, pts: np.ndarray, start: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray]:

@@ -20,6 +20,7 @@ import cv2
 import numpy as np
 
 from clothd.config import TrackerConfig
+from clothd.core.anchors import AnchorFrames
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import BeltField, ConveyorLayout, ModuleModel
 from clothd.core.ekf import UpdateStats
@@ -64,6 +65,7 @@ class Tracker:
         self.roi = roi
         self.clock = clock or (lambda: 0.0)
         self.engine = FeatureEngine(cfg.features)
+        self.anchors = AnchorFrames(cfg.features, self.engine)
         self.estimator = make_estimator(cfg, camera_model)
         # The modules keep moving whatever the tracker believes, so their model survives a reset.
         limits = cfg.modules
@@ -82,6 +84,7 @@ class Tracker:
         self.mesh: QuadMesh | None = None
         self.features: FeatureSet | None = None
         self.colour: ClothColour | None = None  # the cloth's colour against the background, from the start
+        self.anchors.reset()
 
     def step(self, image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None) -> Estimate:
         """Track one BGR frame captured at frame_t_s, with `commands` the modules' commands in force while
@@ -99,21 +102,26 @@ class Tracker:
         guess = self.estimator.feature_pixels(features)
         t2 = self.clock()
         result = self.engine.track(self.prev, frame, features.px, guess_px=guess)
+        measured = result.px
+        if self.cfg.features.anchor:
+            measured, _ = self.anchors.refine(frame, features, result.px, result.ok)
         t3 = self.clock()
         keep = result.ok
         stats = UpdateStats(int(keep.sum()), 0, 0.0)
         if keep.any():
-            stats, accepted = self.estimator.correct(Measurements(features, result.px, keep))
+            stats, accepted = self.estimator.correct(Measurements(features, measured, keep))
             keep = keep & accepted
         t4 = self.clock()
-        meas = np.where(keep[:, None], result.px, np.nan)[keep]
-        features.keep(keep, result.px)
+        meas = measured[keep]
+        features.keep(keep, measured)
         estimate = self._estimate(frame_t_s, meas, stats, timing, image)
         if self._diverged(stats):
             self.reset()
             estimate = _lost(frame_t_s, timing)
         else:
             self._resample(frame, image.shape[:2])
+            if self.cfg.features.anchor:
+                self.anchors.adopt(frame, features)
         self.prev, self.prev_t_s = frame, frame_t_s
         t5 = self.clock()
         timing.update(
@@ -151,6 +159,8 @@ class Tracker:
         px = self.engine.detect(frame, mask, f.max_features).astype(np.float64)
         # Cloth space is where the cloth lies now.
         self.features.add(px, self.camera_model.backproject_to_plane(px)[:, :2], np.ones(len(px), bool))
+        if f.anchor:
+            self.anchors.adopt(frame, self.features)
         timing["tick"] = self.clock() - t0
         stats = UpdateStats(len(self.features), 0, 0.0)
         return self._estimate(t_s, self.features.px.astype(np.float64), stats, timing, image)
