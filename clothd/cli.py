@@ -47,6 +47,16 @@ def _cmd_bench_flatten(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_drift(args: argparse.Namespace) -> int:
+    from clothd.tools.bench_drift import format_result, run_bench, write_json
+
+    result = run_bench(args.config, args.rest_seconds, args.drive_seconds, args.sample_seconds, args.seed)
+    print(format_result(result))
+    if args.json:
+        write_json(result, args.json)
+    return 0
+
+
 def _cmd_bench_faults(args: argparse.Namespace) -> int:
     import json
 
@@ -384,6 +394,16 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bfl.add_argument("--json", type=Path, help="also write the figures and every run as JSON")
     bfl.set_defaults(func=_cmd_bench_flatten)
+    bdr = bsub.add_parser(
+        "drift", help="the live tracker over a shift: pose and residual at rest, node error after moves"
+    )
+    bdr.add_argument("--config", type=Path, help="configuration for the daemon (default: every default)")
+    bdr.add_argument("--rest-seconds", type=float, default=600.0, help="at rest, every module stopped")
+    bdr.add_argument("--drive-seconds", type=float, default=600.0, help="then random moves (0: none)")
+    bdr.add_argument("--sample-seconds", type=float, default=5.0, help="how often the rest is sampled")
+    bdr.add_argument("--seed", type=int, default=0, help="seeds the random moves")
+    bdr.add_argument("--json", type=Path, help="also write the figures and every sample as JSON")
+    bdr.set_defaults(func=_cmd_bench_drift)
     bf = bsub.add_parser(
         "faults", help="faults injected into a live simulated cell: detection, stop, no restart; reset memory"
     )

@@ -112,7 +112,7 @@ class Cell:
         with self.lock:
             out = dict(self._truth_cache)
             if with_nodes:
-                out["nodes_m"] = self.world.cloth.positions_m()[::2, ::2].round(5).tolist()
+                out["nodes_m"] = self.world.cloth.positions_m().round(5).tolist()
         return out
 
     def _run(self) -> None:
