@@ -321,14 +321,18 @@ def test_estop_stops_every_module_in_hwsim(live: DaemonProcess) -> None:
 
             async def published() -> bool:
                 state = (await item_state.read_value()).Text
-                return bool(await latched.read_value()) and state == "OutOfService"
+                stopped = await speeds.read_value() == [0.0] * N_MODULES
+                return bool(await latched.read_value()) and state == "OutOfService" and stopped
 
-            for _ in range(50):  # the variables follow at 10 Hz
+            for _ in range(50):  # the variables follow at 10 Hz, each from the tick it was published in
                 if await published():
                     break
                 await asyncio.sleep(0.1)
-            assert await published()
-            assert await speeds.read_value() == [0.0] * N_MODULES
+            assert await published(), (
+                await latched.read_value(),
+                (await item_state.read_value()).Text,
+                await speeds.read_value(),
+            )
             refused = await _call(client, "Hold")
             assert refused.StatusCode.value == ua.StatusCodes.BadInvalidState
             assert "emergency stop is latched" in refused.OutputArguments[0].Value
