@@ -172,6 +172,65 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_tune(args: argparse.Namespace) -> int:
+    from clothd.tools.tune import tune
+    from clothd.tools.tune_report import (
+        HISTORY_PNG,
+        IMPORTANCE_PNG,
+        format_table,
+        plot_history,
+        plot_importance,
+        population,
+        write_best,
+        write_population,
+    )
+
+    cfg = load_config(args.config)
+    run = tune(
+        args.recordings,
+        args.out,
+        cfg,
+        args.trials,
+        args.workers,
+        args.storage,
+        args.model,
+        args.timeout_s,
+        args.seed,
+        args.study_name,
+    )
+    designs = population(run.study, cfg.tracker.physics)
+    if not designs:
+        raise ClothdError(f"study {args.study_name!r} has no completed trial yet")
+    best = designs[0]
+    note = (
+        f"trial {best.trial} of study {args.study_name!r}, fitness {best.fitness_px:.3f} px "
+        f"(mean + 2 x worst, {args.model}) on {', '.join(str(r) for r in args.recordings)}"
+    )
+    write_best(best, args.out / "best.yaml", note)
+    write_population(designs, args.out / "population.csv")
+    plot_history(run.study, args.out / HISTORY_PNG)
+    importance = plot_importance(run.study, args.out / IMPORTANCE_PNG)
+    print(format_table(designs, args.top))
+    print(
+        f"\n{run.trials_run} trials in {run.wall_s:.1f} s on {args.workers} worker(s); "
+        f"{len(designs)} designs in the study"
+    )
+    print(f"best design (trial {best.trial}) written to {args.out / 'best.yaml'}")
+    plots = HISTORY_PNG + ("" if importance is None else f", {IMPORTANCE_PNG}")
+    print(f"population in {args.out / 'population.csv'}, plots {plots} in {args.out}/")
+    return 0
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: a whole number, at least 1")
+    return value
+
+
 def _cmd_bench_calibrate(args: argparse.Namespace) -> int:
     from clothd.tools.bench_calibrate import format_result, run_bench, write_json
 
@@ -327,6 +386,46 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--out", type=Path, required=True, metavar="CAMERA_JSON")
     cal.add_argument("--json", type=Path, help="also write the report as JSON")
     cal.set_defaults(func=_cmd_calibrate)
+    tn = sub.add_parser(
+        "tune",
+        help="fit the cloth model's constants to recorded footage (the report's Table 2)",
+        description="Searches the mass-spring constants (tracker.physics, within config.py's bounds) with "
+        "Optuna's CMA-ES for the least mean + 2 x worst feature pixel error of the model's prediction. "
+        "Writes DIR/best.yaml (a config fragment for --config), DIR/population.csv, history.png and "
+        "importance.png, and keeps the study in DIR/study.db so that a stopped tune resumes. "
+        "docs/commissioning.md, 'Tune', describes the recordings to make.",
+    )
+    tn.add_argument(
+        "recordings",
+        type=Path,
+        nargs="*",
+        metavar="REC",
+        help="hwsim recordings or clothd run --record sessions",
+    )
+    tn.add_argument("--out", type=Path, required=True, metavar="DIR")
+    tn.add_argument("--trials", type=_positive_int, default=200, help="trials to run now (default 200)")
+    tn.add_argument(
+        "--workers", type=_positive_int, default=1, help="local processes sharing the study (default 1)"
+    )
+    tn.add_argument("--timeout-s", type=float, help="stop starting trials after this many seconds")
+    tn.add_argument(
+        "--storage",
+        metavar="URL",
+        help="Optuna storage shared with other machines: an RDB URL (postgresql://..., sqlite:///...) or "
+        "a journal file's path (default: DIR/study.db)",
+    )
+    tn.add_argument(
+        "--model",
+        choices=["predict", "mesh"],
+        default="predict",
+        help="predict: the model alone, as the report tuned it (default); mesh: the whole tracker, "
+        "over its residuals (slower)",
+    )
+    tn.add_argument("--study-name", default="tune", help="the study in the storage (default tune)")
+    tn.add_argument("--seed", type=int, default=0, help="CMA-ES's seed (worker w uses seed + w)")
+    tn.add_argument("--top", type=_positive_int, default=5, help="designs in the printed table")
+    tn.add_argument("--config", type=Path, help="where the search starts, and the tracker's other settings")
+    tn.set_defaults(func=_cmd_tune)
     b = sub.add_parser("bench", help="benchmarks against hwsim")
     bsub = b.add_subparsers(dest="bench", required=True)
     bs = bsub.add_parser("speed", help="per-stage tick time by feature count and mesh size, beside filterpy")
