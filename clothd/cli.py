@@ -174,16 +174,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 def _cmd_tune(args: argparse.Namespace) -> int:
     from clothd.tools.tune import tune
-    from clothd.tools.tune_report import (
-        HISTORY_PNG,
-        IMPORTANCE_PNG,
-        format_table,
-        plot_history,
-        plot_importance,
-        population,
-        write_best,
-        write_population,
-    )
+    from clothd.tools.tune_report import BEST_YAML, POPULATION_CSV, format_table, write_outputs
 
     cfg = load_config(args.config)
     run = tune(
@@ -198,26 +189,15 @@ def _cmd_tune(args: argparse.Namespace) -> int:
         args.seed,
         args.study_name,
     )
-    designs = population(run.study, cfg.tracker.physics)
-    if not designs:
-        raise ClothdError(f"study {args.study_name!r} has no completed trial yet")
-    best = designs[0]
-    note = (
-        f"trial {best.trial} of study {args.study_name!r}, fitness {best.fitness_px:.3f} px "
-        f"(mean + 2 x worst, {args.model}) on {', '.join(str(r) for r in args.recordings)}"
-    )
-    write_best(best, args.out / "best.yaml", note)
-    write_population(designs, args.out / "population.csv")
-    plot_history(run.study, args.out / HISTORY_PNG)
-    importance = plot_importance(run.study, args.out / IMPORTANCE_PNG)
+    recordings = ", ".join(str(r) for r in args.recordings)
+    designs = write_outputs(run.study, cfg.tracker.physics, args.out, f"{args.model} on {recordings}")
     print(format_table(designs, args.top))
     print(
         f"\n{run.trials_run} trials in {run.wall_s:.1f} s on {args.workers} worker(s); "
         f"{len(designs)} designs in the study"
     )
-    print(f"best design (trial {best.trial}) written to {args.out / 'best.yaml'}")
-    plots = HISTORY_PNG + ("" if importance is None else f", {IMPORTANCE_PNG}")
-    print(f"population in {args.out / 'population.csv'}, plots {plots} in {args.out}/")
+    print(f"best design (trial {designs[0].trial}) written to {args.out / BEST_YAML}")
+    print(f"population in {args.out / POPULATION_CSV}, plots in {args.out}/")
     return 0
 
 

@@ -170,6 +170,9 @@ def tune(
         raise InputError(f"--workers ({workers}) and --trials ({trials}) must be at least 1")
     if model not in MODELS:
         raise InputError(f"--model {model}: one of {', '.join(MODELS)}")
+    missing = [str(r) for r in recordings if not r.is_dir()]
+    if missing:
+        raise InputError(f"no such recording: {', '.join(missing)}")
     optuna.logging.set_verbosity(optuna.logging.WARNING)  # the bar and the table say what matters
     start = time.perf_counter()
     deadline = None if timeout_s is None else time.time() + timeout_s

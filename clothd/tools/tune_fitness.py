@@ -155,7 +155,9 @@ class ModelPredictor:
         nodes[0] = model.estimate().nodes_m.reshape(-1, 3)  # type: ignore[union-attr]
         err = np.full((F, len(seq.binding)), np.nan)
         for k in range(1, F):
-            model.predict(seq.u[k], max(float(seq.t_s[k] - seq.t_s[k - 1]), MIN_DT_S))
+            # Constants far off blow the model up within a tick: that design scores infinite, quietly.
+            with np.errstate(invalid="ignore", over="ignore"):
+                model.predict(seq.u[k], max(float(seq.t_s[k] - seq.t_s[k - 1]), MIN_DT_S))
             positions = model.estimate().nodes_m.reshape(-1, 3)  # type: ignore[union-attr]
             if not np.isfinite(positions).all():
                 return _blown_up(seq.true_nodes_m)

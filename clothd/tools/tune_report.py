@@ -17,8 +17,11 @@ import optuna
 import yaml
 
 from clothd.config import Config, PhysicsConfig
+from clothd.errors import ClothdError
 from clothd.tools import tune_space
 
+BEST_YAML = "best.yaml"
+POPULATION_CSV = "population.csv"
 HISTORY_PNG = "history.png"
 IMPORTANCE_PNG = "importance.png"
 SCORE_COLUMNS = ("rank", "trial", "fitness_px", "mean_px", "worst_px", "node_rmse_mm")
@@ -155,3 +158,17 @@ def plot_importance(study: optuna.Study, path: Path) -> dict[str, float] | None:
     fig.savefig(path)
     plt.close(fig)
     return dict(importances)
+
+
+def write_outputs(study: optuna.Study, base: PhysicsConfig, out_dir: Path, note: str) -> list[Design]:
+    """best.yaml, population.csv and the plots into out_dir; the population, best first."""
+    designs = population(study, base)
+    if not designs:
+        raise ClothdError(f"study {study.study_name!r} has no completed trial yet")
+    best = designs[0]
+    header = f"trial {best.trial} of study {study.study_name!r}, fitness {best.fitness_px:.3f} px, {note}"
+    write_best(best, out_dir / BEST_YAML, header)
+    write_population(designs, out_dir / POPULATION_CSV)
+    plot_history(study, out_dir / HISTORY_PNG)
+    plot_importance(study, out_dir / IMPORTANCE_PNG)
+    return designs
