@@ -6,6 +6,7 @@ the population, a stopped tune resumes its study, workers share one, and bad inp
 from __future__ import annotations
 
 import csv
+import itertools
 from pathlib import Path
 
 import pytest
@@ -69,6 +70,15 @@ def test_fitness_runs_the_model_as_predict_mode_does(recording: Path) -> None:
     graded = grade(recording, "shirt-shear", "predict", cfg)
     assert score.node_rmse_mm == pytest.approx(graded.row.node_rmse_mm, rel=1e-9)
     assert 0 < score.mean_px < score.worst_px
+
+
+def test_every_corner_of_the_search_box_is_a_valid_configuration() -> None:
+    """CMA-ES clips its proposals onto the box's edges: none of them may be refused (areal density is
+    declared gt=0.01, open)."""
+    base = load_config(None).tracker.physics
+    names = [d.name for d in tune_space.SPACE]
+    for corner in itertools.product(*((d.low, d.high) for d in tune_space.SPACE)):
+        tune_space.physics_of(dict(zip(names, corner, strict=True)), base)
 
 
 def test_tune_improves_a_wrong_parameter_set(tuned: Path) -> None:

@@ -34,16 +34,23 @@ class Dimension:
 
 
 def _bounds(field: str) -> tuple[float, float]:
-    """(low, high) of a PhysicsConfig field from its gt/ge/lt/le metadata, an open zero floored."""
+    """(low, high) of a PhysicsConfig field from its gt/ge/lt/le metadata, an open zero floored.
+
+    An open bound (gt, lt) is searched from the next float inside it: the sampler clips its proposals
+    onto the box's edges, and an edge the configuration refuses would end the worker."""
     low, high = -math.inf, math.inf
     for m in PhysicsConfig.model_fields[field].metadata:
-        if isinstance(m, annotated_types.Gt | annotated_types.Ge):
-            low = float(m.gt if isinstance(m, annotated_types.Gt) else m.ge)  # type: ignore[arg-type]
-        elif isinstance(m, annotated_types.Lt | annotated_types.Le):
-            high = float(m.lt if isinstance(m, annotated_types.Lt) else m.le)  # type: ignore[arg-type]
+        if isinstance(m, annotated_types.Gt):
+            low = math.nextafter(float(m.gt), math.inf)  # type: ignore[arg-type]
+        elif isinstance(m, annotated_types.Ge):
+            low = float(m.ge)  # type: ignore[arg-type]
+        elif isinstance(m, annotated_types.Lt):
+            high = math.nextafter(float(m.lt), -math.inf)  # type: ignore[arg-type]
+        elif isinstance(m, annotated_types.Le):
+            high = float(m.le)  # type: ignore[arg-type]
     if not math.isfinite(low) or not math.isfinite(high):
         raise ValueError(f"physics.{field} declares no bounds to search within")
-    if low <= 0.0:
+    if low <= math.ulp(0.0):  # ge=0 or gt=0
         low = high * 10.0**-FLOOR_DECADES
     return low, high
 
