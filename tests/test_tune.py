@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import itertools
+import shutil
 from pathlib import Path
 
 import pytest
@@ -155,6 +156,10 @@ def test_bad_input_gets_a_reason(
     assert "no recordings" in capsys.readouterr().err
     assert _tune(tmp_path / "nowhere", tmp_path, wrong_config, "--trials", "1") == 2
     assert "no such recording" in capsys.readouterr().err
+    no_commands = tmp_path / "no-commands"
+    shutil.copytree(recording, no_commands, ignore=shutil.ignore_patterns("commands.csv"))
+    assert _tune(no_commands, tmp_path / "a", wrong_config, "--trials", "1") == 2
+    assert "the model has no input to follow" in capsys.readouterr().err
     for workers in ("0", "two"):
         with pytest.raises(SystemExit) as err:
             _tune(recording, tmp_path, wrong_config, "--workers", workers)
