@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import itertools
+import os
 import shutil
 from pathlib import Path
 
@@ -16,7 +17,7 @@ import yaml
 from clothd.cli import main
 from clothd.config import load_config, with_overrides
 from clothd.taichi_runtime import start_taichi
-from clothd.tools import tune_space
+from clothd.tools import tune, tune_space
 from clothd.tools.bench_accuracy import grade
 from clothd.tools.tune_fitness import ModelPredictor, measure
 from clothd.tools.tune_report import SCORE_COLUMNS
@@ -80,6 +81,19 @@ def test_every_corner_of_the_search_box_is_a_valid_configuration() -> None:
     names = [d.name for d in tune_space.SPACE]
     for corner in itertools.product(*((d.low, d.high) for d in tune_space.SPACE)):
         tune_space.physics_of(dict(zip(names, corner, strict=True)), base)
+
+
+def test_workers_are_spawned_with_their_share_of_the_cores_for_blas(monkeypatch: pytest.MonkeyPatch) -> None:
+    for var in tune.BLAS_THREAD_VARS:
+        monkeypatch.delenv(var, raising=False)
+    monkeypatch.setattr(os, "cpu_count", lambda: 4)
+    with tune._blas_threads(2):
+        assert all(os.environ[var] == "2" for var in tune.BLAS_THREAD_VARS)
+    assert not any(var in os.environ for var in tune.BLAS_THREAD_VARS)  # the parent's own is untouched
+    monkeypatch.setenv("OMP_NUM_THREADS", "3")  # the user's choice stands
+    with tune._blas_threads(4):
+        assert os.environ["OMP_NUM_THREADS"] == "3" and "OPENBLAS_NUM_THREADS" not in os.environ
+    assert os.environ["OMP_NUM_THREADS"] == "3"
 
 
 def test_tune_improves_a_wrong_parameter_set(tuned: Path) -> None:
