@@ -201,6 +201,16 @@ def _cmd_tune(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_tune(args: argparse.Namespace) -> int:
+    from clothd.tools.bench_tune import format_result, run_bench, write_json
+
+    result = run_bench(args.cache, args.out, args.trials, args.seed)
+    print(format_result(result))
+    if args.json:
+        write_json(result, args.json)
+    return 0
+
+
 def _positive_int(text: str) -> int:
     try:
         value = int(text)
@@ -478,6 +488,19 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--config", type=Path, help="the tracker's configuration, with --tracker (model: mesh)")
     bc.add_argument("--json", type=Path, help="also write the figures as JSON")
     bc.set_defaults(func=_cmd_bench_calibrate)
+    btn = bsub.add_parser(
+        "tune",
+        help="clothd tune on hwsim's shirting: held-out node error, default and tuned constants, "
+        "and the speed-up from --workers 2",
+    )
+    btn.add_argument("--trials", type=_positive_int, default=200, help="trials of each tune (default 200)")
+    btn.add_argument("--seed", type=int, default=0)
+    btn.add_argument(
+        "--cache", type=Path, default=Path("out/bench"), help="where the shirting scenarios are recorded"
+    )
+    btn.add_argument("--out", type=Path, default=Path("out/bench/tune"), help="where the tunes' outputs go")
+    btn.add_argument("--json", type=Path, help="also write the figures as JSON")
+    btn.set_defaults(func=_cmd_bench_tune)
     bab = bsub.add_parser("abuse", help="slow-header and slow-body floods: e-stop round trip, missed ticks")
     bab.add_argument("--connections", type=int, default=1100, help="sockets held open during each flood")
     bab.add_argument("--seconds", type=float, default=20.0, help="how long each flood lasts")
