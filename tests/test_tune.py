@@ -5,10 +5,12 @@ the population, a stopped tune resumes its study, workers share one, and bad inp
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import itertools
 import os
 import shutil
+import sqlite3
 from pathlib import Path
 
 import pytest
@@ -140,6 +142,8 @@ def test_a_second_run_continues_the_study(
     assert sum(r["start"] == "1" for r in rows) == 1
     assert float(rows[0]["fitness_px"]) <= float(first[0]["fitness_px"])
     assert "3 trials" in capsys.readouterr().out
+    with contextlib.closing(sqlite3.connect(out / "study.db")) as db:  # workers read while others write
+        assert db.execute("PRAGMA journal_mode").fetchone() == ("wal",)
 
 
 def test_workers_share_a_journal_study(recording: Path, wrong_config: Path, tmp_path: Path) -> None:
