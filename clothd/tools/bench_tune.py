@@ -8,9 +8,13 @@ footage it never saw, on the bars of issue 12.
   halves, is the hardest for the model, and stays in the bar). Beyond the bar: shirt-random, whose
   error is in the model's input, not in the fabric (the modules accelerate at their limit all the
   time, and the tracker's module model lags hwsim's modules).
-- The tune runs twice, from scratch, side by side in this one run: `--workers 1` and `--workers 2`, the
-  same trials and seed; the speed-up is the ratio of their wall times (measuring the recordings and
-  starting the workers included), and of their search times (first trial's start to last trial's end).
+- The tune runs twice, from scratch, side by side in this one run, as the command a user runs (`clothd
+  tune`, a process of its own): `--workers 1` and `--workers 2`, the same trials and seed; the speed-up
+  is the ratio of their wall times (starting, measuring the recordings and starting the workers
+  included), and of their search times (first trial's start to last trial's end); beside them the CPU
+  time the tune and its workers used. Run inside this
+  process instead, after it had started Taichi and recorded with hwsim, two workers took 1.5-2x as long
+  per trial and gained nothing (not understood; `clothd tune` itself never starts Taichi).
 - Graded as `clothd bench accuracy` grades (node RMSE against hwsim's truth), with the default constants
   and with the `--workers 1` tune's best.yaml, in predict mode (the model alone, as the report tuned it)
   and in mesh mode (the EKF). Bars: in predict mode the tuned constants cut every held-out recording's
@@ -21,18 +25,23 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import shutil
+import subprocess
+import sys
+import time
 from pathlib import Path
 from typing import Any
 
 import optuna
 
 from clothd.config import load_config, with_overrides
+from clothd.errors import ClothdError
 from clothd.taichi_runtime import start_taichi
 from clothd.tools.bench_accuracy import grade
 from clothd.tools.recordings import scenario_recording
-from clothd.tools.tune import tune
-from clothd.tools.tune_report import BEST_YAML, write_outputs
+from clothd.tools.tune import storage_of, storage_url
+from clothd.tools.tune_report import BEST_YAML, population
 from hwsim import scenario as scenarios
 from hwsim.scenario import ClothSpec
 
@@ -62,12 +71,22 @@ def run_bench(cache: Path, out: Path, trials: int, seed: int) -> dict[str, Any]:
     for workers in WORKERS:
         out_w = out / f"workers-{workers}"
         shutil.rmtree(out_w, ignore_errors=True)  # from scratch: a resumed study would time less
-        run = tune([recs[n] for n in TRAIN], out_w, defaults, trials, workers, seed=seed)
-        designs = write_outputs(run.study, defaults.tracker.physics, out_w, f"predict on {', '.join(TRAIN)}")
+        command = [sys.executable, "-m", "clothd.cli", "tune", *(str(recs[n]) for n in TRAIN)]
+        command += ["--trials", str(trials), "--workers", str(workers), "--seed", str(seed)]
+        command += ["--out", str(out_w)]
+        start, cpu0 = time.perf_counter(), _children_cpu_s()
+        done = subprocess.run(command, capture_output=True, text=True)
+        wall_s, cpu_s = time.perf_counter() - start, _children_cpu_s() - cpu0
+        if done.returncode != 0:
+            raise ClothdError(f"{' '.join(command)} failed:\n{done.stderr[-2000:]}")
+        study = optuna.load_study(study_name="tune", storage=storage_of(storage_url(None, out_w)))
+        designs = population(study, defaults.tracker.physics)
         runs[str(workers)] = {
-            "trials": run.trials_run,
-            "wall_s": run.wall_s,
-            "search_s": _search_s(run.study),
+            "trials": len(designs),
+            "wall_s": wall_s,
+            "search_s": _search_s(study),
+            "cpu_s": cpu_s,
+            "table": _table(done.stdout),
             "best_trial": designs[0].trial,
             "best_fitness_px": designs[0].fitness_px,
             "start_fitness_px": next(d.fitness_px for d in designs if d.start),
@@ -105,6 +124,19 @@ def run_bench(cache: Path, out: Path, trials: int, seed: int) -> dict[str, Any]:
     }
 
 
+def _children_cpu_s() -> float:
+    """CPU time of this process's finished children and theirs (the tune and its workers): beside the
+    wall time it tells a slow run from one that waited for cores other processes held."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
+def _table(stdout: str) -> str:
+    """The printed Table 2 of `clothd tune`'s output (the workers' Taichi banners left out)."""
+    lines = [line for line in stdout.splitlines() if not line.startswith("[Taichi]")]
+    return "\n".join(lines).strip().split("\n\n")[0]
+
+
 def _search_s(study: optuna.Study) -> float:
     """From the first trial's start to the last one's end: the wall time less measuring the recordings
     and starting the workers (Taichi, its kernels)."""
@@ -120,11 +152,15 @@ def format_result(result: dict[str, Any]) -> str:
         f"        (denim: {fab['denim']})",
         f"train {', '.join(result['train'])}; held out {', '.join(result['held_out'])}",
         "",
-        f"{'workers':>7} {'trials':>6} {'wall':>8} {'search':>8} {'trials/s':>8} {'start':>9} {'best':>9}",
+        "clothd tune --workers 1 (the best designs, and the start):",
+        result["tune"]["1"]["table"],
+        "",
+        f"{'workers':>7} {'trials':>6} {'wall':>8} {'search':>8} {'cpu':>8} {'trials/s':>8} {'start':>9} "
+        f"{'best':>9}",
     ]
     for w, r in result["tune"].items():
         lines.append(
-            f"{w:>7} {r['trials']:>6} {r['wall_s']:7.1f}s {r['search_s']:7.1f}s "
+            f"{w:>7} {r['trials']:>6} {r['wall_s']:7.1f}s {r['search_s']:7.1f}s {r['cpu_s']:7.1f}s "
             f"{r['trials'] / r['wall_s']:8.2f} {r['start_fitness_px']:7.2f}px {r['best_fitness_px']:7.2f}px"
         )
     lines.append(
