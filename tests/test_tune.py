@@ -85,15 +85,14 @@ def test_every_corner_of_the_search_box_is_a_valid_configuration() -> None:
         tune_space.physics_of(dict(zip(names, corner, strict=True)), base)
 
 
-def test_workers_are_spawned_with_their_share_of_the_cores_for_blas(monkeypatch: pytest.MonkeyPatch) -> None:
+def test_workers_are_spawned_with_one_blas_thread(monkeypatch: pytest.MonkeyPatch) -> None:
     for var in tune.BLAS_THREAD_VARS:
         monkeypatch.delenv(var, raising=False)
-    monkeypatch.setattr(os, "cpu_count", lambda: 4)
-    with tune._blas_threads(2):
-        assert all(os.environ[var] == "2" for var in tune.BLAS_THREAD_VARS)
+    with tune._blas_threads():
+        assert all(os.environ[var] == "1" for var in tune.BLAS_THREAD_VARS)
     assert not any(var in os.environ for var in tune.BLAS_THREAD_VARS)  # the parent's own is untouched
     monkeypatch.setenv("OMP_NUM_THREADS", "3")  # the user's choice stands
-    with tune._blas_threads(4):
+    with tune._blas_threads():
         assert os.environ["OMP_NUM_THREADS"] == "3" and "OPENBLAS_NUM_THREADS" not in os.environ
     assert os.environ["OMP_NUM_THREADS"] == "3"
 

@@ -207,7 +207,7 @@ def tune(
         for w, n in enumerate(_shares(trials, workers))
         if n > 0
     ]
-    with _blas_threads(len(procs)):
+    with _blas_threads():
         for p in procs:
             p.start()
     try:
@@ -222,17 +222,15 @@ def tune(
 
 
 @contextlib.contextmanager
-def _blas_threads(workers: int) -> Iterator[None]:
-    """The workers' BLAS pools sized to their share of the cores, in the environment they are spawned
-    with (read as they import numpy), unless the user has sized them. Left at every core, two workers on
-    two cores each ran a trial about twice as slowly as one alone: their pools spin against each other
-    over matrices far too small to share out."""
-    saved = {var: os.environ.get(var) for var in BLAS_THREAD_VARS}
-    if any(value is not None for value in saved.values()):
+def _blas_threads() -> Iterator[None]:
+    """One BLAS thread per worker, in the environment the workers are spawned with (read as they import
+    numpy), unless the user has set one. A pool of every core per worker only spins over matrices this
+    small: one worker alone kept both of 2 cores busy (87 s of CPU in 50 s) for no gain, and two workers
+    each ran a trial about twice as slowly as one alone."""
+    if any(os.environ.get(var) is not None for var in BLAS_THREAD_VARS):
         yield
         return
-    share = str(max(1, (os.cpu_count() or 1) // workers))
-    os.environ.update(dict.fromkeys(BLAS_THREAD_VARS, share))
+    os.environ.update(dict.fromkeys(BLAS_THREAD_VARS, "1"))
     try:
         yield
     finally:
