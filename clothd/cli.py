@@ -184,6 +184,55 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_tune(args: argparse.Namespace) -> int:
+    from clothd.tools.tune import tune
+    from clothd.tools.tune_report import BEST_YAML, POPULATION_CSV, format_table, write_outputs
+
+    cfg = load_config(args.config)
+    run = tune(
+        args.recordings,
+        args.out,
+        cfg,
+        args.trials,
+        args.workers,
+        args.storage,
+        args.model,
+        args.timeout_s,
+        args.seed,
+        args.study_name,
+    )
+    recordings = ", ".join(str(r) for r in args.recordings)
+    designs = write_outputs(run.study, cfg.tracker.physics, args.out, f"{args.model} on {recordings}")
+    print(format_table(designs, args.top))
+    print(
+        f"\n{run.trials_run} trials in {run.wall_s:.1f} s on {args.workers} worker(s); "
+        f"{len(designs)} designs in the study"
+    )
+    print(f"best design (trial {designs[0].trial}) written to {args.out / BEST_YAML}")
+    print(f"population in {args.out / POPULATION_CSV}, plots in {args.out}/")
+    return 0
+
+
+def _cmd_bench_tune(args: argparse.Namespace) -> int:
+    from clothd.tools.bench_tune import format_result, run_bench, write_json
+
+    result = run_bench(args.cache, args.out, args.trials, args.seed)
+    print(format_result(result))
+    if args.json:
+        write_json(result, args.json)
+    return 0
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: a whole number, at least 1")
+    return value
+
+
 def _cmd_bench_calibrate(args: argparse.Namespace) -> int:
     from clothd.tools.bench_calibrate import format_result, run_bench, write_json
 
@@ -344,6 +393,46 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--out", type=Path, required=True, metavar="CAMERA_JSON")
     cal.add_argument("--json", type=Path, help="also write the report as JSON")
     cal.set_defaults(func=_cmd_calibrate)
+    tn = sub.add_parser(
+        "tune",
+        help="fit the cloth model's constants to recorded footage (the report's Table 2)",
+        description="Searches the mass-spring constants (tracker.physics, within config.py's bounds) with "
+        "Optuna's CMA-ES for the least mean + 2 x worst feature pixel error of the model's prediction. "
+        "Writes DIR/best.yaml (a config fragment for --config), DIR/population.csv, history.png and "
+        "importance.png, and keeps the study in DIR/study.db so that a stopped tune resumes. "
+        "docs/commissioning.md, 'Tune', describes the recordings to make.",
+    )
+    tn.add_argument(
+        "recordings",
+        type=Path,
+        nargs="*",
+        metavar="REC",
+        help="hwsim recordings or clothd run --record sessions",
+    )
+    tn.add_argument("--out", type=Path, required=True, metavar="DIR")
+    tn.add_argument("--trials", type=_positive_int, default=200, help="trials to run now (default 200)")
+    tn.add_argument(
+        "--workers", type=_positive_int, default=1, help="local processes sharing the study (default 1)"
+    )
+    tn.add_argument("--timeout-s", type=float, help="stop starting trials after this many seconds")
+    tn.add_argument(
+        "--storage",
+        metavar="URL",
+        help="Optuna storage shared with other machines: an RDB URL (postgresql://..., sqlite:///...) or "
+        "a journal file's path (default: DIR/study.db)",
+    )
+    tn.add_argument(
+        "--model",
+        choices=["predict", "mesh"],
+        default="predict",
+        help="predict: the model alone, as the report tuned it (default); mesh: the whole tracker, "
+        "over its residuals (slower)",
+    )
+    tn.add_argument("--study-name", default="tune", help="the study in the storage (default tune)")
+    tn.add_argument("--seed", type=int, default=0, help="CMA-ES's seed (worker w uses seed + w)")
+    tn.add_argument("--top", type=_positive_int, default=5, help="designs in the printed table")
+    tn.add_argument("--config", type=Path, help="where the search starts, and the tracker's other settings")
+    tn.set_defaults(func=_cmd_tune)
     b = sub.add_parser("bench", help="benchmarks against hwsim")
     bsub = b.add_subparsers(dest="bench", required=True)
     bs = bsub.add_parser("speed", help="per-stage tick time by feature count and mesh size, beside filterpy")
@@ -431,6 +520,19 @@ def build_parser() -> argparse.ArgumentParser:
     bc.add_argument("--config", type=Path, help="the tracker's configuration, with --tracker (model: mesh)")
     bc.add_argument("--json", type=Path, help="also write the figures as JSON")
     bc.set_defaults(func=_cmd_bench_calibrate)
+    btn = bsub.add_parser(
+        "tune",
+        help="clothd tune on hwsim's shirting: held-out node error, default and tuned constants, "
+        "and the speed-up from --workers 2",
+    )
+    btn.add_argument("--trials", type=_positive_int, default=200, help="trials of each tune (default 200)")
+    btn.add_argument("--seed", type=int, default=0)
+    btn.add_argument(
+        "--cache", type=Path, default=Path("out/bench"), help="where the shirting scenarios are recorded"
+    )
+    btn.add_argument("--out", type=Path, default=Path("out/bench/tune"), help="where the tunes' outputs go")
+    btn.add_argument("--json", type=Path, help="also write the figures as JSON")
+    btn.set_defaults(func=_cmd_bench_tune)
     bab = bsub.add_parser("abuse", help="slow-header and slow-body floods: e-stop round trip, missed ticks")
     bab.add_argument("--connections", type=int, default=1100, help="sockets held open during each flood")
     bab.add_argument("--seconds", type=float, default=20.0, help="how long each flood lasts")

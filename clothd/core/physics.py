@@ -76,17 +76,10 @@ class MassSpring:
     def __init__(self, cfg: PhysicsConfig, nx: int, ny: int) -> None:
         if ti.lang.impl.get_runtime().prog is None:
             raise RuntimeError("Taichi is not started: call clothd.taichi_runtime.start_taichi first")
-        self.cfg = cfg
         self.n = nx * ny
         families = spring_pairs(nx, ny)
+        self._family_sizes = tuple(len(families[f]) for f in ("structural", "shear", "flexion"))
         self._pairs = np.concatenate(list(families.values()))
-        self._stiffness = np.concatenate(
-            [
-                np.full(len(families["structural"]), cfg.stretch_k_n_m),
-                np.full(len(families["shear"]), cfg.shear_k_n_m),
-                np.full(len(families["flexion"]), cfg.flexion_k_n_m),
-            ]
-        )
         self.n_limited = len(families["structural"]) + len(families["shear"])  # Provot limits these
         self.x = ti.Vector.field(3, ti.f64, shape=self.n)
         self.v = ti.Vector.field(3, ti.f64, shape=self.n)
@@ -97,7 +90,7 @@ class MassSpring:
         self.force = ti.Vector.field(3, ti.f64, shape=self.n)
         self.material = _Material.field(shape=())
         self.pair.from_numpy(self._pairs.astype(np.int32))
-        self.k.from_numpy(self._stiffness)
+        self.set_material(cfg)
         self.mass_kg = 0.0
         self.omega_max_rad_s = 0.0
         # The state crosses into the kernel as one array, [x, v, belt vx, belt vy, on belt] per node: one
@@ -112,6 +105,20 @@ class MassSpring:
         self.set_rest(np.stack([i, j], axis=-1) * WARM_UP_SPACING_M)
         self._advance(self._io, 1, 0.0)
         self._io[:] = 0.0
+
+    def set_material(self, cfg: PhysicsConfig) -> None:
+        """Take the constants of cfg, for the fields already allocated and the kernel already compiled
+        (`clothd tune` tries hundreds); set_rest follows, which derives the mass and the material."""
+        self.cfg = cfg
+        structural, shear, flexion = self._family_sizes
+        self._stiffness = np.concatenate(
+            [
+                np.full(structural, cfg.stretch_k_n_m),
+                np.full(shear, cfg.shear_k_n_m),
+                np.full(flexion, cfg.flexion_k_n_m),
+            ]
+        )
+        self.k.from_numpy(self._stiffness)
 
     def set_rest(self, rest_xy_m: np.ndarray) -> None:
         """Lay the rest mesh rest_xy_m (ny, nx, 2) (node positions in cloth space) into the model."""
