@@ -34,7 +34,7 @@ from clothd.api.connections import BoundedH11Protocol
 from clothd.api.stream import StreamHub
 from clothd.compute import ComputeSpec
 from clothd.compute_process import ComputeProcess
-from clothd.config import ApiConfig, Config, with_overrides
+from clothd.config import ApiConfig, Config, FoxgloveConfig, with_overrides
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.workspace import Workspace
@@ -129,6 +129,8 @@ def build(cfg: Config) -> Parts:
         taichi_arch=cfg.taichi.arch,
         max_record_bytes=cfg.recording.max_bytes,
         frame_source=functools.partial(VideoCaptureSource, cfg.camera),
+        recording_format=cfg.recording.format,
+        foxglove=cfg.foxglove,
     )
     settings = DaemonSettings(
         period_s=cfg.loop.period_s,
@@ -140,6 +142,7 @@ def build(cfg: Config) -> Parts:
         camera_source=redact_source(cfg.camera.source),
         link_port=cfg.stepper.port,
         estimates_shape=cfg.tracker.estimates_shape,
+        recording_format=cfg.recording.format,
     )
     hub = StreamHub()
     link = StepperLink(cfg.stepper, layout.n_modules)
@@ -164,6 +167,22 @@ def bind_api(api: ApiConfig) -> socket.socket:
             "choose another address with --host/--port or api.host/api.port"
         ) from None
     return sock
+
+
+def check_foxglove_port(fox: FoxgloveConfig) -> None:
+    """The Foxglove server's port must be free: taken, the start ends here with one clear line, before
+    hwsim or the compute process (which serves it) start. Bound and let go at once, not listened on."""
+    if not fox.enabled:
+        return
+    family = socket.AF_INET6 if ":" in fox.host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind((fox.host, fox.port))
+        except OSError as err:
+            raise ConfigError(
+                f"cannot serve Foxglove on {fox.host}:{fox.port}: {err.strerror or err}; "
+                "choose another address with foxglove.host/foxglove.port"
+            ) from None
 
 
 class _Server(uvicorn.Server):
@@ -226,6 +245,11 @@ def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -
     # The tick's thread waits at most this long for the GIL while the API's thread computes (default 5 ms).
     sys.setswitchinterval(GIL_SWITCH_S)
     listener = bind_api(cfg.api)
+    try:
+        check_foxglove_port(cfg.foxglove)
+    except ConfigError:
+        listener.close()
+        raise
     sim = start_sim(sim_scenario) if sim_scenario is not None else None
     try:
         if sim is not None:
@@ -237,6 +261,8 @@ def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -
             f"clothd: annotated view {base}/api/v1/view.mjpg\n"
             f"clothd: API docs {base}/docs"
         )
+        if cfg.foxglove.enabled:
+            urls += f"\nclothd: Foxglove ws://{cfg.foxglove.host}:{cfg.foxglove.port}"
         if sim is not None:
             urls += f"\nclothd: simulated cell truth {sim.ready['truth_url']}"
         truth_url = None if sim is None else str(sim.ready["truth_url"])

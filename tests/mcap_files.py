@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from mcap.exceptions import EndOfFile
+from mcap.exceptions import EndOfFile, RecordLengthLimitExceeded
 from mcap.reader import NonSeekingReader, make_reader
 
 # The channels `clothd export` writes, and a live MCAP recording and the Foxglove server the same.
@@ -51,7 +51,9 @@ def read_mcap_front_to_back(path: Path) -> McapContents:
                 if schema is not None:
                     out.schemas[channel.topic] = schema.name
                 _add(out, channel.topic, message.log_time, channel.message_encoding, message.data)
-        except EndOfFile:
+        # A file cut short ends in a record cut short, or in the chunk being written, whose length the
+        # writer had not yet patched in (it is all ones until then).
+        except (EndOfFile, RecordLengthLimitExceeded):
             out.cut_short = True
     return out
 
