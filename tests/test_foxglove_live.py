@@ -269,6 +269,8 @@ def test_a_client_that_never_reads_delays_neither_the_writer_nor_other_clients()
                 time.sleep(0.05)
             assert last_arrived(), "the reading client never got the last frame's commands"
             assert live.channels.counts["/camera"] + live.dropped_frames == frames
+            reader.close()
+            assert reader.error is None, reader.error
             # Stopping does not wait for it either (only a second, for it to take its last messages).
             t0 = time.monotonic()
             live.close()
