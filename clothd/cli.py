@@ -329,7 +329,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="start hwsim serve (default scenario: cell) and run against it",
     )
     rn.add_argument(
-        "--record", type=Path, metavar="DIR", help="record the session into DIR (a new directory)"
+        "--record",
+        type=Path,
+        metavar="DIR",
+        help="record the session into DIR (a new directory; with recording.format mcap, the file DIR.mcap)",
     )
     rn.set_defaults(func=_cmd_run)
     r = sub.add_parser("replay", help="track recorded footage offline")

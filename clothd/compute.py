@@ -22,7 +22,7 @@ from pathlib import Path
 
 import cv2
 
-from clothd.config import CellConfig, ControlConfig, TrackerConfig
+from clothd.config import CellConfig, ControlConfig, FoxgloveConfig, TrackerConfig
 from clothd.core.camera_model import CameraModel
 from clothd.core.control import PoseController, Setpoint
 from clothd.core.conveyor import ConveyorLayout
@@ -32,6 +32,8 @@ from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
 from clothd.drivers.ports import FrameSource, FrameSourceHealth
+from clothd.errors import ClothdError
+from clothd.foxglove_live import LiveFoxglove
 from clothd.logs import configure_logging
 from clothd.recorder import Recorder, RecordingStatus
 from clothd.taichi_runtime import start_taichi
@@ -46,7 +48,7 @@ class TickRequest:
     commands_in_force: ModuleCommands  # what the modules were told since the last request: the model's input
     reset: bool
     want_view: bool  # draw the annotated view this tick
-    record_start: Path | None = None  # begin recording into this new directory
+    record_start: Path | None = None  # begin recording into this new directory (or .mcap file)
     record_stop: bool = False
 
 
@@ -80,6 +82,8 @@ class ComputeSpec:
     taichi_arch: str
     max_record_bytes: int
     frame_source: Callable[[], FrameSource]
+    recording_format: str = "directory"  # recording.format
+    foxglove: FoxgloveConfig | None = None  # the live server's section (None: off)
 
 
 class Compute:
@@ -88,7 +92,11 @@ class Compute:
     def __init__(self, spec: ComputeSpec, frames: FrameSource) -> None:
         self.spec = spec
         self.frames = frames
-        self.recorder: Recorder | None = None
+        self.recorder: Recorder | None = None  # a directory recording
+        # The live Foxglove output: the server, and MCAP recordings (format mcap) instead of Recorder.
+        serves = spec.foxglove is not None and spec.foxglove.enabled
+        needs_live = serves or spec.recording_format == "mcap"
+        self.foxglove = LiveFoxglove(spec.foxglove) if needs_live else None
         self.tracker = Tracker(spec.tracker, spec.camera_model, spec.layout, clock=time.perf_counter)
         self.controller = PoseController(spec.control, spec.cell, spec.layout.centres_m)
         self.view = ViewRenderer(spec.camera_model)
@@ -104,11 +112,15 @@ class Compute:
         self._last_frame_index = -1
 
     def start(self) -> None:
+        if self.foxglove is not None:
+            self.foxglove.start()
         self.frames.start()
 
     def close(self) -> None:
         if self.recorder is not None:
             self.recorder.stop("daemon stopped")
+        if self.foxglove is not None:
+            self.foxglove.close("daemon stopped")
         self.frames.stop()
 
     def stop_reply(self, state: str) -> TickReply:
@@ -146,6 +158,8 @@ class Compute:
                 # The commands in force while this frame was captured: replay feeds them back the same way.
                 self.recorder.add(frame.image, frame.t_mono_s, req.commands_in_force, est)
                 timing["record"] = time.perf_counter() - t_rec
+            if self.foxglove is not None:  # queued only: the writer thread encodes and writes
+                self.foxglove.add(frame.image, frame.t_mono_s, req.commands_in_force, est)
         t1 = time.perf_counter()
         flatness = self._flatness
         state, commands, halt = self._control(frame is not None, est, req.setpoint, flatness)
@@ -155,7 +169,7 @@ class Compute:
         if req.want_view and frame is not None:
             jpeg = self.view.render(frame.image, est, req.setpoint, flatness)
         frame_t = frame.t_mono_s if frame is not None else None
-        recording = None if self.recorder is None else self.recorder.status()
+        recording = self._recording_status()
         return TickReply(
             state,
             est,
@@ -178,10 +192,23 @@ class Compute:
             return None
         return self.flatness_monitor.update(est.nodes_m, est.cloth_size_m, est.quad_seen)
 
+    def _recording_status(self) -> RecordingStatus | None:
+        if self.recorder is not None:
+            return self.recorder.status()
+        return None if self.foxglove is None else self.foxglove.recording_status()
+
     def _record_requests(self, req: TickRequest) -> None:
         if req.record_stop and self.recorder is not None:
             self.recorder.stop()
-        if req.record_start is not None:
+        if req.record_stop and self.foxglove is not None:
+            self.foxglove.stop_recording()
+        if (
+            req.record_start is not None
+            and self.foxglove is not None
+            and self.spec.recording_format == "mcap"
+        ):
+            self.foxglove.start_recording(req.record_start, self.spec.max_record_bytes)
+        elif req.record_start is not None:
             if self.recorder is not None:
                 self.recorder.stop("a new recording started")
             spec = self.spec
@@ -224,7 +251,11 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
     start_taichi(spec.taichi_arch)
     cv2.setNumThreads(1)
     compute = Compute(spec, spec.frame_source())
-    compute.start()
+    try:
+        compute.start()
+    except ClothdError as err:  # the daemon says why it cannot start (a Foxglove port taken)
+        conn.send(f"error: {err}")
+        return
     conn.send("ready")
     try:
         while True:

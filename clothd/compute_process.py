@@ -11,7 +11,7 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from clothd.compute import ComputeSpec, TickReply, TickRequest, serve_compute
-from clothd.errors import HardwareError
+from clothd.errors import ConfigError, HardwareError
 
 START_TIMEOUT_S = 120.0
 JOIN_TIMEOUT_S = 10.0
@@ -39,6 +39,9 @@ class ComputeProcess:
         child.close()
         loop = asyncio.get_running_loop()
         ready = await asyncio.wait_for(loop.run_in_executor(self._receiver, self._conn.recv), START_TIMEOUT_S)
+        if isinstance(ready, str) and ready.startswith("error: "):
+            await self.stop()
+            raise ConfigError(ready.removeprefix("error: "))
         if ready != "ready":
             raise HardwareError(f"the compute process did not start: {ready!r}")
 

@@ -346,6 +346,29 @@ class OpcUaConfig(_Strict):
 class RecordingConfig(_Strict):
     dir: Path = Field(Path("recordings"), description="where POST /record/start puts sessions by default")
     max_bytes: int = Field(2_000_000_000, ge=100_000, le=10**13, description="a recording stops at this size")
+    format: Literal["directory", "mcap"] = Field(
+        "directory",
+        description="directory: frames and CSVs that clothd replay reads; mcap: one .mcap file for Foxglove",
+    )
+
+
+class FoxgloveConfig(_Strict):
+    """The Foxglove WebSocket server (docs/foxglove.md). The protocol has no authentication: whoever reaches
+    the port sees the camera and the cloth, so it serves loopback unless allow_remote says otherwise."""
+
+    enabled: bool = Field(False, description="serve the Foxglove WebSocket protocol")
+    host: str = Field("127.0.0.1", min_length=1, max_length=255)
+    port: int = Field(8765, ge=1, le=65535)
+    allow_remote: bool = Field(False, description="serve on an address other machines can reach")
+
+    @model_validator(mode="after")
+    def _loopback_unless_allowed(self) -> FoxgloveConfig:
+        if not is_loopback(self.host) and not self.allow_remote:
+            raise ValueError(
+                f"foxglove.host: {self.host} is reachable from other machines and the Foxglove protocol has "
+                "no authentication; bind to 127.0.0.1, or set foxglove.allow_remote: true to serve it anyway"
+            )
+        return self
 
 
 class Config(_Strict):
@@ -359,6 +382,7 @@ class Config(_Strict):
     api: ApiConfig = ApiConfig()
     opcua: OpcUaConfig = OpcUaConfig()
     recording: RecordingConfig = RecordingConfig()
+    foxglove: FoxgloveConfig = FoxgloveConfig()
 
     @model_validator(mode="after")
     def _opcua_token_off_loopback(self) -> Config:

@@ -60,6 +60,7 @@ class DaemonSettings:
     camera_source: str  # as shown in the status
     link_port: str
     estimates_shape: bool  # the tracker's model follows the cloth's shape: flatten is possible
+    recording_format: str = "directory"  # recording.format: directory or mcap
 
 
 class Daemon:
@@ -154,21 +155,30 @@ class Daemon:
         self.link.estop_clear()
         self.publish()
 
-    def start_recording(self, out_dir: Path) -> Path:
-        """Record from the next frame into out_dir, a new directory, made here and now: a place that
-        cannot be written is refused at once rather than found out by the compute later."""
+    def start_recording(self, out: Path) -> Path:
+        """Record from the next frame into `out`, a new directory, or with recording.format mcap a new
+        .mcap file (the suffix added when missing), made here and now: a place that cannot be written is
+        refused at once rather than found out by the compute later. Returns where it records."""
         rec = self.latest.recording if self.latest else None
         if rec is not None and rec.active:
             raise RequestError(f"already recording into {rec.dir}: stop it first")
+        mcap = self.settings.recording_format == "mcap"
+        if mcap and out.suffix != ".mcap":
+            out = out.with_name(out.name + ".mcap")
         try:
-            out_dir.mkdir(parents=True)
+            if mcap:
+                out.parent.mkdir(parents=True, exist_ok=True)
+                out.touch(exist_ok=False)  # O_EXCL: neither an existing file nor a symlink is reused
+            else:
+                out.mkdir(parents=True)
         except FileExistsError:
-            raise RequestError(f"{out_dir} exists: a recording needs a new directory") from None
+            what = "file" if mcap else "directory"
+            raise RequestError(f"{out} exists: a recording needs a new {what}") from None
         except OSError as err:  # a full disk is the daemon's trouble (507); anything else is the place's
             error = StorageError if err.errno in (errno.ENOSPC, errno.EDQUOT) else InvalidRequestError
-            raise error(f"cannot create {out_dir}: {err.strerror or err}") from None
-        self._record_start = out_dir
-        return out_dir
+            raise error(f"cannot create {out}: {err.strerror or err}") from None
+        self._record_start = out
+        return out
 
     def stop_recording(self) -> None:
         rec = self.latest.recording if self.latest else None

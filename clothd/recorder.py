@@ -36,17 +36,22 @@ _PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
 @dataclass(frozen=True)
 class RecordingStatus:
     active: bool
-    dir: str | None
+    dir: str | None  # the recording's directory, or its .mcap file
     frames: int
     bytes: int
     max_bytes: int
     stopped_reason: str | None
+    format: str = "directory"  # recording.format
+    dropped_frames: int = 0  # frames an MCAP recording's writer was too far behind to take
 
 
-def recording_path(recording_dir: Path, requested: str | None) -> Path:
+def recording_path(recording_dir: Path, requested: str | None, suffix: str = "") -> Path:
     """Where a recording asked for over the API goes: a timestamped directory by default, else the name
-    or relative path given, which must stay inside recording_dir once symlinks are resolved."""
+    or relative path given, which must stay inside recording_dir once symlinks are resolved; `suffix`
+    (".mcap") is added when the name does not end in it."""
     name = requested or time.strftime("%Y%m%d-%H%M%S")
+    if not name.endswith(suffix):
+        name += suffix
     if "\0" in name:
         raise InvalidRequestError("a recording name cannot hold a NUL character")
     root = recording_dir.resolve()

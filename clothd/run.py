@@ -36,7 +36,7 @@ from clothd.api.opcua_server import OpcUaServer
 from clothd.api.stream import StreamHub
 from clothd.compute import ComputeSpec
 from clothd.compute_process import ComputeProcess
-from clothd.config import ApiConfig, Config, OpcUaConfig, opcua_host_port, with_overrides
+from clothd.config import ApiConfig, Config, FoxgloveConfig, OpcUaConfig, opcua_host_port, with_overrides
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.workspace import Workspace
@@ -131,6 +131,8 @@ def build(cfg: Config) -> Parts:
         taichi_arch=cfg.taichi.arch,
         max_record_bytes=cfg.recording.max_bytes,
         frame_source=functools.partial(VideoCaptureSource, cfg.camera),
+        recording_format=cfg.recording.format,
+        foxglove=cfg.foxglove,
     )
     settings = DaemonSettings(
         period_s=cfg.loop.period_s,
@@ -142,6 +144,7 @@ def build(cfg: Config) -> Parts:
         camera_source=redact_source(cfg.camera.source),
         link_port=cfg.stepper.port,
         estimates_shape=cfg.tracker.estimates_shape,
+        recording_format=cfg.recording.format,
     )
     hub = StreamHub()
     link = StepperLink(cfg.stepper, layout.n_modules)
@@ -215,6 +218,22 @@ class ApiThread(threading.Thread):
                 await self.opcua.stop()
 
 
+def check_foxglove_port(fox: FoxgloveConfig) -> None:
+    """The Foxglove server's port must be free: taken, the start ends here with one clear line, before
+    hwsim or the compute process (which serves it) start. Bound and let go at once, not listened on."""
+    if not fox.enabled:
+        return
+    family = socket.AF_INET6 if ":" in fox.host else socket.AF_INET
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind((fox.host, fox.port))
+        except OSError as err:
+            raise ConfigError(
+                f"cannot serve Foxglove on {fox.host}:{fox.port}: {err.strerror or err}; "
+                "choose another address with foxglove.host/foxglove.port"
+            ) from None
+
+
 class _Server(uvicorn.Server):
     """uvicorn without its own signal handling: clothd's handler stops the modules first."""
 
@@ -282,6 +301,7 @@ def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -
     listener = bind_api(cfg.api)
     try:
         check_opcua_port(cfg.opcua)
+        check_foxglove_port(cfg.foxglove)
     except ConfigError:
         listener.close()
         raise
@@ -298,6 +318,8 @@ def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -
         )
         if cfg.opcua.enabled:
             urls += f"\nclothd: OPC UA {cfg.opcua.endpoint}"
+        if cfg.foxglove.enabled:
+            urls += f"\nclothd: Foxglove ws://{cfg.foxglove.host}:{cfg.foxglove.port}"
         if sim is not None:
             urls += f"\nclothd: simulated cell truth {sim.ready['truth_url']}"
         truth_url = None if sim is None else str(sim.ready["truth_url"])

@@ -108,11 +108,15 @@ class FaultReport(BaseModel):
 
 class Recording(BaseModel):
     active: bool
-    dir: str | None
+    dir: str | None = Field(description="the recording's directory, or its .mcap file (format mcap)")
     frames: int
     bytes: int
     max_bytes: int
     stopped_reason: str | None = Field(description="why it stopped: a request, the size limit, a full disk")
+    format: Literal["directory", "mcap"] = Field(description="recording.format")
+    dropped_frames: int = Field(
+        description="new frames left out because the MCAP writer was behind (always 0 for directory)"
+    )
 
 
 class RidgeState(BaseModel):

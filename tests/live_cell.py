@@ -98,9 +98,12 @@ def serve_cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cell]:
         proc.wait(timeout=20)
 
 
-def start_daemon(cell: Cell, tmp_path: Path, env: dict[str, str] | None = None) -> Daemon:
+def start_daemon(
+    cell: Cell, tmp_path: Path, env: dict[str, str] | None = None, config: dict[str, Any] | None = None
+) -> Daemon:
+    """`clothd run` against the cell; `config` adds sections to its configuration."""
     port = _free_port()
-    cfg = {
+    cfg: dict[str, Any] = {
         "camera": {"source": cell.ready["video_url"], "calibration": cell.ready["camera_json"]},
         "stepper": {"port": cell.ready["serial"]},
         "api": {"port": port},
@@ -108,6 +111,8 @@ def start_daemon(cell: Cell, tmp_path: Path, env: dict[str, str] | None = None) 
         # A few frames: recordings in these tests get cut short.
         "recording": {"max_bytes": 3_000_000, "dir": str(tmp_path / "recordings")},
     }
+    for section, values in (config or {}).items():
+        cfg[section] = {**cfg.get(section, {}), **values}
     path = tmp_path / f"clothd-{port}.yaml"
     path.write_text(yaml.safe_dump(cfg))
     proc = subprocess.Popen(

@@ -3,8 +3,10 @@ turn, and a Compute built over it as `clothd run` builds one (in this process, T
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -39,11 +41,12 @@ class RecordedFrames:
         return FrameSourceHealth("streaming", True, None, 0)
 
 
-def compute_on(recording: Path, frames: int = 4, cell: CellConfig | None = None) -> Compute:
+def compute_on(recording: Path, frames: int = 4, cell: CellConfig | None = None, **spec: Any) -> Compute:
+    """A Compute on the first `frames` frames of `recording`, looped; `spec` replaces ComputeSpec fields."""
     start_taichi("cpu")
     images = [img for _, (_, img) in zip(range(frames), open_footage(recording).frames(), strict=False)]
     cell = cell or CellConfig()
-    spec = ComputeSpec(
+    built = ComputeSpec(
         tracker=TrackerConfig(model="mesh"),
         control=ControlConfig(),
         cell=cell,
@@ -55,4 +58,5 @@ def compute_on(recording: Path, frames: int = 4, cell: CellConfig | None = None)
         max_record_bytes=10**6,
         frame_source=lambda: RecordedFrames(images),
     )
-    return Compute(spec, spec.frame_source())
+    built = dataclasses.replace(built, **spec)
+    return Compute(built, built.frame_source())

@@ -214,8 +214,8 @@ def test_with_a_token_nothing_is_read_before_it_is_checked() -> None:
     assert r.status_code == 401
 
 
-def _client_recording_into(recording_dir: Path) -> TestClient:
-    parts = build(Config(recording=RecordingConfig(dir=recording_dir)))
+def _client_recording_into(recording_dir: Path, format: str = "directory") -> TestClient:
+    parts = build(Config(recording=RecordingConfig(dir=recording_dir, format=format)))
     return TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
 
 
@@ -231,6 +231,20 @@ def test_recordings_stay_inside_the_recording_directory(tmp_path: Path) -> None:
     r = c.post("/api/v1/record/start", json={"dir": "session-1"})
     assert r.status_code == 200 and (root / "session-1").is_dir()
     assert c.post("/api/v1/record/start", json={"dir": "session-1"}).status_code == 409  # exists
+
+
+def test_an_mcap_recording_is_one_new_file_named_as_asked(tmp_path: Path) -> None:
+    root = tmp_path / "recordings"
+    root.mkdir()
+    c = _client_recording_into(root, "mcap")
+    r = c.post("/api/v1/record/start", json={"dir": "line-3/session-1"})
+    assert r.status_code == 200 and r.json()["detail"].endswith("line-3/session-1.mcap")
+    assert (root / "line-3" / "session-1.mcap").is_file()
+    for again in ("line-3/session-1", "line-3/session-1.mcap"):  # exists, with or without the suffix
+        assert c.post("/api/v1/record/start", json={"dir": again}).status_code == 409
+    (root / "escape.mcap").symlink_to(tmp_path / "elsewhere.mcap")
+    assert c.post("/api/v1/record/start", json={"dir": "escape"}).status_code == 422
+    assert not (tmp_path / "elsewhere.mcap").exists()
 
 
 def test_a_place_that_cannot_be_written_is_refused_at_once(tmp_path: Path) -> None:

@@ -4,7 +4,7 @@ import pytest
 import yaml
 
 from clothd.cli import main
-from clothd.config import Config, load_config
+from clothd.config import Config, load_config, parse_config
 from clothd.errors import ConfigError
 
 
@@ -39,6 +39,9 @@ def test_defaults_are_valid() -> None:
             ["opcua.endpoint", "set api.token"],
         ),
         ("opcua: {security_policies: [Basic128Rsa15]}\n", ["opcua.security_policies"]),
+        ("recording: {format: zip}\n", ["recording.format", "'directory' or 'mcap'"]),
+        ("foxglove: {port: 0}\n", ["foxglove.port", "greater than or equal to 1"]),
+        ("foxglove: {enabled: true, host: 0.0.0.0}\n", ["foxglove.host", "foxglove.allow_remote"]),
         ("- a\n- list\n", ["a mapping"]),
         ("tracker: [unclosed\n", ["not valid YAML"]),
     ],
@@ -50,6 +53,12 @@ def test_bad_config_names_the_key_and_bound(tmp_path: Path, text: str, names: li
         load_config(path)
     for name in names:
         assert name in str(err.value)
+
+
+def test_foxglove_serves_loopback_unless_told_it_may_serve_other_machines() -> None:
+    assert load_config(None).foxglove.host == "127.0.0.1" and not load_config(None).foxglove.enabled
+    remote = parse_config({"foxglove": {"enabled": True, "host": "0.0.0.0", "allow_remote": True}})
+    assert remote.foxglove.host == "0.0.0.0"
 
 
 def test_check_config_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

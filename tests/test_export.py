@@ -3,13 +3,12 @@ message per frame on each, stamped with the frames' times."""
 
 from __future__ import annotations
 
-import json
 from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-from mcap.reader import make_reader
+from mcap_files import FOXGLOVE_SCHEMAS, read_mcap
 
 from clothd.cli import main
 from clothd.drivers.footage import open_footage
@@ -35,28 +34,12 @@ def test_a_recording_exports_to_mcap_with_foxglove_schemas(short_recording: Reco
         == 0
     )
     frame_ns = [round(t * 1e9) for t, _ in open_footage(rec).frames()]
-    with out.open("rb") as f:
-        reader = make_reader(f)
-        summary = reader.get_summary()
-        assert summary is not None
-        schemas = {c.topic: summary.schemas[c.schema_id].name for c in summary.channels.values()}
-        assert schemas == {
-            "/camera": "foxglove.CompressedImage",
-            "/mesh": "foxglove.SceneUpdate",
-            "/pose": "foxglove.PoseInFrame",
-            "/commands": "clothd.ModuleCommands",
-            "/status": "clothd.FrameStatus",
-        }
-        times: dict[str, list[int]] = {}
-        last_command = None
-        for _, channel, message in reader.iter_messages():
-            times.setdefault(channel.topic, []).append(message.log_time)
-            if channel.topic == "/commands":
-                last_command = json.loads(message.data)
-    counts = Counter({topic: len(t) for topic, t in times.items()})
-    assert all(
-        counts[topic] == len(frame_ns) for topic in ("/camera", "/mesh", "/pose", "/commands", "/status")
-    )
-    assert times["/camera"] == frame_ns and times["/pose"] == frame_ns
-    assert last_command is not None and len(last_command["speed_m_s"]) == 48
+    got = read_mcap(out)
+    assert got.schemas == FOXGLOVE_SCHEMAS
+    counts = Counter({topic: len(t) for topic, t in got.times.items()})
+    assert all(counts[topic] == len(frame_ns) for topic in FOXGLOVE_SCHEMAS)
+    assert got.summary_messages == sum(counts.values())
+    assert got.times["/camera"] == frame_ns and got.times["/pose"] == frame_ns
+    last_command = got.json["/commands"][-1]
+    assert len(last_command["speed_m_s"]) == 48
     assert np.isclose(last_command["t_s"], frame_ns[-1] / 1e9)

@@ -24,6 +24,8 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "clothd.compute",
             "clothd.compute_process",
             "clothd.recorder",
+            "clothd.foxglove_channels",
+            "clothd.foxglove_live",
             "clothd.view",
             "clothd.status",
             "clothd.loop_stats",

@@ -129,16 +129,18 @@ def create_app(
 
     @api.post("/record/start", responses=ERROR_DOC)
     async def record_start(body: RecordStart | None = None) -> Ok:
-        """Record the session (frames, commands, estimates) in the format `clothd replay` reads."""
-        path = await bridge.call(
-            daemon.start_recording, recording_path(daemon.settings.recording_dir, body.dir if body else None)
-        )
+        """Record the session (frames, commands, estimates) in the format `clothd replay` reads, or with
+        recording.format mcap as one .mcap file (NAME.mcap) for Foxglove."""
+        suffix = ".mcap" if daemon.settings.recording_format == "mcap" else ""
+        where = recording_path(daemon.settings.recording_dir, body.dir if body else None, suffix)
+        path = await bridge.call(daemon.start_recording, where)
         return Ok(detail=f"recording into {path}")
 
     @api.post("/record/stop", responses=ERROR_DOC)
     async def record_stop() -> Ok:
         await bridge.call(daemon.stop_recording)
-        return Ok(detail="recording stops; estimates.npz is written")
+        what = "the .mcap file's summary" if daemon.settings.recording_format == "mcap" else "estimates.npz"
+        return Ok(detail=f"recording stops; {what} is written")
 
     @api.get("/camera", response_model=CameraInfo)
     async def camera() -> CameraInfo:
