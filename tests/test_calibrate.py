@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 import pytest
+from terminal import on_terminal, piped
 
 from clothd.cli import main
 from clothd.core.camera_model import CameraModel
@@ -43,6 +45,18 @@ def _calibrate(images: Path, origin_m: list[float], out: Path, *extra: str) -> i
             "--flat-origin-m", f"{x:g},{y:g}", "--out", str(out), *extra,
         ]
     )  # fmt: skip
+
+
+def test_finding_the_board_shows_progress_on_a_terminal_only(bench: dict[str, Any], tmp_path: Path) -> None:
+    x, y = bench["flat_origin_m"]
+    cmd = [
+        sys.executable, "-m", "clothd.cli", "calibrate", "--images", bench["pictures"], "--board", "9x6",
+        "--square-m", "0.060", "--marker-m", "0.045", "--dictionary", "DICT_5X5_100", "--flat", FLAT_NAME,
+        f"--flat-origin-m={x:g},{y:g}", "--out", str(tmp_path / "camera.json"),
+    ]  # fmt: skip
+    shown = on_terminal(cmd)
+    assert "finding the board" in shown and f"{VIEWS + 1}/{VIEWS + 1}" in shown
+    assert "finding the board" not in piped(cmd)
 
 
 def _pictures_dir(src: Path, dst: Path, names: list[str]) -> Path:

@@ -2,53 +2,32 @@
 
 from __future__ import annotations
 
-import fcntl
 import os
-import pty
-import struct
 import subprocess
 import sys
-import termios
 import time
 from collections.abc import Callable
 from pathlib import Path
+
+from terminal import on_terminal, piped
 
 from clothd.view import wall_clock_label
 
 Recorder = Callable[[str], Path]
 
 
-def _replay(rec: Path, out: Path, on_terminal: bool) -> str:
+def _replay(rec: Path, out: Path, on_a_terminal: bool) -> str:
     cmd = [sys.executable, "-m", "clothd.cli", "replay", str(rec), "--out", str(out), "--model", "none"]
-    if not on_terminal:
-        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-        assert done.returncode == 0, done.stderr
-        return done.stderr
-    main, child = pty.openpty()
-    fcntl.ioctl(child, termios.TIOCSWINSZ, struct.pack("HHHH", 30, 100, 0, 0))  # a terminal has a size
-    proc = subprocess.Popen(cmd, stdout=child, stderr=child, stdin=subprocess.DEVNULL)
-    os.close(child)
-    output = b""
-    while True:
-        try:
-            chunk = os.read(main, 4096)
-        except OSError:  # the child closed the terminal
-            break
-        if not chunk:
-            break
-        output += chunk
-    os.close(main)
-    assert proc.wait(timeout=300) == 0
-    return output.decode(errors="replace")
+    return on_terminal(cmd) if on_a_terminal else piped(cmd)
 
 
 def test_replay_shows_progress_on_a_terminal_only(short_recording: Recorder, tmp_path: Path) -> None:
     rec = short_recording("translate")
-    on_terminal = _replay(rec, tmp_path / "tty", on_terminal=True)
-    assert f"replaying {rec.name}" in on_terminal
-    assert "frame/s" in on_terminal or "s/frame" in on_terminal
-    piped = _replay(rec, tmp_path / "pipe", on_terminal=False)
-    assert "frame/s" not in piped and "replaying" not in piped
+    shown = _replay(rec, tmp_path / "tty", on_a_terminal=True)
+    assert f"replaying {rec.name}" in shown
+    assert "frame/s" in shown or "s/frame" in shown
+    logged = _replay(rec, tmp_path / "pipe", on_a_terminal=False)
+    assert "frame/s" not in logged and "replaying" not in logged
 
 
 def _log_lines(env: dict[str, str]) -> list[str]:

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from tqdm import tqdm
 
 from clothd.core.camera_model import CameraModel
 from clothd.drivers.footage import IMAGE_SUFFIXES, natural_key
@@ -95,7 +96,8 @@ def read_pictures(images_dir: Path, board: Board, flat_name: str) -> Pictures:
     held: list[View] = []
     skipped: list[tuple[str, str]] = []
     size: tuple[int, int] | None = None
-    for path in paths:
+    # A bar on a terminal only (disable=None): the board is looked for in every picture, seconds each.
+    for path in tqdm(paths, desc="finding the board", unit="picture", disable=None):
         image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
         if image is None:
             raise InputError(f"{path}: not a readable image")
