@@ -90,6 +90,17 @@ def _cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_picture(args: argparse.Namespace) -> int:
+    from clothd.tools.mcap_picture import draw_picture, highest_mesh_t_ns, read_cell_mcap
+
+    log = read_cell_mcap(args.mcap)
+    t0_ns = log.camera[0][0]
+    at_ns = highest_mesh_t_ns(log) if args.at_s is None else t0_ns + round(args.at_s * 1e9)
+    draw_picture(log, args.out, at_ns)
+    print(f"drew {args.mcap} at {(at_ns - t0_ns) / 1e9:.2f} s -> {args.out}")
+    return 0
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     from clothd.taichi_runtime import start_taichi
     from clothd.tools.replay import replay
@@ -350,6 +361,13 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("--mcap", type=Path, required=True, help="the MCAP file to write")
     e.add_argument("--estimates", type=Path, help="estimates.npz (default: the recording's own)")
     e.set_defaults(func=_cmd_export)
+    pic = sub.add_parser("picture", help="a picture drawn from an MCAP file: camera, mesh, pose and timeline")
+    pic.add_argument("mcap", type=Path, help="clothd export's or a live MCAP recording's file")
+    pic.add_argument("--out", type=Path, required=True, help="the PNG to write")
+    pic.add_argument(
+        "--at-s", type=float, help="seconds after the first frame (default: where the mesh stands highest)"
+    )
+    pic.set_defaults(func=_cmd_picture)
     cal = sub.add_parser(
         "calibrate",
         help="the camera (K, distortion) and the table's pose from pictures of a ChArUco board",

@@ -7,11 +7,16 @@ from collections import Counter
 from collections.abc import Callable
 from pathlib import Path
 
+import cv2
+import foxglove
 import numpy as np
+import pytest
 from mcap_files import FOXGLOVE_SCHEMAS, read_mcap
 
 from clothd.cli import main
 from clothd.drivers.footage import open_footage
+from clothd.errors import InputError
+from clothd.tools.mcap_picture import read_cell_mcap
 
 Recorder = Callable[[str], Path]
 
@@ -43,3 +48,43 @@ def test_a_recording_exports_to_mcap_with_foxglove_schemas(short_recording: Reco
     last_command = got.json["/commands"][-1]
     assert len(last_command["speed_m_s"]) == 48
     assert np.isclose(last_command["t_s"], frame_ns[-1] / 1e9)
+
+
+def test_an_export_decodes_to_the_estimates_and_draws(short_recording: Recorder, tmp_path: Path) -> None:
+    """Every protobuf message decodes from the schemas the file carries, and holds what the recording and
+    its estimates hold: the frames as JPEG, the mesh's edges at the nodes' heights, the pose."""
+    rec = short_recording("compress")
+    replay = tmp_path / "replay"
+    assert main(["replay", str(rec), "--out", str(replay), "--model", "mesh"]) == 0
+    out = tmp_path / "rec.mcap"
+    assert main(["export", str(rec), "--mcap", str(out), "--estimates", str(replay / "estimates.npz")]) == 0
+    est = np.load(replay / "estimates.npz")
+    log = read_cell_mcap(out)
+    first_frame = next(open_footage(rec).frames())[1]
+    image = cv2.imdecode(np.frombuffer(log.camera[0][1], np.uint8), cv2.IMREAD_COLOR)
+    assert image.shape == first_frame.shape
+    assert np.abs(image.astype(int) - first_frame.astype(int)).mean() < 3.0  # JPEG, quality 85
+    ny, nx = est["nodes_m"].shape[1:3]
+    edges = (nx - 1) * ny + nx * (ny - 1)
+    assert all(m.ends_m.shape == (2 * edges, 3) for m in log.mesh)
+    frame_of = {t: k for k, (t, _) in enumerate(log.camera)}
+    peaks_m = [(m.ends_m[:, 2].max(), est["nodes_m"][frame_of[m.t_ns]][..., 2].max()) for m in log.mesh]
+    assert np.allclose(*np.transpose(peaks_m))
+    assert max(drawn for drawn, _ in peaks_m) > 0.005  # compress lifts a fold into the mesh
+    poses = np.array([p for _, p in log.pose])
+    assert np.allclose(poses, est["pose"][: len(poses)], atol=1e-9)
+    assert [s["features"] > 0 for _, s in log.status].count(True) == len(log.status)
+    picture = tmp_path / "picture.png"
+    assert main(["picture", str(out), "--out", str(picture)]) == 0
+    drawn = cv2.imread(str(picture))
+    assert drawn is not None and drawn.shape[1] >= 1000
+
+
+def test_a_picture_of_a_file_without_camera_frames_is_refused(tmp_path: Path) -> None:
+    empty = tmp_path / "empty.mcap"
+    with foxglove.open_mcap(empty, context=foxglove.Context()):
+        pass
+    with pytest.raises(InputError, match="no /camera messages"):
+        read_cell_mcap(empty)
+    with pytest.raises(InputError, match="no such MCAP file"):
+        read_cell_mcap(tmp_path / "missing.mcap")
