@@ -3,6 +3,8 @@ recording (`recording.format: mcap`) and the live Foxglove WebSocket server (fox
 these topics, with these schemas, through `CellChannels`:
 
 /camera    foxglove.CompressedImage   the camera frame as JPEG, frame id "camera"
+/camera/annotated  foxglove.CompressedImage  the frame with the estimate drawn on (clothd.view), JPEG;
+           written by `clothd export` where the recording has a camera.json and estimates
 /mesh      foxglove.SceneUpdate       the tracked mesh in the "table" frame, a line list coloured by height
 /pose      foxglove.PoseInFrame       the cloth's pose in the "table" frame, while tracked
 /commands  clothd.ModuleCommands      JSON: t_s, speed_m_s, heading_rad (the commands in force)
@@ -27,7 +29,7 @@ TABLE_FRAME = "table"
 CAMERA_FRAME = "camera"
 JPEG_QUALITY = 85
 HEIGHT_FULL_SCALE_M = 0.02  # mesh colour: blue flat, red at 20 mm and above
-TOPICS = ("/camera", "/mesh", "/pose", "/commands", "/status")
+TOPICS = ("/camera", "/camera/annotated", "/mesh", "/pose", "/commands", "/status")
 COMMANDS_SCHEMA = {
     "type": "object",
     "properties": {
@@ -92,11 +94,14 @@ def _pose(pose: np.ndarray) -> fm.Pose:
 
 
 class CellChannels:
-    """The five channels on one foxglove.Context; whichever sinks that context has (an MCAP writer, a
-    WebSocket server) get every message. `counts` holds the messages logged per topic."""
+    """The channels on one foxglove.Context; whichever sinks that context has (an MCAP writer, a
+    WebSocket server) get every message. /camera/annotated exists only when `annotated` (an export that
+    can draw it), so that no sink is offered a channel that stays empty. `counts` holds the messages
+    logged per topic."""
 
-    def __init__(self, context: foxglove.Context) -> None:
+    def __init__(self, context: foxglove.Context, annotated: bool = False) -> None:
         self.camera = CompressedImageChannel("/camera", context=context)
+        self.annotated = CompressedImageChannel("/camera/annotated", context=context) if annotated else None
         self.mesh = SceneUpdateChannel("/mesh", context=context)
         self.pose = PoseInFrameChannel("/pose", context=context)
         self.commands = foxglove.Channel(
@@ -111,16 +116,24 @@ class CellChannels:
             message_encoding="json",
             context=context,
         )
-        self.counts = dict.fromkeys(TOPICS, 0)
+        self.counts = {topic: 0 for topic in TOPICS if annotated or topic != "/camera/annotated"}
 
     def has_sinks(self) -> bool:
         """Anything listens: an MCAP writer, or a WebSocket client subscribed to any topic."""
-        return any(ch.has_sinks() for ch in (self.camera, self.mesh, self.pose, self.commands, self.status))
+        channels = (self.camera, self.annotated, self.mesh, self.pose, self.commands, self.status)
+        return any(ch is not None and ch.has_sinks() for ch in channels)
 
     def log_camera(self, jpeg: bytes, log_time: int) -> None:
         msg = fm.CompressedImage(timestamp=_stamp(log_time), frame_id=CAMERA_FRAME, data=jpeg, format="jpeg")
         self.camera.log(msg, log_time=log_time)
         self.counts["/camera"] += 1
+
+    def log_annotated(self, jpeg: bytes, log_time: int) -> None:
+        if self.annotated is None:
+            raise RuntimeError("these channels were made without /camera/annotated")
+        msg = fm.CompressedImage(timestamp=_stamp(log_time), frame_id=CAMERA_FRAME, data=jpeg, format="jpeg")
+        self.annotated.log(msg, log_time=log_time)
+        self.counts["/camera/annotated"] += 1
 
     def log_commands(self, speed_m_s: np.ndarray, heading_rad: np.ndarray, log_time: int) -> None:
         msg = {"t_s": log_time / 1e9, "speed_m_s": speed_m_s.tolist(), "heading_rad": heading_rad.tolist()}

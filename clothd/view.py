@@ -2,7 +2,8 @@
 features as green crosses, measured ones red, a yellow line between each pair, and the mesh, its edges
 that have risen off the table coloured by height (yellow at 1 mm to red at 15 mm and above).
 
-`draw_estimate` serves `clothd replay`'s overlay video; `ViewRenderer` the live annotated view
+`draw_estimate` serves `clothd replay`'s overlay video, `draw_tracking` (what it draws, from arrays)
+`clothd export`'s /camera/annotated channel; `ViewRenderer` the live annotated view
 (GET /api/v1/view.mjpg), which adds the pose arrow, the setpoint as a ghost outline, and each ridge the
 flatness finds as a magenta line along it, labelled with its height. The live view is
 drawn in the compute process, only on ticks when someone watches, at `api.view_fps`."""
@@ -67,19 +68,34 @@ def draw_estimate(
 ) -> np.ndarray:
     """A copy of `image` (BGR) with the estimate drawn on, the mesh projected through camera_model.
     `when` labels the frame's time (default: its time in the footage, seconds)."""
+    label = f"{when or f't {est.frame_t_s:6.2f} s'}  {est.status}  features {len(est.feature_id)}"
+    return draw_tracking(image, est.nodes_m, est.meas_px, est.pred_px, camera_model, label)
+
+
+def draw_tracking(
+    image: np.ndarray,
+    nodes_m: np.ndarray | None,
+    meas_px: np.ndarray,
+    pred_px: np.ndarray,
+    camera_model: CameraModel,
+    label: str,
+) -> np.ndarray:
+    """A copy of `image` (BGR) with the mesh nodes_m (ny, nx, 3) projected through camera_model, its
+    risen edges coloured by height, the features where the estimate places them (pred_px (n, 2), green)
+    and where they were measured (meas_px (n, 2), red, NaN where not) joined by their residual, and a
+    label in the corner."""
     img = image.copy()
-    if est.nodes_m is not None:
-        ny, nx = est.nodes_m.shape[:2]
-        g = _fixed(camera_model.project(est.nodes_m.reshape(-1, 3)).reshape(ny, nx, 2))
+    if nodes_m is not None:
+        ny, nx = nodes_m.shape[:2]
+        g = _fixed(camera_model.project(nodes_m.reshape(-1, 3)).reshape(ny, nx, 2))
         lines = [np.ascontiguousarray(g[j]) for j in range(ny)]
         lines += [np.ascontiguousarray(g[:, i]) for i in range(nx)]
         cv2.polylines(img, lines, False, MESH_BGR, 1, cv2.LINE_AA, _SHIFT)
-        _raised_edges(img, g, est.nodes_m[..., 2])
-    ok = ~np.isnan(est.meas_px[:, 0]) if len(est.meas_px) else np.zeros(0, bool)
-    _segments(img, est.meas_px[ok], est.pred_px[ok], YELLOW)
-    _crosses(img, est.meas_px[ok], RED)
-    _crosses(img, est.pred_px, GREEN)
-    label = f"{when or f't {est.frame_t_s:6.2f} s'}  {est.status}  features {len(est.feature_id)}"
+        _raised_edges(img, g, nodes_m[..., 2])
+    ok = ~np.isnan(meas_px[:, 0]) if len(meas_px) else np.zeros(0, bool)
+    _segments(img, meas_px[ok], pred_px[ok], YELLOW)
+    _crosses(img, meas_px[ok], RED)
+    _crosses(img, pred_px, GREEN)
     cv2.putText(img, label, (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
     return img
 

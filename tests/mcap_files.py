@@ -18,6 +18,8 @@ FOXGLOVE_SCHEMAS = {
     "/commands": "clothd.ModuleCommands",
     "/status": "clothd.FrameStatus",
 }
+# `clothd export` adds the annotated view where the recording has a camera.json.
+EXPORT_SCHEMAS = FOXGLOVE_SCHEMAS | {"/camera/annotated": "foxglove.CompressedImage"}
 
 
 @dataclass

@@ -11,12 +11,15 @@ import cv2
 import foxglove
 import numpy as np
 import pytest
-from mcap_files import FOXGLOVE_SCHEMAS, read_mcap
+from mcap_files import EXPORT_SCHEMAS, read_mcap
 
 from clothd.cli import main
 from clothd.drivers.footage import open_footage
 from clothd.errors import InputError
+from clothd.formats import read_camera
+from clothd.foxglove_channels import encode_jpeg
 from clothd.tools.mcap_picture import read_cell_mcap
+from clothd.view import draw_tracking
 
 Recorder = Callable[[str], Path]
 
@@ -40,9 +43,9 @@ def test_a_recording_exports_to_mcap_with_foxglove_schemas(short_recording: Reco
     )
     frame_ns = [round(t * 1e9) for t, _ in open_footage(rec).frames()]
     got = read_mcap(out)
-    assert got.schemas == FOXGLOVE_SCHEMAS
+    assert got.schemas == EXPORT_SCHEMAS
     counts = Counter({topic: len(t) for topic, t in got.times.items()})
-    assert all(counts[topic] == len(frame_ns) for topic in FOXGLOVE_SCHEMAS)
+    assert all(counts[topic] == len(frame_ns) for topic in EXPORT_SCHEMAS)
     assert got.summary_messages == sum(counts.values())
     assert got.times["/camera"] == frame_ns and got.times["/pose"] == frame_ns
     last_command = got.json["/commands"][-1]
@@ -50,9 +53,23 @@ def test_a_recording_exports_to_mcap_with_foxglove_schemas(short_recording: Reco
     assert np.isclose(last_command["t_s"], frame_ns[-1] / 1e9)
 
 
+LABEL_BAND_PX = 32  # the label's rows, to whole 16 px JPEG blocks
+
+
+def _jpeg_off(jpeg: bytes, image: np.ndarray, from_row: int = 0, where: np.ndarray | None = None) -> float:
+    """Mean absolute difference between a JPEG and an image, from a row down, over a mask if given."""
+    decoded = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+    assert decoded is not None and decoded.shape == image.shape
+    off = np.abs(decoded.astype(int) - image.astype(int)).mean(axis=2)
+    keep = np.ones(off.shape, bool) if where is None else where.copy()
+    keep[:from_row] = False
+    return float(off[keep].mean())
+
+
 def test_an_export_decodes_to_the_estimates_and_draws(short_recording: Recorder, tmp_path: Path) -> None:
     """Every protobuf message decodes from the schemas the file carries, and holds what the recording and
-    its estimates hold: the frames as JPEG, the mesh's edges at the nodes' heights, the pose."""
+    its estimates hold: the frames as JPEG, with the estimate drawn on, the mesh's edges at the nodes'
+    heights, the pose."""
     rec = short_recording("compress")
     replay = tmp_path / "replay"
     assert main(["replay", str(rec), "--out", str(replay), "--model", "mesh"]) == 0
@@ -60,10 +77,28 @@ def test_an_export_decodes_to_the_estimates_and_draws(short_recording: Recorder,
     assert main(["export", str(rec), "--mcap", str(out), "--estimates", str(replay / "estimates.npz")]) == 0
     est = np.load(replay / "estimates.npz")
     log = read_cell_mcap(out)
-    first_frame = next(open_footage(rec).frames())[1]
-    image = cv2.imdecode(np.frombuffer(log.camera[0][1], np.uint8), cv2.IMREAD_COLOR)
-    assert image.shape == first_frame.shape
-    assert np.abs(image.astype(int) - first_frame.astype(int)).mean() < 3.0  # JPEG, quality 85
+    frames = [image for _, image in open_footage(rec).frames()]
+    assert _jpeg_off(log.camera[0][1], frames[0]) < 3.0  # JPEG, quality 85
+    # The annotated view is that frame with that frame's estimate drawn on (below the label's band).
+    assert [t for t, _ in log.annotated] == [t for t, _ in log.camera]
+    k = len(frames) - 1
+    drawing = draw_tracking(
+        frames[k],
+        est["nodes_m"][k],
+        est["meas_px"][k],
+        est["pred_px"][k],
+        read_camera(rec / "camera.json"),
+        "",
+    )
+    drawn_px = np.abs(drawing.astype(int) - frames[k].astype(int)).max(axis=2) > 60
+    drawn_px[:LABEL_BAND_PX] = False
+    assert drawn_px.sum() > 1000
+    # Away from the label the file holds exactly that drawing's JPEG (the encoder is deterministic).
+    jpeg = encode_jpeg(drawing)
+    assert jpeg is not None
+    as_written = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+    assert _jpeg_off(log.annotated[k][1], as_written, LABEL_BAND_PX) < 0.1
+    assert _jpeg_off(log.annotated[k][1], frames[k], LABEL_BAND_PX, drawn_px) > 30.0
     ny, nx = est["nodes_m"].shape[1:3]
     edges = (nx - 1) * ny + nx * (ny - 1)
     assert all(m.ends_m.shape == (2 * edges, 3) for m in log.mesh)

@@ -1,7 +1,8 @@
 """`clothd export REC --mcap FILE`: a recording as MCAP, with Foxglove's well-known schemas, to open in
-Foxglove: the camera (/camera, CompressedImage), the mesh coloured by height (/mesh, SceneUpdate), the
-pose (/pose, PoseInFrame), the module commands (/commands) and a per-frame summary (/status), the last
-two as JSON with a JSON schema. Every message is stamped with its frame's time.
+Foxglove: the camera (/camera, CompressedImage), the frame with the estimate drawn on
+(/camera/annotated, where the recording has a camera.json), the mesh coloured by height (/mesh,
+SceneUpdate), the pose (/pose, PoseInFrame), the module commands (/commands) and a per-frame summary
+(/status), the last two as JSON with a JSON schema. Every message is stamped with its frame's time.
 
 REC is a recording directory (`clothd run --record`, `hwsim record`); the estimates are its own
 estimates.npz (a live recording writes one) or `--estimates` (a `clothd replay` output's).
@@ -18,8 +19,9 @@ from tqdm import tqdm
 
 from clothd.drivers.footage import CommandSchedule, open_footage
 from clothd.errors import InputError
-from clothd.formats import read_layout
+from clothd.formats import read_camera, read_layout
 from clothd.foxglove_channels import CellChannels, encode_jpeg, residual_mean_px
+from clothd.view import draw_tracking
 
 
 @dataclass(frozen=True)
@@ -36,8 +38,9 @@ def export_mcap(recording: Path, out: Path, estimates_npz: Path | None = None) -
     schedule = (
         CommandSchedule(footage.commands_csv, layout.n_modules) if footage.commands_csv and layout else None
     )
+    camera_model = read_camera(footage.camera_json) if footage.camera_json and est is not None else None
     ctx = foxglove.Context()  # this export's own channels, not the process-wide default
-    channels = CellChannels(ctx)
+    channels = CellChannels(ctx, annotated=camera_model is not None)
     frames = 0
     with foxglove.open_mcap(out, allow_overwrite=True, context=ctx):
         total = footage.frame_count
@@ -51,8 +54,17 @@ def export_mcap(recording: Path, out: Path, estimates_npz: Path | None = None) -
                 c = schedule.at(t_s)
                 channels.log_commands(c.speed_m_s, c.heading_rad, log_time)
             if est is not None and k < len(est["t_s"]):
-                features, residual = residual_mean_px(est["meas_px"][k], est["pred_px"][k])
+                meas_px, pred_px = est["meas_px"][k], est["pred_px"][k]
+                features, residual = residual_mean_px(meas_px, pred_px)
                 nodes = est["nodes_m"][k] if "nodes_m" in est.files else None
                 channels.log_estimate(est["pose"][k], nodes, features, residual, log_time)
+                if camera_model is not None:
+                    shown = nodes if nodes is not None and np.isfinite(nodes).all() else None
+                    label = f"t {t_s:6.2f} s  features {features}"
+                    drawn = draw_tracking(image, shown, meas_px, pred_px, camera_model, label)
+                    annotated = encode_jpeg(drawn)
+                    if annotated is None:
+                        raise InputError(f"{recording}: frame {k}'s annotated view could not be encoded")
+                    channels.log_annotated(annotated, log_time)
             frames += 1
     return ExportCounts(frames, dict(channels.counts))

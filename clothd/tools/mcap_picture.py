@@ -1,6 +1,7 @@
 """`clothd picture FILE.mcap --out PNG`: one picture drawn from an MCAP file's own messages, as Foxglove
-would lay them out: the camera frame, the tracked mesh from above coloured by height with the pose's
-track, and the residual and module speeds over time with a cursor at the chosen frame.
+would lay them out: the camera frame (annotated, where the file has that channel), the tracked mesh
+from above coloured by height with the pose's track, and the residual and module speeds over time with
+a cursor at the chosen frame.
 
 It reads what `clothd export` and a live MCAP recording write (clothd/foxglove_channels.py), decoding the
 protobuf messages from the schemas the file carries, so it also shows that a file is complete without
@@ -46,6 +47,7 @@ class CellLog:
     """An MCAP file's cell channels, decoded, each in log-time order."""
 
     camera: list[tuple[int, bytes]] = field(default_factory=list)  # (log time ns, JPEG)
+    annotated: list[tuple[int, bytes]] = field(default_factory=list)  # (log time ns, JPEG)
     mesh: list[MeshFrame] = field(default_factory=list)
     pose: list[tuple[int, np.ndarray]] = field(default_factory=list)  # (log time ns, [x_m, y_m, theta_rad])
     commands: list[tuple[int, dict[str, Any]]] = field(default_factory=list)
@@ -67,6 +69,8 @@ def read_cell_mcap(path: Path) -> CellLog:
             t = message.log_time
             if channel.topic == "/camera":
                 log.camera.append((t, bytes(decoded.data)))
+            elif channel.topic == "/camera/annotated":
+                log.annotated.append((t, bytes(decoded.data)))
             elif channel.topic == "/mesh":
                 lines = decoded.entities[0].lines[0]
                 ends = np.array([(p.x, p.y, p.z) for p in lines.points], dtype=np.float64)
@@ -108,12 +112,13 @@ def draw_picture(log: CellLog, out: Path, at_ns: int) -> None:
     grid = fig.add_gridspec(2, 2, height_ratios=[2.2, 1.0])
 
     cam = fig.add_subplot(grid[0, 0])
-    t_cam, jpeg = log.camera[_nearest([t for t, _ in log.camera], at_ns)]
+    topic, frames = ("/camera/annotated", log.annotated) if log.annotated else ("/camera", log.camera)
+    t_cam, jpeg = frames[_nearest([t for t, _ in frames], at_ns)]
     image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
     if image is None:
-        raise InputError(f"the /camera frame at {(t_cam - t0) / 1e9:.2f} s is not a readable JPEG")
+        raise InputError(f"the {topic} frame at {(t_cam - t0) / 1e9:.2f} s is not a readable JPEG")
     cam.imshow(cv2.cvtColor(image, cv2.COLOR_BGR2RGB))
-    cam.set_title(f"/camera at {(t_cam - t0) / 1e9:.2f} s")
+    cam.set_title(f"{topic} at {(t_cam - t0) / 1e9:.2f} s")
     cam.axis("off")
 
     top = fig.add_subplot(grid[0, 1])
