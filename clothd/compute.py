@@ -31,7 +31,7 @@ from clothd.core.flattening import FlatteningRegulator
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
-from clothd.drivers.ports import FrameSource, FrameSourceHealth
+from clothd.drivers.ports import CameraFrame, FrameSource, FrameSourceHealth
 from clothd.errors import ClothdError
 from clothd.foxglove_live import LiveFoxglove
 from clothd.logs import configure_logging
@@ -50,6 +50,8 @@ class TickRequest:
     want_view: bool  # draw the annotated view this tick
     record_start: Path | None = None  # begin recording into this new directory (or .mcap file)
     record_stop: bool = False
+    # Wait until this time (host monotonic) for a frame not yet used: the tick started as one was due.
+    frame_wait_until_mono_s: float | None = None
 
 
 @dataclass(frozen=True)
@@ -135,6 +137,8 @@ class Compute:
         )
 
     def tick(self, req: TickRequest) -> TickReply:
+        timing: dict[str, float] = {}
+        frame = self._frame(req.frame_wait_until_mono_s, timing)  # its wait is not the compute's time
         t0 = time.perf_counter()
         if req.reset:
             self.tracker.reset()
@@ -143,8 +147,6 @@ class Compute:
             self._estimate = None
             self._flatness = None
         self._record_requests(req)
-        frame = self.frames.latest()
-        timing: dict[str, float] = {}
         new_frame = frame is not None and frame.index != self._last_frame_index
         est = self._estimate
         if frame is not None and new_frame:
@@ -183,6 +185,16 @@ class Compute:
             halt,
             flatness,
         )
+
+    def _frame(self, wait_until_mono_s: float | None, timing: dict[str, float]) -> CameraFrame | None:
+        """The newest frame; when the tick started as a frame was due, waiting for it up to the bound."""
+        frame = self.frames.latest()
+        if wait_until_mono_s is None or (frame is not None and frame.index != self._last_frame_index):
+            return frame
+        t_wait = time.perf_counter()
+        frame = self.frames.newer_than(self._last_frame_index, wait_until_mono_s - time.monotonic())
+        timing["frame_wait"] = time.perf_counter() - t_wait
+        return frame
 
     def _read_flatness(self, est: Estimate) -> Flatness | None:
         """The flatness of a new estimate; None when its model does not follow the shape or it is lost."""

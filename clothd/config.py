@@ -154,6 +154,23 @@ class LoopConfig(_Strict):
     max_stale_ticks: int = Field(
         10, ge=1, le=30, description="ticks in a row without the compute's answer before the modules stop"
     )
+    # The tick's phase follows the camera's frames (clothd/frame_phase.py, docs/architecture.md).
+    frame_lock: bool = Field(True, description="start ticks just before the camera's frames are due")
+    frame_lead_ms: float = Field(1.0, ge=0, le=10, description="how long before a frame is due a tick starts")
+    frame_wait_ms: float = Field(
+        12.0, ge=0, le=30, description="how long past the lead a tick's compute waits for a due frame"
+    )
+    phase_step_ms: float = Field(1.0, gt=0, le=5, description="the most a tick's phase moves per tick")
+
+    @model_validator(mode="after")
+    def _frame_wait_leaves_time_to_compute(self) -> LoopConfig:
+        if self.frame_lead_ms + self.frame_wait_ms > 0.5e3 * self.period_s:
+            raise ValueError(
+                f"frame_lead_ms + frame_wait_ms ({self.frame_lead_ms + self.frame_wait_ms:g}) must be at "
+                f"most half the tick period ({0.5e3 * self.period_s:.1f} ms at tick_hz {self.tick_hz:g}), "
+                "to leave the other half for the compute"
+            )
+        return self
 
     @property
     def period_s(self) -> float:

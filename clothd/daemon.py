@@ -38,6 +38,7 @@ from clothd.errors import (
     StorageError,
     UnreachableTargetError,
 )
+from clothd.frame_phase import FramePhaseLock
 from clothd.loop_stats import LoopStats
 from clothd.notify import SystemdNotifier
 from clothd.status import Status, build_status
@@ -61,6 +62,10 @@ class DaemonSettings:
     link_port: str
     estimates_shape: bool  # the tracker's model follows the cloth's shape: flatten is possible
     recording_format: str = "directory"  # recording.format: directory or mcap
+    frame_lock: bool = False  # loop.frame_lock: the tick's phase follows the camera (clothd/frame_phase.py)
+    frame_lead_s: float = 0.001
+    frame_wait_s: float = 0.012
+    phase_step_s: float = 0.001
 
 
 class Daemon:
@@ -84,6 +89,13 @@ class Daemon:
         self.notifier = notifier or SystemdNotifier()
         self.on_status = on_status
         self.stats = LoopStats()
+        self.phase = (
+            FramePhaseLock(
+                settings.period_s, settings.frame_lead_s, settings.phase_step_s, settings.frame_wait_s
+            )
+            if settings.frame_lock
+            else None
+        )
         self.setpoint = Setpoint("idle", None)
         self.halt_reason: str | None = None  # why a move last stopped by itself; cleared by a new setpoint
         self.state = "starting"
@@ -233,6 +245,9 @@ class Daemon:
                 next_t += missed * period
                 self._log_overrun(missed, late)
             next_t += period
+            if self.phase is not None:
+                next_t += self.phase.shift_s(next_t)
+                self.stats.frame_locked = self.phase.locked
             await self._tick(next_t)
 
     async def _tick(self, next_deadline_s: float) -> None:
@@ -274,7 +289,8 @@ class Daemon:
         reset, self._reset_requested = self._reset_requested, False
         start, self._record_start = self._record_start, None
         stop, self._record_stop = self._record_stop, False
-        req = TickRequest(self.setpoint, self._in_force, reset, want_view, start, stop)
+        wait_until = self.phase.wait_until_s(now) if self.phase is not None else None
+        req = TickRequest(self.setpoint, self._in_force, reset, want_view, start, stop, wait_until)
         try:
             return self.compute.request(req)
         except OSError as err:
@@ -298,6 +314,8 @@ class Daemon:
         self._commands = reply.commands
         if reply.new_frame and reply.frame_t_mono_s is not None:
             self._unsent_frame_t_s = reply.frame_t_mono_s
+            if self.phase is not None:
+                self.phase.frame_arrived(reply.frame_t_mono_s)
         self.stats.add_stages(reply.timing_s)
         if reply.view_jpeg is not None:
             self.view_jpeg, self.view_index, self._last_view_s = reply.view_jpeg, self.view_index + 1, asked_s

@@ -45,6 +45,7 @@ class LoopStats:
         self.ticks = 0
         self.missed_ticks = 0
         self.compute_overruns = 0  # ticks that went out with the previous commands: compute not done
+        self.frame_locked = False  # the tick's phase follows the camera's frames
 
     def add_stages(self, timing_s: dict[str, float]) -> None:
         for name, seconds in timing_s.items():
@@ -67,6 +68,7 @@ class LoopStats:
             "missed_ticks": self.missed_ticks,
             "missed_pct": self.missed_pct,
             "compute_overruns": self.compute_overruns,
+            "frame_locked": self.frame_locked,
         }
 
     def summary(self) -> dict[str, object]:
@@ -75,6 +77,7 @@ class LoopStats:
             "missed_ticks": self.missed_ticks,
             "missed_pct": self.missed_pct,
             "compute_overruns": self.compute_overruns,
+            "frame_locked": self.frame_locked,
             "stages": {name: w.summary() for name, w in self.stages.items()},
             "jitter": self.jitter.summary(),
             "frame_to_command": self.latency.summary(),

@@ -145,6 +145,10 @@ def build(cfg: Config) -> Parts:
         link_port=cfg.stepper.port,
         estimates_shape=cfg.tracker.estimates_shape,
         recording_format=cfg.recording.format,
+        frame_lock=cfg.loop.frame_lock,
+        frame_lead_s=cfg.loop.frame_lead_ms / 1e3,
+        frame_wait_s=cfg.loop.frame_wait_ms / 1e3,
+        phase_step_s=cfg.loop.phase_step_ms / 1e3,
     )
     hub = StreamHub()
     link = StepperLink(cfg.stepper, layout.n_modules)

@@ -59,6 +59,10 @@ class Timing(BaseModel):
     missed_ticks: int
     missed_pct: float
     compute_overruns: int = Field(description="ticks sent with the previous commands: compute not done")
+    frame_locked: bool = Field(
+        False,
+        description="the tick's phase follows the camera's frames (loop.frame_lock, docs/architecture.md)",
+    )
     stages: dict[str, Window]
     jitter: Window
     frame_to_command: Window

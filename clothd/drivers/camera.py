@@ -45,6 +45,7 @@ class VideoCaptureSource:
         self._frame: CameraFrame | None = None
         self._count = 0
         self._lock = threading.Lock()
+        self._arrived = threading.Condition(self._lock)  # notified with each new frame
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="camera", daemon=True)
 
@@ -62,6 +63,13 @@ class VideoCaptureSource:
         if frame is None or time.monotonic() - frame.t_mono_s > self.cfg.stale_after_s:
             return None
         return frame
+
+    def newer_than(self, index: int, timeout_s: float) -> CameraFrame | None:
+        """The newest frame once one past `index` is there, waiting up to timeout_s for it to arrive;
+        whatever `latest()` gives if none arrives in time."""
+        with self._arrived:
+            self._arrived.wait_for(lambda: self._frame is not None and self._frame.index > index, timeout_s)
+        return self.latest()
 
     @property
     def healthy(self) -> bool:
@@ -143,9 +151,10 @@ class VideoCaptureSource:
 
     def _publish(self, image: np.ndarray) -> None:
         now = time.monotonic()
-        with self._lock:
+        with self._arrived:
             self._frame = CameraFrame(self._count, now, image)
             self._count += 1
+            self._arrived.notify_all()
         if self.state != "streaming":
             log.info("camera streaming from %s", self.shown)
         self.state = "streaming"

@@ -38,6 +38,10 @@ class FrameSource(Protocol):
     def latest(self) -> CameraFrame | None:
         """The newest frame, or None when there is none fresh enough."""
 
+    def newer_than(self, index: int, timeout_s: float) -> CameraFrame | None:
+        """The newest frame once one with an index past `index` is there, waiting up to timeout_s;
+        otherwise what `latest` gives."""
+
     def health(self) -> FrameSourceHealth: ...
 
 
