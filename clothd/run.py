@@ -267,10 +267,6 @@ async def serve(
         opcua = OpcUaServer(cfg.opcua, a.token, parts.hub, Commands(daemon, bridge))
     loop = asyncio.get_running_loop()
     bridge.loop = loop
-    # Everything built so far lives as long as the daemon: out of the collector's sight, a full collection
-    # (which holds the GIL, so the tick too) walks only what the running daemon makes.
-    gc.collect()
-    gc.freeze()
 
     def _stop() -> None:
         daemon.stop()
@@ -278,14 +274,25 @@ async def serve(
 
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, _stop)
-    loop_task = asyncio.create_task(daemon.run())
     # The APIs on a thread and event loop of their own: their work never delays a tick (api/bridge.py).
     api = ApiThread(server, listener, opcua)
     api.start()
     api_done = loop.run_in_executor(None, api.join)
     while not server.started and api.is_alive():
         await asyncio.sleep(POLL_S)
-    if server.started and on_ready:
+    if not server.started:  # the API's thread ended before it served (a stop, or its error): no loop
+        await api_done
+        if api.error is not None:
+            raise api.error
+        return
+    # Everything built so far lives as long as the daemon, the OPC UA address space (~10^5 objects)
+    # included: out of the collector's sight, a full collection (which holds the GIL, so the tick too)
+    # walks only what the running daemon makes. Frozen before the API's servers were up, each full
+    # collection under a connection flood took 100-146 ms, three or four ticks (docs/benchmarks.md).
+    gc.collect()
+    gc.freeze()
+    loop_task = asyncio.create_task(daemon.run())
+    if on_ready:
         print(on_ready, flush=True)
     await asyncio.wait({loop_task, api_done}, return_when=asyncio.FIRST_COMPLETED)
     daemon.stop()
