@@ -1,7 +1,9 @@
-"""Rolling timing statistics of the loop: per-stage compute time, tick jitter, frame-to-command latency."""
+"""Rolling timing statistics of the loop: per-stage compute time, tick jitter, frame-to-command latency,
+and the daemon process's full garbage collections (each holds the GIL, so the tick waits it out)."""
 
 from __future__ import annotations
 
+import gc
 import math
 import time
 from collections import deque
@@ -19,6 +21,9 @@ class Window:
 
     def add_s(self, seconds: float) -> None:
         self._ms.append(seconds * 1e3)
+
+    def __len__(self) -> int:
+        return len(self._ms)
 
     def summary(self) -> dict[str, float | None]:
         if not self._ms:
@@ -42,6 +47,8 @@ class LoopStats:
         self.stages: dict[str, Window] = {}
         self.jitter = Window()
         self.latency = Window()
+        self.gc_pause = Window()  # full collections in the daemon's process, any thread
+        self._gc_start_s: float | None = None
         self.ticks = 0
         self.missed_ticks = 0
         self.compute_overruns = 0  # ticks that went out with the previous commands: compute not done
@@ -81,4 +88,19 @@ class LoopStats:
             "stages": {name: w.summary() for name, w in self.stages.items()},
             "jitter": self.jitter.summary(),
             "frame_to_command": self.latency.summary(),
+            "gc_pause": self.gc_pause.summary(),
         }
+
+    def watch_full_collections(self) -> None:
+        """Time every full (generation 2) collection from now on; the daemon calls it once."""
+        gc.callbacks.append(self._on_gc)
+
+    def _on_gc(self, phase: str, info: dict[str, int]) -> None:
+        # Collections never overlap: the collector holds the GIL from start to stop.
+        if info["generation"] != 2:
+            return
+        if phase == "start":
+            self._gc_start_s = time.perf_counter()
+        elif self._gc_start_s is not None:
+            self.gc_pause.add_s(time.perf_counter() - self._gc_start_s)
+            self._gc_start_s = None

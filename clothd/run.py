@@ -291,6 +291,7 @@ async def serve(
     # collection under a connection flood took 100-146 ms, three or four ticks (docs/benchmarks.md).
     gc.collect()
     gc.freeze()
+    daemon.stats.watch_full_collections()
     loop_task = asyncio.create_task(daemon.run())
     if on_ready:
         print(on_ready, flush=True)

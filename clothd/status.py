@@ -66,6 +66,10 @@ class Timing(BaseModel):
     stages: dict[str, Window]
     jitter: Window
     frame_to_command: Window
+    gc_pause: Window = Field(
+        Window(mean_ms=None, p50_ms=None, p99_ms=None, max_ms=None),
+        description="full garbage collections in the daemon's process: the tick waits them out",
+    )
 
 
 class CameraState(BaseModel):

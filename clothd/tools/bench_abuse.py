@@ -172,6 +172,7 @@ def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float) -> 
     return {
         **row,
         "missed_tick_pct": 100.0 * missed / max(ticks + missed, 1),
+        "gc_full_max_ms": after.get("gc_pause", {}).get("max_ms"),  # the longest full collection so far
         "fds_before": fds0,
         "fds_during": fds_during,
         "fds_after": open_fds(pid),
@@ -219,4 +220,7 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
         fds = f"fds {r['fds_before']} -> {r['fds_during']} -> {r['fds_after']}"
         rss = f"RSS {r['rss_before_mb']:.1f} -> {r['rss_after_mb']:.1f} MB"
         out.append(f"  {'':<11} {r['estop_failed']} e-stops failed; {fds}; {rss}")
+        out.append(
+            f"  {'':<11} longest full garbage collection in the daemon so far {_ms(r['gc_full_max_ms'])}"
+        )
     return "\n".join(out)
