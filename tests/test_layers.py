@@ -29,6 +29,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "clothd.view",
             "clothd.status",
             "clothd.loop_stats",
+            "clothd.frame_phase",
             "clothd.notify",
             "clothd.logs",
         ),
