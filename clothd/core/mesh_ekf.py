@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg as sla
+import scipy.sparse as sps
 
 from clothd.core.ekf import UpdateStats, gate
 
@@ -110,13 +111,18 @@ class NodeBelief:
         d = 2 if planar else 3
         self.pattern = InformationPattern(quad_nodes, len(x), d)
         # Quads that share a node are neighbours (at most 8; a quad is not its own): (q, 8), -1 padded.
-        incidence = np.zeros((len(quad_nodes), len(x)))
-        incidence[np.arange(len(quad_nodes))[:, None], quad_nodes] = 1.0
-        adjacent = (incidence @ incidence.T > 0) & ~np.eye(len(quad_nodes), dtype=bool)
-        self.quad_neighbours = np.full((len(quad_nodes), 8), -1)
-        for q, row in enumerate(adjacent):
-            around = np.flatnonzero(row)
-            self.quad_neighbours[q, : len(around)] = around
+        # Sparse: the dense quad-node incidence product took 27 ms at 32 x 32 nodes, in the first tick.
+        n_quads = len(quad_nodes)
+        incidence = sps.csr_matrix(
+            (np.ones(quad_nodes.size), (np.repeat(np.arange(n_quads), 4), quad_nodes.ravel())),
+            shape=(n_quads, len(x)),
+        )
+        adjacent = (incidence @ incidence.T).tocoo()
+        pairs = np.unique(np.stack([adjacent.row, adjacent.col], axis=1), axis=0)  # sorted by quad
+        pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+        rank = np.arange(len(pairs)) - np.searchsorted(pairs[:, 0], pairs[:, 0])  # place among its row's
+        self.quad_neighbours = np.full((n_quads, 8), -1)
+        self.quad_neighbours[pairs[:, 0], rank] = pairs[:, 1]
         # The graph Laplacian of the mesh's edges on node positions, as entries of the pattern.
         sides = np.concatenate([quad_nodes[:, [k, (k + 1) % 4]] for k in range(4)])
         edges = np.unique(np.sort(sides, axis=1), axis=0)
