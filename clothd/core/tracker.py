@@ -41,9 +41,6 @@ Clock = Callable[[], float]
 MIN_DT_S = 1e-3  # two frames with the same time stamp still advance the model a little
 MIN_FEATURES_ALIVE = 6  # fewer than this (or 2 % of the budget) and the cloth is lost
 MIN_FEATURES_TO_RESAMPLE = 3  # an outline through fewer features means nothing
-# A whole-cloth detection that adds fewer than this share of the budget found what the cloth offers: the
-# tracker stops asking every tick (a 2000 budget on a cloth with ~1000 corners cost ~2.5 ms a tick).
-FUTILE_DETECTION_FRACTION = 0.02
 
 
 class Tracker:
@@ -87,9 +84,6 @@ class Tracker:
         self.mesh: QuadMesh | None = None
         self.features: FeatureSet | None = None
         self.colour: ClothColour | None = None  # the cloth's colour against the background, from the start
-        # Features tracked after a whole-cloth detection that found next to nothing: the cloth offers about
-        # this many, so "short" is judged against it rather than max_features (None: not known).
-        self.offered: int | None = None
         self.anchors.reset()
 
     def step(self, image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None) -> Estimate:
@@ -191,8 +185,7 @@ class Tracker:
             outline = cv2.convexHull(features.px).reshape(-1, 2).astype(np.float64)
         mask = cloth_mask_from_outline(outline, w, h, int(f.edge_margin_px))
         holes = coverage_holes(mask, features.px, f.resample_cell_px)
-        budget = f.max_features if self.offered is None else min(f.max_features, self.offered)
-        short = len(features) < f.resample_below_fraction * budget
+        short = len(features) < f.resample_below_fraction * f.max_features
         room = f.max_features - len(features)
         if (not short and not holes.any()) or room <= 0:
             return
@@ -200,9 +193,6 @@ class Tracker:
         px = self.engine.detect(frame, target, room, avoid_px=features.px).astype(np.float64)
         if len(px):
             features.add(px, *self.estimator.cloth_coordinates(px))
-        if short:
-            futile = len(px) < FUTILE_DETECTION_FRACTION * f.max_features
-            self.offered = len(features) if futile else None
 
     def _estimate(
         self, t_s: float, meas: np.ndarray, stats: UpdateStats, timing: dict[str, float], image: np.ndarray
