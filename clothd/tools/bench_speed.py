@@ -181,11 +181,13 @@ def plot(rows: list[Row], path: Path, baseline: list[Row] | None = None) -> None
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.5), dpi=110)
     budgets = sorted({r.features for r in rows if r.impl == "clothd"})
 
-    def series(source: list[Row], budget: int, stage: str, pick: str = "p50_ms") -> tuple[list, list]:
+    def series(
+        source: list[Row], budget: int, stage: str, pick: str = "p50_ms", impl: str = "clothd"
+    ) -> tuple[list, list]:
         pts = sorted(
             (_nodes(r.mesh), getattr(r, pick))
             for r in source
-            if r.impl == "clothd" and r.features == budget and r.stage == stage
+            if r.impl == impl and r.features == budget and r.stage == stage
         )
         return [p[0] for p in pts], [p[1] for p in pts]
 
@@ -194,7 +196,7 @@ def plot(rows: list[Row], path: Path, baseline: list[Row] | None = None) -> None
         ax.plot(*series(rows, budget, "tick"), "o-", color=c, label=f"{budget} features, p50")
         ax.plot(*series(rows, budget, "tick", "p99_ms"), ":", color=c, label=f"{budget} features, p99")
         if baseline:
-            nodes, p50 = series(baseline, budget, "tick")
+            nodes, p50 = series(baseline, budget, "tick", impl="clothd before")
             if nodes:
                 ax.plot(nodes, p50, "x--", color=c, alpha=0.7, label=f"{budget} features, p50 before")
         for stage, style in (("klt", "s-"), ("predict", "^-"), ("update", "v-")):
@@ -204,6 +206,7 @@ def plot(rows: list[Row], path: Path, baseline: list[Row] | None = None) -> None
         a.set_ylabel("ms")
         a.grid(True, alpha=0.3)
         a.set_ylim(bottom=0)
+    ax.set_ylim(top=max(26.0, ax.get_ylim()[1]))
     ax.axhline(15.0, color="k", linewidth=0.8, linestyle="-.", label="bar: p50 15 ms")
     ax.axhline(25.0, color="grey", linewidth=0.8, linestyle="-.", label="bar: p99 25 ms")
     ax.set_title("tracker tick (one core: 1 BLAS, 1 OpenCV thread)")
