@@ -154,19 +154,39 @@ def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
 
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
     import json
+    import os
+
+    # The tracker timed as the daemon's compute process runs it (compute_process.py, compute.py): one BLAS
+    # and one OpenCV thread. BLAS reads this when numpy first loads, which is below.
+    for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    import cv2
 
     from clothd.taichi_runtime import start_taichi
-    from clothd.tools.bench_speed import DEFAULT_BUDGETS, DEFAULT_MESHES, format_rows, rows_json, run_speed
+    from clothd.tools.bench_speed import (
+        DEFAULT_BUDGETS,
+        DEFAULT_MESHES,
+        format_rows,
+        plot,
+        read_rows,
+        rows_json,
+        run_speed,
+    )
     from clothd.tools.recordings import scenario_recording
 
+    cv2.setNumThreads(1)
     start_taichi(load_config(args.config).taichi.arch)
     recording = scenario_recording(args.cache, "translate")
     budgets = tuple(args.features) if args.features else DEFAULT_BUDGETS
     meshes = tuple(args.mesh) if args.mesh else DEFAULT_MESHES
     rows = run_speed(recording, budgets, meshes, frames=args.frames)
-    print(format_rows(rows))
+    baseline = read_rows(args.baseline, " before") if args.baseline else None
+    print(format_rows(rows + [r for r in baseline or [] if r.impl == "clothd before"]))
     if args.json:
         args.json.write_text(json.dumps(rows_json(rows), indent=1) + "\n")
+    if args.plot:
+        plot(rows, args.plot, baseline)
+        print(f"plot: {args.plot}")
     return 0
 
 
@@ -469,6 +489,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bs.add_argument("--config", type=Path, help="taichi.arch is taken from it")
     bs.add_argument("--json", type=Path)
+    bs.add_argument("--plot", type=Path, metavar="PNG", help="the tick against the node count, drawn here")
+    bs.add_argument(
+        "--baseline",
+        type=Path,
+        metavar="JSON",
+        help="an earlier run's --json (e.g. the previous code's): its rows are listed as 'clothd before' "
+        "and its tick drawn dashed in --plot",
+    )
     bs.set_defaults(func=_cmd_bench_speed)
     ba = bsub.add_parser("accuracy", help="every mode on the shipped scenarios, against hwsim's truth")
     ba.add_argument(

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pytest
 
 from clothd.cli import build_parser
+from clothd.tools.bench_speed import STAGES, Row, format_rows, plot, read_rows, rows_json
 
 
 def test_bench_speed_takes_feature_budgets_and_mesh_sizes_repeated_or_listed() -> None:
@@ -22,3 +26,20 @@ def test_a_bad_mesh_size_is_refused_with_its_form(bad: str, capsys: pytest.Captu
     with pytest.raises(SystemExit) as done:
         build_parser().parse_args(["bench", "speed", "--mesh", bad])
     assert done.value.code == 2 and "NXxNY" in capsys.readouterr().err
+
+
+def test_bench_speed_plots_its_rows_beside_a_baseline_read_back_from_json(tmp_path: Path) -> None:
+    args = build_parser().parse_args(["bench", "speed", "--plot", "p.png", "--baseline", "old.json"])
+    assert args.plot == Path("p.png") and args.baseline == Path("old.json")
+    rows = [
+        Row(budget, mesh, "clothd", stage, 1.0 + n, 2.0 + n, budget - 1)
+        for budget in (1000, 2000)
+        for n, mesh in enumerate(("12x12", "24x24", "32x32"))
+        for stage in STAGES
+    ]
+    (tmp_path / "old.json").write_text(json.dumps(rows_json(rows)))
+    before = read_rows(tmp_path / "old.json", " before")
+    assert {r.impl for r in before} == {"clothd before"} and len(before) == len(rows)
+    assert "clothd before" in format_rows(rows + before)
+    plot(rows, tmp_path / "p.png", before)
+    assert (tmp_path / "p.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

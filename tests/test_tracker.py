@@ -2,11 +2,12 @@
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
-from clothd.config import TrackerConfig
+from clothd.config import FeatureConfig, TrackerConfig
 from clothd.core.messages import Estimate
 from clothd.core.tracker import Tracker
 from clothd.drivers.footage import open_footage
@@ -88,6 +89,28 @@ def test_features_keep_their_identity_and_are_resampled(short_recording: Recorde
     ids_end = set(ests[-1].feature_id.tolist())
     assert ids_end - first, "no feature was ever resampled"
     assert len(first & ids_end) > 100, "identities must persist"
+
+
+def test_a_budget_the_cloth_cannot_fill_is_not_detected_for_every_tick(short_recording: Recorder) -> None:
+    """With max_features far above the cloth's corners the tracker would always be "short"; it judges
+    "short" against what the first frame offered instead of detecting anew every tick, and still tracks
+    every frame."""
+    rec = short_recording("translate")
+    run = OfflineTracking(rec, TrackerConfig(model="mesh", features=FeatureConfig(max_features=5000)))
+    engine = run.tracker.engine
+    detected: list[int] = []
+    detect = engine.detect
+
+    def counting(*args: Any, **kwargs: Any) -> np.ndarray:
+        found = detect(*args, **kwargs)
+        detected.append(len(found))
+        return found
+
+    engine.detect = counting  # type: ignore[method-assign]
+    ests = [est for _, _, est in run]
+    assert all(e.status == "tracking" for e in ests) and len(ests) > 20
+    assert detected[0] > 300 and run.tracker.initial_features == detected[0]
+    assert len(detected) < len(ests) // 2, f"detected {len(detected)} times in {len(ests)} frames"
 
 
 def test_predict_mode_moves_with_the_belts_without_correction(short_recording: Recorder) -> None:

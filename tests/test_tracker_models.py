@@ -196,6 +196,35 @@ def test_mesh_ekf_update_is_the_exact_information_form_update() -> None:
         assert np.all(np.diag(belief.P[k]) <= np.diag(P_blocks[k]) + 1e-15)
 
 
+def test_planar_update_is_the_full_update_when_heights_are_outside_the_filter() -> None:
+    """With no height column in J and z, v_z uncorrelated with the rest (set_heights), the x, y solve of a
+    planar belief gives the 3-D solve's mean and covariance, heights untouched."""
+    cam = CameraModel.ideal(640, 480, 900.0, 1.0)
+    mesh = QuadMesh.covering(np.array([[-0.05, -0.05], [0.05, -0.05], [0.05, 0.05], [-0.05, 0.05]]), 4, 3)
+    rng = np.random.default_rng(6)
+    n = mesh.n_nodes
+    pos = np.column_stack([mesh.rest_nodes_m().reshape(-1, 2), rng.uniform(0, 0.01, n)])
+    A = rng.normal(0, 1e-3, (n, 6, 6))
+    P_blocks = A @ A.transpose(0, 2, 1) + np.diag([1e-6] * 3 + [1e-5] * 3)
+    binding = mesh.bind(rng.uniform(-0.045, 0.045, (20, 2)))
+    _, J = measurement_jacobian(cam, pos, binding)
+    J[..., 2] = 0.0
+    nu = rng.normal(0, 0.5, (20, 2))
+    beliefs = []
+    for planar in (False, True):
+        belief = NodeBelief(
+            np.column_stack([pos, np.zeros_like(pos)]), P_blocks.copy(), mesh.quad_nodes(), planar
+        )
+        belief.set_heights(pos[:, 2], 0.002, 0.01)
+        belief.correct(binding.quad, binding.nodes, J, nu, 0.25, gate_chi2=1e9, smoothness_m=0.005)
+        beliefs.append(belief)
+    full, planar_belief = beliefs
+    np.testing.assert_allclose(planar_belief.x, full.x, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(planar_belief.x[:, 2], pos[:, 2])
+    np.testing.assert_allclose(planar_belief.P, full.P, rtol=1e-9, atol=1e-20)
+    assert planar_belief.pattern.band < full.pattern.band
+
+
 def test_smoothness_prior_carries_corrections_to_nodes_without_features() -> None:
     """With the smoothness prior the sparse update is the exact solve with the mesh's Laplacian added to
     the prior information; a corner node no feature touches is then corrected with its neighbours."""

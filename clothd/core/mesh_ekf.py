@@ -27,33 +27,39 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.linalg as sla
+import scipy.sparse as sps
 
 from clothd.core.ekf import UpdateStats, gate
 
 
 class InformationPattern:
-    """The fixed sparsity of Hᵀ R⁻¹ H over node positions (3n x 3n) for a mesh's quads (q, 4), and where
-    each quad's 12 x 12 block of corner-position entries lands in it."""
+    """The fixed sparsity of Hᵀ R⁻¹ H over the d position components of every node (dn x dn; d = 3, or
+    2 for x, y alone) for a mesh's quads (q, 4), and where each quad's 4d x 4d block of corner-position
+    entries lands in it."""
 
-    def __init__(self, quad_nodes: np.ndarray, n_nodes: int) -> None:
-        comp = np.arange(3)
-        # Global position index of each quad's 12 corner coordinates, (q, 12), corner-major.
-        dof = (3 * quad_nodes[:, :, None] + comp[None, None, :]).reshape(len(quad_nodes), 12)
-        rows = np.broadcast_to(dof[:, :, None], (len(dof), 12, 12)).ravel()
-        cols = np.broadcast_to(dof[:, None, :], (len(dof), 12, 12)).ravel()
-        diag_r = np.repeat(np.arange(3 * n_nodes), 3)
-        diag_c = (3 * (np.arange(3 * n_nodes) // 3))[:, None].repeat(3, 1).ravel() + np.tile(
-            comp, 3 * n_nodes
+    def __init__(self, quad_nodes: np.ndarray, n_nodes: int, d: int = 3) -> None:
+        comp = np.arange(d)
+        w = 4 * d  # a quad's corner coordinates
+        # Global position index of each quad's 4d corner coordinates, (q, 4d), corner-major.
+        dof = (d * quad_nodes[:, :, None] + comp[None, None, :]).reshape(len(quad_nodes), w)
+        rows = np.broadcast_to(dof[:, :, None], (len(dof), w, w)).ravel()
+        cols = np.broadcast_to(dof[:, None, :], (len(dof), w, w)).ravel()
+        diag_r = np.repeat(np.arange(d * n_nodes), d)
+        diag_c = (d * (np.arange(d * n_nodes) // d))[:, None].repeat(d, 1).ravel() + np.tile(
+            comp, d * n_nodes
         )
-        keys = np.concatenate([cols * (3 * n_nodes) + rows, diag_c * (3 * n_nodes) + diag_r])
+        keys = np.concatenate([cols * (d * n_nodes) + rows, diag_c * (d * n_nodes) + diag_r])
         unique, inverse = np.unique(keys, return_inverse=True)  # sorted by column, then row: CSC order
         self._keys = unique
-        self.size = 3 * n_nodes
-        self.quad_slots = inverse[: len(rows)].reshape(len(dof), 144)
-        self.diag_slots = inverse[len(rows) :].reshape(n_nodes, 9)
+        self.d = d
+        self.size = d * n_nodes
+        self.quad_slots = inverse[: len(rows)].reshape(len(dof), w * w)
+        self.diag_slots = inverse[len(rows) :].reshape(n_nodes, d * d)
         self.nnz = len(unique)
-        # Nodes are numbered row by row, so a quad couples dofs at most 3·(nx + 2) apart: the matrix is
-        # banded, and a banded Cholesky (LAPACK pbsv) solves it in O(size · band²) with no fill-in search.
+        # Nodes are numbered row by row, so a quad couples dofs at most d·(nx + 2) - 1 apart: the matrix
+        # is banded, and a banded Cholesky (LAPACK pbsv) solves it in O(size · band²) with no fill-in
+        # search. At 32 x 32 nodes that beat SuperLU (scipy.sparse.linalg.splu, COLAMD or minimum-degree
+        # ordering) 3-5x (docs/benchmarks.md, "Speed and scaling").
         row, col = unique % self.size, unique // self.size
         upper = row <= col
         self.band = int((col - row)[upper].max())
@@ -90,25 +96,38 @@ def _nanmedian_rows(a: np.ndarray) -> np.ndarray:
 
 
 class NodeBelief:
-    """Mean x (n, 6) and covariance blocks P (n, 6, 6) of the nodes of a mesh with quads (q, 4)."""
+    """Mean x (n, 6) and covariance blocks P (n, 6, 6) of the nodes of a mesh with quads (q, 4).
 
-    def __init__(self, x: np.ndarray, P: np.ndarray, quad_nodes: np.ndarray) -> None:
+    planar: the correction moves x and y only. For a filter whose heights are set from outside
+    (`set_heights` after every correction, as the mesh estimator does) and whose camera Jacobian has no
+    height column, z and v_z are uncorrelated with the rest and unobserved, so the 3n-position solve
+    splits into a 2n one for x, y and a trivial one (Δz = 0) for the heights: the same answer, with a
+    band of 2·(nx + 2) - 1 instead of 3·(nx + 2) - 1, about a third of the work."""
+
+    def __init__(self, x: np.ndarray, P: np.ndarray, quad_nodes: np.ndarray, planar: bool = False) -> None:
         self.x = x
         self.P = P
-        self.pattern = InformationPattern(quad_nodes, len(x))
+        self.planar = planar
+        d = 2 if planar else 3
+        self.pattern = InformationPattern(quad_nodes, len(x), d)
         # Quads that share a node are neighbours (at most 8; a quad is not its own): (q, 8), -1 padded.
-        incidence = np.zeros((len(quad_nodes), len(x)))
-        incidence[np.arange(len(quad_nodes))[:, None], quad_nodes] = 1.0
-        adjacent = (incidence @ incidence.T > 0) & ~np.eye(len(quad_nodes), dtype=bool)
-        self.quad_neighbours = np.full((len(quad_nodes), 8), -1)
-        for q, row in enumerate(adjacent):
-            around = np.flatnonzero(row)
-            self.quad_neighbours[q, : len(around)] = around
+        # Sparse: the dense quad-node incidence product took 27 ms at 32 x 32 nodes, in the first tick.
+        n_quads = len(quad_nodes)
+        incidence = sps.csr_matrix(
+            (np.ones(quad_nodes.size), (np.repeat(np.arange(n_quads), 4), quad_nodes.ravel())),
+            shape=(n_quads, len(x)),
+        )
+        adjacent = (incidence @ incidence.T).tocoo()
+        pairs = np.unique(np.stack([adjacent.row, adjacent.col], axis=1), axis=0)  # sorted by quad
+        pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+        rank = np.arange(len(pairs)) - np.searchsorted(pairs[:, 0], pairs[:, 0])  # place among its row's
+        self.quad_neighbours = np.full((n_quads, 8), -1)
+        self.quad_neighbours[pairs[:, 0], rank] = pairs[:, 1]
         # The graph Laplacian of the mesh's edges on node positions, as entries of the pattern.
         sides = np.concatenate([quad_nodes[:, [k, (k + 1) % 4]] for k in range(4)])
         edges = np.unique(np.sort(sides, axis=1), axis=0)
-        a = (3 * edges[:, :1] + np.arange(3)).ravel()
-        b = (3 * edges[:, 1:] + np.arange(3)).ravel()
+        a = (d * edges[:, :1] + np.arange(d)).ravel()
+        b = (d * edges[:, 1:] + np.arange(d)).ravel()
         slot = self.pattern.slots
         self._laplacian_slots = np.concatenate([slot(a, a), slot(b, b), slot(a, b), slot(b, a)])
         self._laplacian_values = np.concatenate([np.ones(2 * len(a)), -np.ones(2 * len(a))])
@@ -135,8 +154,10 @@ class NodeBelief:
 
     def innovation_covariances(self, nodes: np.ndarray, J: np.ndarray, R_px2: float) -> np.ndarray:
         """S_i (k, 2, 2) = Σ_corners J_ic P_c,pp J_icᵀ + R for features with corner nodes (k, 4) and
-        Jacobian blocks J (k, 4, 2, 3); corners are uncorrelated under the localised prior."""
-        JP = J @ self.P[nodes][:, :, :3, :3]  # (k, 4, 2, 3)
+        Jacobian blocks J (k, 4, 2, d) (d = 2 or 3 position components); corners are uncorrelated under
+        the localised prior."""
+        d = J.shape[-1]
+        JP = J @ self.P[nodes][:, :, :d, :d]  # (k, 4, 2, d)
         S = (JP @ J.transpose(0, 1, 3, 2)).sum(axis=1)
         return S + R_px2 * np.eye(2)
 
@@ -171,7 +192,7 @@ class NodeBelief:
     ) -> tuple[UpdateStats, np.ndarray]:
         """Gate, then correct with the accepted features. quads (k,) each feature's quad, nodes (k, 4) its
         corner nodes, J (k, 4, 2, 3) ∂h/∂p blocks, residual ν = z − h(x⁻) (k, 2). Returns the statistics
-        and the accepted mask (k,).
+        and the accepted mask (k,). A planar belief reads J's x, y columns only (its z column must be 0).
 
         smoothness_m: how far the corrections of two nodes joined by a mesh edge are expected to differ
         (a zero-mean Gaussian prior on each difference). Localising the prior to node blocks dropped
@@ -184,39 +205,42 @@ class NodeBelief:
         on the belts, turning faster than predicted) moves all of them alike and must be corrected, not
         rejected. Gating the raw innovation rejected whole regions in fast moves, and features re-bound
         through the lagging estimate locked its error in (docs/architecture.md)."""
+        d = self.pattern.d
+        J = J[..., :d]
         S = self.innovation_covariances(nodes, J, R_px2)
         quad_mean = _quad_mean(quads, residual_px)
         accepted, d2 = gate(residual_px - quad_mean, S, gate_chi2)
         accepted &= ~self._odd_quads(quads, quad_mean, S, gate_chi2)
         if not accepted.any():
             return UpdateStats(0, len(accepted), 0.0), accepted
-        n, pat = len(self.x), self.pattern
-        Ja = J[accepted].transpose(0, 2, 1, 3).reshape(-1, 2, 12)  # (k, 2, 12): corner-major columns
-        # Hᵀ R⁻¹ H, summed per quad (features sorted by quad, then one reduceat).
-        outer = np.einsum("kia,kib->kab", Ja, Ja).reshape(-1, 144) / R_px2
+        n, pat, w = len(self.x), self.pattern, 4 * d
+        Ja = J[accepted].transpose(0, 2, 1, 3).reshape(-1, 2, w)  # (k, 2, 4d): corner-major columns
+        # Hᵀ R⁻¹ H: each feature's 4d x 4d outer product, summed into the pattern's slots by its quad.
+        outer = np.einsum("kia,kib->kab", Ja, Ja).reshape(-1, w * w) / R_px2
         q = quads[accepted]
-        order = np.argsort(q, kind="stable")
-        starts = np.flatnonzero(np.r_[True, np.diff(q[order]) != 0])
-        per_quad = np.add.reduceat(outer[order], starts, axis=0)
-        Ppp = self.P[:, :3, :3]
+        data = np.bincount(pat.quad_slots[q].ravel(), outer.ravel(), minlength=pat.nnz)
+        gain_diag = data[pat.diag_slots].reshape(n, d, d)  # measurement information on each node alone
+        Ppp = self.P[:, :d, :d]
         Ppp_inv = np.linalg.inv(Ppp)
-        data = np.bincount(pat.quad_slots[q[order][starts]].ravel(), per_quad.ravel(), minlength=pat.nnz)
-        gain_diag = data[pat.diag_slots].reshape(n, 3, 3)  # measurement information on each node alone
         data += np.bincount(pat.diag_slots.ravel(), Ppp_inv.ravel(), minlength=pat.nnz)
         if smoothness_m is not None:
-            w = 1.0 / smoothness_m**2
-            data += np.bincount(self._laplacian_slots, w * self._laplacian_values, minlength=pat.nnz)
+            data += np.bincount(
+                self._laplacian_slots, self._laplacian_values / smoothness_m**2, minlength=pat.nnz
+            )
         # Hᵀ R⁻¹ ν on the corner positions.
         g = np.bincount(
-            (3 * nodes[accepted][:, :, None] + np.arange(3)).ravel(),
+            (d * nodes[accepted][:, :, None] + np.arange(d)).ravel(),
             np.einsum("kia,ki->ka", Ja, residual_px[accepted]).ravel() / R_px2,
-            minlength=3 * n,
+            minlength=d * n,
         )
-        dp = pat.solve(data, g).reshape(n, 3)
-        dv = np.einsum("nij,njk,nk->ni", self.P[:, 3:, :3], Ppp_inv, dp)
-        self.x = self.x + np.concatenate([dp, dv], axis=1)
-        info = np.linalg.inv(self.P)
-        info[:, :3, :3] += gain_diag
-        P = np.linalg.inv(info)
+        dp = pat.solve(data, g).reshape(n, d)
+        dv = np.einsum("nij,njk,nk->ni", self.P[:, 3:, :d], Ppp_inv, dp)
+        self.x = self.x + np.concatenate([dp, np.zeros((n, 3 - d)), dv], axis=1)
+        # The localised posterior P⁺ = (P⁻¹ + E G Eᵀ)⁻¹, G the node's own measurement information on its
+        # positions E: by the push-through identity P⁺ = P − P E W Eᵀ P with W = (I + G Ppp)⁻¹ G (d x d,
+        # symmetric), one small solve per node instead of inverting two 6 x 6 matrices.
+        W = np.linalg.solve(np.eye(d) + gain_diag @ Ppp, gain_diag)
+        PE = self.P[:, :, :d]
+        P = self.P - PE @ W @ PE.transpose(0, 2, 1)
         self.P = 0.5 * (P + P.transpose(0, 2, 1))
         return UpdateStats(int(accepted.sum()), int((~accepted).sum()), float(d2[accepted].sum())), accepted

@@ -4,11 +4,15 @@ For each feature budget and mesh size the real tracker ticks over an hwsim recor
 KLT, prediction and correction run on real frames; the stage times are the tracker's own
 (time.perf_counter around each stage). Beside it, filterpy's dense EKF does the same correction
 (6 states per node, 2 measurements per feature, dense P, F, H) wherever it finishes within the budget.
-Figures are medians (p50) and 99th percentiles over the ticks after a warm-up.
+Figures are medians (p50) and 99th percentiles over the ticks after a warm-up. The tracker runs with one
+BLAS and one OpenCV thread, as in the daemon's compute process (the command sets them before numpy
+loads). `--plot` draws the tick against the node count, with a previous run's figures (`--baseline`)
+dashed beside this run's.
 """
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -20,7 +24,8 @@ from clothd.core.camera_model import CameraModel
 from clothd.core.mesh import QuadMesh, measurement_jacobian
 from clothd.tools.offline import OfflineTracking
 
-STAGES = ("klt", "predict", "update", "tick")
+# prepare: the frame's grey image and pyramid; resample: bookkeeping, the estimate, new features.
+STAGES = ("prepare", "klt", "predict", "update", "resample", "tick")
 WARMUP_TICKS = 3
 FILTERPY_BUDGET_S = 3.0  # one dense update slower than this is not worth repeating
 
@@ -133,7 +138,7 @@ def run_speed(
 
 def format_rows(rows: list[Row]) -> str:
     out = [
-        f"{'features':>8} {'mesh':>6} {'impl':>8} {'tracked':>7}  " + "  ".join(f"{s:>17}" for s in STAGES)
+        f"{'features':>8} {'mesh':>6} {'impl':>13} {'tracked':>7}  " + "  ".join(f"{s:>17}" for s in STAGES)
     ]
     keys = sorted(
         {(r.features, r.mesh, r.impl) for r in rows}, key=lambda k: (k[0], int(k[1].split("x")[0]), k[2])
@@ -145,10 +150,69 @@ def format_rows(rows: list[Row]) -> str:
             r = next((r for r in rows if (r.features, r.mesh, r.impl, r.stage) == (f, mesh, impl, s)), None)
             cells.append(f"{r.p50_ms:7.2f} /{r.p99_ms:8.2f}" if r else f"{'-':>17}")
             tracked = r.features_tracked if r else tracked
-        out.append(f"{f:>8} {mesh:>6} {impl:>8} {tracked:>7}  " + "  ".join(cells))
+        out.append(f"{f:>8} {mesh:>6} {impl:>13} {tracked:>7}  " + "  ".join(cells))
     out.append("(each cell: p50 / p99 ms)")
     return "\n".join(out)
 
 
 def rows_json(rows: list[Row]) -> list[dict[str, object]]:
     return [asdict(r) for r in rows]
+
+
+def read_rows(path: Path, impl_suffix: str = "") -> list[Row]:
+    """Rows from a `--json` file of this bench (an earlier run, or another tree's), their impl renamed
+    with impl_suffix appended ("clothd" -> "clothd before")."""
+    return [Row(**{**r, "impl": r["impl"] + impl_suffix}) for r in json.loads(path.read_text())]
+
+
+def _nodes(mesh: str) -> int:
+    nx, ny = (int(v) for v in mesh.split("x"))
+    return nx * ny
+
+
+def plot(rows: list[Row], path: Path, baseline: list[Row] | None = None) -> None:
+    """The tracker's tick (p50 solid, p99 dotted) against the mesh's node count, a line per feature
+    budget, with the baseline's tick p50 dashed; beside it the p50 of KLT, predict and update."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax, ax2) = plt.subplots(1, 2, figsize=(11, 4.5), dpi=110)
+    budgets = sorted({r.features for r in rows if r.impl == "clothd"})
+
+    def series(
+        source: list[Row], budget: int, stage: str, pick: str = "p50_ms", impl: str = "clothd"
+    ) -> tuple[list, list]:
+        pts = sorted(
+            (_nodes(r.mesh), getattr(r, pick))
+            for r in source
+            if r.impl == impl and r.features == budget and r.stage == stage
+        )
+        return [p[0] for p in pts], [p[1] for p in pts]
+
+    for i, budget in enumerate(budgets):
+        c = f"C{i}"
+        ax.plot(*series(rows, budget, "tick"), "o-", color=c, label=f"{budget} features, p50")
+        ax.plot(*series(rows, budget, "tick", "p99_ms"), ":", color=c, label=f"{budget} features, p99")
+        if baseline:
+            nodes, p50 = series(baseline, budget, "tick", impl="clothd before")
+            if nodes:
+                ax.plot(nodes, p50, "x--", color=c, alpha=0.7, label=f"{budget} features, p50 before")
+        for stage, style in (("klt", "s-"), ("predict", "^-"), ("update", "v-")):
+            ax2.plot(*series(rows, budget, stage), style, color=c, label=f"{stage}, {budget} features")
+    for a in (ax, ax2):
+        a.set_xlabel("mesh nodes")
+        a.set_ylabel("ms")
+        a.grid(True, alpha=0.3)
+        a.set_ylim(bottom=0)
+    ax.set_ylim(top=max(26.0, ax.get_ylim()[1]))
+    ax.axhline(15.0, color="k", linewidth=0.8, linestyle="-.", label="bar: p50 15 ms")
+    ax.axhline(25.0, color="grey", linewidth=0.8, linestyle="-.", label="bar: p99 25 ms")
+    ax.set_title("tracker tick (one core: 1 BLAS, 1 OpenCV thread)")
+    ax2.set_title("stages, p50")
+    ax.legend(fontsize=6, ncol=2)
+    ax2.legend(fontsize=6, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

@@ -60,6 +60,7 @@ class MeshEstimator:
             np.column_stack([nodes, np.zeros_like(nodes)]),
             np.tile(self._P0, (mesh.n_nodes, 1, 1)),
             mesh.quad_nodes(),
+            planar=True,  # the camera corrects x, y; heights come from folds.py (correct, _lift_folds)
         )
 
     def _started(self) -> tuple[QuadMesh, NodeBelief]:
