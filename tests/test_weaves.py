@@ -15,7 +15,14 @@ from hwsim.texture import TWILL_ANGLE_DEG, TWILL_PERIOD_M, cloth_texture, weave_
 from hwsim.world import World
 
 WEAVES = ("twill-turn-left", "twill-turn-right", "twill-push", "twill-spin")
-FAST = {"fast-050": 0.05, "fast-100": 0.10, "fast-150": 0.15, "fast-200": 0.20}
+FAST = {
+    "fast-050": 0.05,
+    "fast-100": 0.10,
+    "fast-150": 0.15,
+    "fast-200": 0.20,
+    "fast-300": 0.3,
+    "fast-400": 0.4,
+}
 
 
 def test_weave_slopes_run_across_the_wales_with_the_relief_s_depth() -> None:

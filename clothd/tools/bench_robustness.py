@@ -3,8 +3,9 @@
 Two sets of hwsim scenarios (docs/scenarios.md, "Weaves and fast belts"):
 - weaves: a strictly periodic plain twill with a relief, under low side light, turned both ways and
   pushed off centre; bar (each scenario): feature mean <= 0.3 px, worst <= 1.5 px, node RMSE <= 2 mm;
-- fast: every module carrying the denim at 50 to 200 mm/s, a 12 ms exposure with motion blur and heavy
-  sensor noise; bar: mean <= 0.5 px and node RMSE <= 2 mm at every speed. How accuracy falls with speed
+- fast: every module carrying the denim at 50 to 400 mm/s, a 12 ms exposure with motion blur and heavy
+  sensor noise; bar: mean <= 0.5 px and node RMSE <= 2 mm at every speed up to 200 mm/s (300 and 400
+  show where accuracy gives out). How accuracy falls with speed
   is printed as a table and drawn as a plot.
 
 The grading is bench_accuracy.grade's, unchanged: feature error against each feature's true pixel, node
@@ -19,7 +20,7 @@ from pathlib import Path
 from clothd.tools.bench_accuracy import AccuracyRow
 
 WEAVES = ("twill-turn-left", "twill-turn-right", "twill-push", "twill-spin")
-FAST = ("fast-050", "fast-100", "fast-150", "fast-200")
+FAST = ("fast-050", "fast-100", "fast-150", "fast-200", "fast-300", "fast-400")
 SETS = {"weaves": WEAVES, "fast": FAST}
 
 
@@ -28,9 +29,10 @@ class Bar:
     mean_px: float
     worst_px: float | None
     node_rmse_mm: float
+    up_to_mm_s: float | None = None  # the bar holds up to this belt speed; faster runs show the limit
 
 
-BARS = {"weaves": Bar(0.3, 1.5, 2.0), "fast": Bar(0.5, None, 2.0)}
+BARS = {"weaves": Bar(0.3, 1.5, 2.0), "fast": Bar(0.5, None, 2.0, 200.0)}
 
 
 @dataclass(frozen=True)
@@ -47,11 +49,13 @@ def set_of(scenario: str) -> str | None:
 
 
 def meets(row: AccuracyRow) -> bool | None:
-    """Whether a row meets its set's bar (None: the scenario is in no set)."""
+    """Whether a row meets its set's bar (None: the scenario is in no set, or beyond the bar's speeds)."""
     which = set_of(row.scenario)
     if which is None:
         return None
     bar = BARS[which]
+    if bar.up_to_mm_s is not None and speed_case(row.scenario).speed_mm_s > bar.up_to_mm_s + 1e-6:
+        return None
     ok = row.feat_mean_px <= bar.mean_px and row.lost_frames == 0
     if bar.worst_px is not None:
         ok &= row.feat_worst_px <= bar.worst_px
@@ -101,7 +105,7 @@ def format_speed_table(rows: list[AccuracyRow], mode: str) -> str:
             continue
         c = speed_case(r.scenario)
         rmse = f"{r.node_rmse_mm:6.2f} mm" if r.node_rmse_mm is not None else f"{'-':>9}"
-        verdict = "met" if meets(r) else "NOT met"
+        verdict = {True: "met", False: "NOT met", None: "beyond the bar"}[meets(r)]
         out.append(
             f"{c.speed_mm_s:5.0f} mm/s {c.px_per_frame:8.2f} {c.blur_px:4.2f} px {r.feat_mean_px:6.3f} px "
             f"{r.feat_worst_px:7.2f} {rmse}  {verdict}"
