@@ -70,7 +70,7 @@ class FeatureConfig(_Strict):
     # (0: never), within outline_search_px of the estimate. docs/architecture.md, "Periodic weaves".
     periodic_ratio: float = Field(20.0, ge=1, le=1e9, description="median λ1/λ2 that marks a periodic weave")
     periodic_lk_window_px: int = Field(21, ge=5, le=63, description="LK window on a periodic weave")
-    outline_per_side: int = Field(8, ge=0, le=200, description="edge points on each side of the mesh")
+    outline_per_side: int = Field(24, ge=0, le=200, description="edge points on each side of the mesh")
     outline_search_px: float = Field(4.0, gt=0, le=50, description="how far across the outline to search")
     resample_below_fraction: float = Field(0.7, gt=0, le=1, description="of max_features")
     resample_cell_px: int = Field(48, ge=8, le=640, description="a cell of the cloth with no feature")
