@@ -152,6 +152,46 @@ def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_bench_robustness(args: argparse.Namespace) -> int:
+    import json
+
+    from clothd.taichi_runtime import start_taichi
+    from clothd.tools.bench_accuracy import MODES, grade
+    from clothd.tools.bench_robustness import (
+        SETS,
+        format_speed_table,
+        format_table,
+        plot_speed,
+        recorded_exposure_s,
+        rows_json,
+    )
+    from clothd.tools.recordings import scenario_recording
+
+    cfg = load_config(args.config)
+    start_taichi(cfg.taichi.arch)
+    names = args.scenarios or [name for s in args.sets for name in SETS[s]]
+    rows = []
+    for scenario in names:
+        rec = scenario_recording(args.cache, scenario)
+        # The tracker is told the camera's exposure, as an integrator sets tracker.ekf.exposure_s.
+        exposure = {} if args.no_exposure else {"ekf": {"exposure_s": recorded_exposure_s(rec)}}
+        for label, model, use_input in MODES:
+            if label not in args.modes:
+                continue
+            mode_cfg = with_overrides(cfg, {"tracker": {"model": model, "use_input": use_input, **exposure}})
+            rows.append(grade(rec, scenario, label, mode_cfg.tracker).row)
+    print(format_table(rows))
+    if any(r.scenario in SETS["fast"] for r in rows):
+        for mode in dict.fromkeys(r.mode for r in rows):
+            print("\n" + format_speed_table(rows, mode))
+        args.plot.parent.mkdir(parents=True, exist_ok=True)
+        plot_speed(rows, args.plot)
+        print(f"\nplot: {args.plot}")
+    if args.json:
+        args.json.write_text(json.dumps(rows_json(rows), indent=1) + "\n")
+    return 0
+
+
 def _cmd_bench_speed(args: argparse.Namespace) -> int:
     import json
     import os
@@ -511,6 +551,22 @@ def build_parser() -> argparse.ArgumentParser:
     ba.add_argument("--config", type=Path)
     ba.add_argument("--json", type=Path)
     ba.set_defaults(func=_cmd_bench_accuracy)
+    brb = bsub.add_parser(
+        "robustness", help="issue 15's weaves (plain twill, side light, turns) and fast belts, graded"
+    )
+    brb.add_argument("--sets", nargs="+", choices=["weaves", "fast"], default=["weaves", "fast"])
+    brb.add_argument("--scenarios", nargs="+", help="these scenarios instead of the sets")
+    brb.add_argument("--modes", nargs="+", default=["mesh"], help="as bench accuracy's (default: mesh)")
+    brb.add_argument("--cache", type=Path, default=Path("out/bench"), help="where scenarios are recorded")
+    brb.add_argument(
+        "--plot", type=Path, default=Path("out/bench/robustness_speed.png"), help="accuracy vs belt speed"
+    )
+    brb.add_argument(
+        "--no-exposure", action="store_true", help="do not tell the tracker the recordings' exposure time"
+    )
+    brb.add_argument("--config", type=Path)
+    brb.add_argument("--json", type=Path)
+    brb.set_defaults(func=_cmd_bench_robustness)
     bl = bsub.add_parser("loop", help="the closed loop against hwsim serve: settling, missed ticks, load")
     bl.add_argument("--config", type=Path, help="configuration for the daemon (default: every default)")
     bl.add_argument("--run-seconds", type=float, default=60.0, help="how long to count missed ticks")

@@ -55,6 +55,23 @@ class FeatureConfig(_Strict):
     # correlates <= 0.5. The default lies between.
     lk_min_ncc: float = Field(0.6, ge=-1, le=1, description="the LK window must still correlate this well")
     ncc_window_px: int = Field(9, ge=3, le=63, description="the centre of the LK window that NCC compares")
+    # LK's covariance is sigma² G⁻¹: along a wale (an edge in the patch) a measurement says little. Above 1,
+    # the estimator takes each feature's R from its structure tensor, its weak side at most this many times
+    # the variance of its strong side, and the forward-backward check looks across the edge only
+    # (clothd/core/features.py). Off by default: on hwsim's plain twill it made the feature error worse
+    # (docs/benchmarks.md, "Weaves and fast belts").
+    aperture_max_ratio: float = Field(
+        1.0, ge=1, le=1e6, description="largest variance ratio of a measurement's weak to strong axis"
+    )
+    # A periodic weave (a plain twill: stripes, no corners) tells itself at the start: the median λ1/λ2 of
+    # the structure tensors of the first features is ~70-90 on hwsim's twill and ~4 on its denim. On such
+    # a cloth LK takes periodic_lk_window_px, and the outline becomes a measurement (clothd/core/
+    # outline_edges.py): the edge searched for across the mesh's border at outline_per_side points a side
+    # (0: never), within outline_search_px of the estimate. docs/architecture.md, "Periodic weaves".
+    periodic_ratio: float = Field(20.0, ge=1, le=1e9, description="median λ1/λ2 that marks a periodic weave")
+    periodic_lk_window_px: int = Field(21, ge=5, le=63, description="LK window on a periodic weave")
+    outline_per_side: int = Field(24, ge=0, le=200, description="edge points on each side of the mesh")
+    outline_search_px: float = Field(4.0, gt=0, le=50, description="how far across the outline to search")
     resample_below_fraction: float = Field(0.7, gt=0, le=1, description="of max_features")
     resample_cell_px: int = Field(48, ge=8, le=640, description="a cell of the cloth with no feature")
     edge_margin_px: float = Field(6.0, ge=0, le=100, description="keep new features this far inside")
@@ -108,6 +125,10 @@ class PhysicsConfig(_Strict):
 
 class EkfConfig(_Strict):
     meas_sigma_px: float = Field(0.7, gt=0, le=50)
+    # A frame exposed for exposure_s up to its time stamp shows a moving cloth smeared over that time, and
+    # LK finds the smear's middle: the measurement model of the mesh EKF places it where the nodes were
+    # exposure_s / 2 earlier (p - v exposure_s / 2). 0: the frame is an instant (estimators/mesh.py).
+    exposure_s: float = Field(0.0, ge=0, le=0.1, description="the camera's exposure, ending at the frame")
     process_pos_sigma_m: float = Field(0.0005, gt=0, le=1, description="per tick")
     process_vel_sigma_m_s: float = Field(0.01, gt=0, le=10, description="per tick")
     initial_pos_sigma_m: float = Field(0.002, gt=0, le=1)

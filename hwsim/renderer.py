@@ -21,7 +21,15 @@ from hwsim.camera import Camera
 from hwsim.cloth import ClothGrid
 from hwsim.scenario import Scenario
 from hwsim.scene import SceneState
-from hwsim.texture import belt_texture, cloth_texture, deck_texture, image_texture, mip_level_for, mip_pyramid
+from hwsim.texture import (
+    belt_texture,
+    cloth_texture,
+    deck_texture,
+    image_texture,
+    mip_level_for,
+    mip_pyramid,
+    weave_slopes,
+)
 
 MAX_ARMS = 4
 BELT_LOOP_M = 0.2  # belt texture period along the direction of travel
@@ -67,6 +75,21 @@ def _bilinear(tex: ti.template(), x: ti.f32, y: ti.f32, wrap_x: ti.template()) -
     return top * (1 - fy) + bottom * fy
 
 
+@ti.func
+def _bilinear2(tex: ti.template(), x: ti.f32, y: ti.f32) -> ti.types.vector(2, ti.f32):
+    """As _bilinear, for a 2-channel field, clamped on both axes."""
+    h, w = tex.shape[0], tex.shape[1]
+    x0f, y0f = ti.floor(x), ti.floor(y)
+    fx, fy = x - x0f, y - y0f
+    x0 = ti.math.clamp(ti.cast(x0f, ti.i32), 0, w - 1)
+    x1 = ti.math.clamp(ti.cast(x0f, ti.i32) + 1, 0, w - 1)
+    y0 = ti.math.clamp(ti.cast(y0f, ti.i32), 0, h - 1)
+    y1 = ti.math.clamp(ti.cast(y0f, ti.i32) + 1, 0, h - 1)
+    top = tex[y0, x0] * (1 - fx) + tex[y0, x1] * fx
+    bottom = tex[y1, x0] * (1 - fx) + tex[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
 @ti.data_oriented
 class Renderer:
     def __init__(self, scenario: Scenario, camera: Camera, grid: ClothGrid) -> None:
@@ -87,6 +110,9 @@ class Renderer:
         self.vpx = ti.Vector.field(2, ti.f32, shape=shape)
         self.vdepth = ti.field(ti.f32, shape=shape)
         self.vnormal = ti.Vector.field(3, ti.f32, shape=shape)
+        # Unit tangents along s and t, for the weave's relief (texture.relief_m) to tilt the normal.
+        self.vtan_s = ti.Vector.field(3, ti.f32, shape=shape)
+        self.vtan_t = ti.Vector.field(3, ti.f32, shape=shape)
         self.visible = ti.field(ti.i32, shape=shape)
         n_mod = tab.modules_x * tab.modules_y
         self.direction = ti.Vector.field(2, ti.f64, shape=n_mod)  # cos, sin of each module's heading
@@ -110,6 +136,15 @@ class Renderer:
         level = mip_level_for(spec.texels_per_m, px_per_m)
         self.cloth_tex = _texture_field(mip_pyramid(tex, level + 1)[level])
         self.cloth_texels_per_m = spec.texels_per_m / 2**level
+        # The relief's slopes, low-passed to the same mip level as the colour (a 1 x 1 dummy without).
+        self.relief = spec.relief_m > 0
+        slopes = np.zeros((1, 1, 2), np.float32)
+        if self.relief:
+            assert spec.kind != "image"
+            slopes = weave_slopes(spec.kind, spec.seed, size, spec.texels_per_m, spec.relief_m)
+            slopes = mip_pyramid(slopes, level + 1)[level]
+        self.cloth_slopes = ti.Vector.field(2, ti.f32, shape=slopes.shape[:2])
+        self.cloth_slopes.from_numpy(np.ascontiguousarray(slopes, dtype=np.float32))
         belt_tpm = max(px_per_m, 500.0)
         belt = belt_texture(spec.seed + 1, BELT_LOOP_M, self.table_spec.module_size_m, belt_tpm)
         self.belt_tex = _texture_field(belt)
@@ -143,7 +178,14 @@ class Renderer:
         # Light the side that faces the camera: the cloth's back is the same fabric.
         to_cam = hi.centre_m - state.nodes_m
         flip = np.sign(np.sum(normals * to_cam, axis=-1, keepdims=True))
-        self.vnormal.from_numpy((normals * np.where(flip == 0, 1, flip)).astype(np.float32))
+        sign = np.where(flip == 0, 1, flip)
+        self.vnormal.from_numpy((normals * sign).astype(np.float32))
+        if self.relief:
+            # The relief stands out of the sheet's front: seen from its back, tangents flip with the normal.
+            for field, axis in ((self.vtan_s, 1), (self.vtan_t, 0)):
+                tan = np.gradient(state.nodes_m, axis=axis)
+                tan = tan / np.maximum(np.linalg.norm(tan, axis=-1, keepdims=True), 1e-12)
+                field.from_numpy((tan * sign).astype(np.float32))
         self.direction.from_numpy(np.stack([np.cos(state.heading_rad), np.sin(state.heading_rad)], axis=1))
         self.travel.from_numpy(state.travel_m.astype(np.float32))
         seg = np.zeros((MAX_ARMS, 4), np.float32)
@@ -222,8 +264,17 @@ class Renderer:
             s += pw[k] * c[k, 1] * self.grid.dx_m
             t += pw[k] * c[k, 0] * self.grid.dy_m
             n += pw[k] * self.vnormal[c[k, 0], c[k, 1]]
-        n = n.normalized()
         tpm = ti.static(self.cloth_texels_per_m)
+        if ti.static(self.relief):
+            # Tilt the normal by the relief's slopes: n - dh/ds T_s - dh/dt T_t (a height field on the sheet).
+            ts = vec3f(0.0, 0.0, 0.0)
+            tt = vec3f(0.0, 0.0, 0.0)
+            for k in ti.static(range(3)):
+                ts += pw[k] * self.vtan_s[c[k, 0], c[k, 1]]
+                tt += pw[k] * self.vtan_t[c[k, 0], c[k, 1]]
+            g = _bilinear2(self.cloth_slopes, s * tpm - 0.5, t * tpm - 0.5)
+            n = n.normalized() - g[0] * ts.normalized() - g[1] * tt.normalized()
+        n = n.normalized()
         albedo = _bilinear(self.cloth_tex, s * tpm - 0.5, t * tpm - 0.5, False)
         return albedo * (ambient + (1.0 - ambient) * ti.max(0.0, n.dot(light)))
 

@@ -84,11 +84,16 @@ class TextureSpec(_Strict):
     seed: int = Field(7, ge=0)
     path: str | None = Field(None, description="image file, for kind: image")
     texels_per_m: float = Field(4000.0, ge=500.0, le=20000.0)
+    relief_m: float = Field(
+        0.0, ge=0.0, le=0.002, description="peak-to-peak depth of the wales (0: a flat print, lit evenly)"
+    )
 
     @model_validator(mode="after")
     def _path_for_image(self) -> TextureSpec:
         if (self.kind == "image") != (self.path is not None):
             raise ValueError("path is required for kind 'image' and only allowed there")
+        if self.kind == "image" and self.relief_m > 0:
+            raise ValueError("relief_m is for the woven kinds (denim, plain_twill), not an image")
         return self
 
 

@@ -125,6 +125,47 @@ def _denim_marks(rng: np.random.Generator, shape_px: tuple[int, int], px_per_mm:
     return marks
 
 
+def _twill_phase(
+    kind: TextureKind, rng: np.random.Generator, shape_px: tuple[int, int], texels_per_m: float
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Phase across the wales (H, W), in twill periods, and denim's noise fields (none for plain_twill).
+
+    The first draws from rng are always these fields, so cloth_texture and weave_height get the same
+    wales from the same seed."""
+    px_per_mm = texels_per_m / 1000.0
+    s_m = ((np.arange(shape_px[1], dtype=np.float32) + 0.5) / texels_per_m)[None, :]
+    t_m = ((np.arange(shape_px[0], dtype=np.float32) + 0.5) / texels_per_m)[:, None]
+    angle = np.deg2rad(TWILL_ANGLE_DEG)
+    # Phase across the wales, in twill periods (the normal to the wale direction (cos a, -sin a)).
+    phase = (s_m * np.sin(angle) + t_m * np.cos(angle)) / TWILL_PERIOD_M
+    if kind != "denim":
+        return phase, []
+    # Noise fields (sigma in mm, x then y): wale waviness, slub streaks along the warp (narrow in x, long
+    # in y), a finer slub component, 2-6 mm mottling that gives 2-D corners, and wash blotches.
+    sig_mm = [(6.0, 6.0), (0.35, 6.0), (0.8, 2.5), (1.2, 1.2), (14.0, 14.0)]
+    fields = _noise(rng, shape_px, [(a * px_per_mm, b * px_per_mm) for a, b in sig_mm])
+    return phase + 0.12 * fields[0], fields
+
+
+def weave_slopes(
+    kind: TextureKind, seed: int, size_m: tuple[float, float], texels_per_m: float, relief_m: float
+) -> np.ndarray:
+    """(H, W, 2) float32: the slopes (dh/ds, dh/dt) of the weave's relief, texel for texel with
+    cloth_texture(kind, seed, size_m, texels_per_m).
+
+    The wales stand proud of the weft between them: height h = relief_m / 2 x cos(2 pi phase + pi), so
+    that the weft band (phase 0, where cloth_texture shows the weft) is the groove and relief_m the
+    peak-to-peak depth. Under light from straight above a slope hardly changes the shading; under low
+    side light one flank of each wale is lit and the other shaded, and how strongly depends on how the
+    wales lie to the light, so a patch's look changes as the cloth turns (issue 15)."""
+    shape_px = _shape_px(size_m, texels_per_m)
+    phase, _ = _twill_phase(kind, np.random.default_rng(seed), shape_px, texels_per_m)
+    height = (0.5 * relief_m) * np.cos(2.0 * np.pi * phase + np.pi)
+    # np.gradient along columns (s) and rows (t), in metres per metre.
+    dh_dt, dh_ds = np.gradient(height.astype(np.float64), 1.0 / texels_per_m)
+    return np.ascontiguousarray(np.stack([dh_ds, dh_dt], axis=-1), dtype=np.float32)
+
+
 def cloth_texture(
     kind: TextureKind, seed: int, size_m: tuple[float, float], texels_per_m: float
 ) -> np.ndarray:
@@ -139,20 +180,10 @@ def cloth_texture(
     shape_px = _shape_px(size_m, texels_per_m)
     px_per_mm = texels_per_m / 1000.0
     rng = np.random.default_rng(seed)
-    s_m = ((np.arange(shape_px[1], dtype=np.float32) + 0.5) / texels_per_m)[None, :]
-    t_m = ((np.arange(shape_px[0], dtype=np.float32) + 0.5) / texels_per_m)[:, None]
-    angle = np.deg2rad(TWILL_ANGLE_DEG)
-    # Phase across the wales, in twill periods (the normal to the wale direction (cos a, -sin a)).
-    phase = (s_m * np.sin(angle) + t_m * np.cos(angle)) / TWILL_PERIOD_M
     denim = kind == "denim"
+    phase, fields = _twill_phase(kind, rng, shape_px, texels_per_m)
     if denim:
-        # Noise fields (sigma in mm, x then y): wale waviness, slub streaks along the warp (narrow in x, long
-        # in y), a finer slub component, 2-6 mm mottling that gives 2-D corners, and wash blotches.
-        sig_mm = [(6.0, 6.0), (0.35, 6.0), (0.8, 2.5), (1.2, 1.2), (14.0, 14.0)]
-        wobble, slub, slub2, mottle, blotch = _noise(
-            rng, shape_px, [(a * px_per_mm, b * px_per_mm) for a, b in sig_mm]
-        )
-        phase = phase + 0.12 * wobble
+        _, slub, slub2, mottle, blotch = fields
     # 3/1 twill: the weft shows on one band per period; a raised cosine keeps the profile band-limited.
     weft_w = 0.55 * ((1.0 + np.cos(2.0 * np.pi * phase)) / 2.0) ** 3
     warp: np.ndarray = np.broadcast_to(np.asarray(WARP_BGR, np.float32), (*shape_px, 3))

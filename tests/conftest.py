@@ -13,7 +13,16 @@ from hwsim import scenario as scenarios
 from hwsim.recording import record
 
 # Long enough to hold at least three 10-frame verify gaps, and for occlude the arm coming and going.
-SHORT_DURATION_S = {"translate": 1.0, "rotate": 1.0, "compress": 1.0, "occlude": 2.4, "random": 1.0}
+SHORT_DURATION_S = {
+    "translate": 1.0,
+    "rotate": 1.0,
+    "compress": 1.0,
+    "occlude": 2.4,
+    "random": 1.0,
+    # Issue 15's hard footage: a second of a plain twill turning under side light; the 200 mm/s run whole.
+    "twill-turn-left": 1.0,
+    "fast-200": 1.35,
+}
 
 
 @pytest.fixture(scope="session")

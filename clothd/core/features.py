@@ -153,7 +153,15 @@ class FeatureEngine:
         back, ok2 = self._lk(cur.gray, prev.gray, p1, None if guess is None else p1 - (guess - p0))
         converged = ok1 & ok2 & np.isfinite(p1).all(axis=1) & np.isfinite(back).all(axis=1)
         fb = np.full(n, np.inf)
-        fb[converged] = np.linalg.norm(back[converged] - p0[converged], axis=1)
+        miss = back[converged] - p0[converged]
+        if self.cfg.aperture_max_ratio > 1.0:
+            # Along a wale LK has nothing to hold on to, so there the way back lands anywhere near the
+            # start: only the miss across the patch's edge tells a mistracked point (the LK covariance's
+            # whitening, as the estimator weighs the measurement).
+            c = self.cfg
+            W = aperture_whitening(prev.gray, p0[converged], c.lk_window_px, c.aperture_max_ratio)
+            miss = np.einsum("kab,kb->ka", W, miss)
+        fb[converged] = np.linalg.norm(miss, axis=1)
         h, w = cur.gray.shape
         inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
         ok = converged & (fb <= self.cfg.fb_max_error_px) & inside
@@ -250,6 +258,57 @@ def _patch_ncc(a: np.ndarray, b: np.ndarray, pa: np.ndarray, pb: np.ndarray, siz
     denom = np.sqrt(np.maximum(var_a, 0.0) * np.maximum(var_b, 0.0))
     # A flat patch (no texture in either frame) correlates with nothing: 0, as in hwsim.verify.
     return np.where(denom > 1e-6, cov / np.maximum(denom, 1e-6), 0.0).astype(np.float32)
+
+
+def structure_ratios(gray: np.ndarray, px: np.ndarray, window_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """λ1/λ2 (n,) of the structure tensor G (the sum of ∇I ∇Iᵀ, central differences) over the window around
+    each rounded pixel px (n, 2), and the weak direction e2 (n, 2); ratio inf where the patch has texture in
+    one direction only, nan where none at all. A woven stripe gives a large ratio, a corner about 1."""
+    n = len(px)
+    if n == 0:
+        return np.zeros(0), np.zeros((0, 2))
+    h, w = gray.shape
+    half = window_px // 2 + 1
+    d = np.arange(-half, half + 1)
+    ij = np.round(np.nan_to_num(np.asarray(px, np.float64).reshape(-1, 2))).astype(np.int64)
+    cols = np.clip(ij[:, 0, None] + d, 0, w - 1)  # (n, m)
+    rows = np.clip(ij[:, 1, None] + d, 0, h - 1)
+    patch = gray[rows[:, :, None], cols[:, None, :]].astype(np.float32)  # (n, m, m)
+    gx = patch[:, 1:-1, 2:] - patch[:, 1:-1, :-2]
+    gy = patch[:, 2:, 1:-1] - patch[:, :-2, 1:-1]
+    a = np.einsum("kij,kij->k", gx, gx, dtype=np.float64)
+    b = np.einsum("kij,kij->k", gx, gy, dtype=np.float64)
+    c = np.einsum("kij,kij->k", gy, gy, dtype=np.float64)
+    # Eigen-decomposition of [[a, b], [b, c]] in closed form: λ1 >= λ2, e2 the weak direction.
+    mean, half_gap = (a + c) / 2.0, np.sqrt(((a - c) / 2.0) ** 2 + b**2)
+    l1, l2 = mean + half_gap, mean - half_gap
+    angle = 0.5 * np.arctan2(2.0 * b, a - c)  # direction of e1
+    e2 = np.stack([-np.sin(angle), np.cos(angle)], axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(l1 > 1e-9, l1 / np.maximum(l2, 0.0), np.nan)
+    return ratio, e2
+
+
+def aperture_whitening(gray: np.ndarray, px: np.ndarray, window_px: int, max_ratio: float) -> np.ndarray:
+    """(n, 2, 2) float64 W per point px (n, 2): the map that whitens an LK measurement there, relative to
+    one of a corner that is equally sharp in every direction.
+
+    LK's error covariance is sigma_n² G⁻¹ (G the structure tensor: the sum over its window of ∇I ∇Iᵀ), so
+    where the patch has an edge and little else (a twill's wale, the aperture problem) the position along
+    the edge is barely measured: LK leaves it near its start (the filter's prediction) plus noise. The
+    measurement covariance is taken as sigma² λ1 G⁻¹ = sigma² (e1 e1ᵀ + (λ1/λ2) e2 e2ᵀ): the meas_sigma
+    across the edge, λ1/λ2 (at most max_ratio) times its variance along it. W = R^(-1/2) sigma =
+    e1 e1ᵀ + sqrt(λ2/λ1) e2 e2ᵀ. Gradients: central differences on the window around the rounded pixel."""
+    out = np.tile(np.eye(2), (len(px), 1, 1))
+    if len(px) == 0:
+        return out
+    ratio, e2 = structure_ratios(gray, px, window_px)
+    flat = np.isnan(ratio)  # no texture at all: leave it isotropic, the gate judges it
+    ratio = np.clip(np.nan_to_num(ratio, nan=1.0, posinf=max_ratio), 1.0, max_ratio)
+    shrink = 1.0 / np.sqrt(ratio) - 1.0
+    shrink[flat] = 0.0
+    out += shrink[:, None, None] * np.einsum("ki,kj->kij", e2, e2)
+    return out
 
 
 def coverage_holes(mask: np.ndarray, px: np.ndarray, cell_px: int) -> np.ndarray:

@@ -26,9 +26,16 @@ from clothd.core.conveyor import BeltField, ConveyorLayout, ModuleModel
 from clothd.core.ekf import UpdateStats
 from clothd.core.estimators import Measurements, make_estimator
 from clothd.core.feature_set import FeatureSet
-from clothd.core.features import FeatureEngine, GrayFrame, coverage_holes
+from clothd.core.features import (
+    FeatureEngine,
+    GrayFrame,
+    aperture_whitening,
+    coverage_holes,
+    structure_ratios,
+)
 from clothd.core.mesh import QuadMesh
 from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.outline_edges import OutlineEdges
 from clothd.core.segmentation import (
     ClothColour,
     ClothRegion,
@@ -64,7 +71,12 @@ class Tracker:
         self.layout = layout
         self.roi = roi
         self.clock = clock or (lambda: 0.0)
-        self.engine = FeatureEngine(cfg.features)
+        self._engine_default = FeatureEngine(cfg.features)
+        # A periodic weave's stripes need a wider LK window to hold some texture across them.
+        self._engine_periodic = FeatureEngine(
+            cfg.features.model_copy(update={"lk_window_px": cfg.features.periodic_lk_window_px})
+        )
+        self.engine = self._engine_default
         self.anchors = AnchorFrames(cfg.features, self.engine)
         self.estimator = make_estimator(cfg, camera_model)
         # The modules keep moving whatever the tracker believes, so their model survives a reset.
@@ -85,6 +97,10 @@ class Tracker:
         self.features: FeatureSet | None = None
         self.colour: ClothColour | None = None  # the cloth's colour against the background, from the start
         self.initial_features = 0  # what the first frame's detection found on the whole cloth
+        self.outline: OutlineEdges | None = None  # the outline's edge points (clothd/core/outline_edges.py)
+        self.periodic = False  # the cloth is a periodic weave (FeatureConfig.periodic_ratio)
+        self.engine = self._engine_default
+        self.anchors.engine = self.engine
         self.anchors.reset()
 
     def step(self, image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None) -> Estimate:
@@ -110,7 +126,16 @@ class Tracker:
         keep = result.ok
         stats = UpdateStats(int(keep.sum()), 0, 0.0)
         if keep.any():
-            stats, accepted = self.estimator.correct(Measurements(features, measured, keep))
+            whiten = None
+            if self.cfg.features.aperture_max_ratio > 1.0:
+                whiten = aperture_whitening(
+                    frame.gray, measured, self.cfg.features.lk_window_px, self.cfg.features.aperture_max_ratio
+                )
+            edges = None
+            if self.outline is not None:
+                outline = self.outline
+                edges = lambda nodes_m: outline.measure(image, nodes_m)  # noqa: E731
+            stats, accepted = self.estimator.correct(Measurements(features, measured, keep, whiten, edges))
             keep = keep & accepted
         t4 = self.clock()
         meas = measured[keep]
@@ -159,6 +184,26 @@ class Tracker:
         mask = cv2.bitwise_and(outline_mask, region.mask)
         px = self.engine.detect(frame, mask, f.max_features).astype(np.float64)
         self.initial_features = len(px)
+        # A periodic weave: stripes everywhere, so the first features' structure tensors are nearly
+        # rank one (the aperture problem). Then a wider LK window, and the outline as a measurement.
+        ratios, _ = structure_ratios(frame.gray, px, f.lk_window_px)
+        self.periodic = (
+            len(px) > 0 and float(np.nanmedian(np.nan_to_num(ratios, posinf=1e12))) >= f.periodic_ratio
+        )
+        if self.periodic:
+            self.engine = self._engine_periodic
+            self.anchors.engine = self.engine
+        state = self.estimator.estimate()
+        if (
+            self.periodic
+            and f.outline_per_side > 0
+            and region.colour is not None
+            and state.nodes_m is not None
+        ):
+            self.outline = OutlineEdges(
+                self.mesh, region.colour, self.camera_model, f.outline_per_side, f.outline_search_px, 100.0
+            )
+            self.outline.measure(image, state.nodes_m.reshape(-1, 3))  # the points' offsets at the start
         # Cloth space is where the cloth lies now.
         self.features.add(px, self.camera_model.backproject_to_plane(px)[:, :2], np.ones(len(px), bool))
         if f.anchor:

@@ -7,6 +7,7 @@ features' material points and their measurements, and asks it where the features
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -16,15 +17,21 @@ from clothd.core.conveyor import BeltField
 from clothd.core.ekf import UpdateStats
 from clothd.core.feature_set import FeatureSet
 from clothd.core.mesh import QuadMesh
+from clothd.core.outline_edges import EdgeMeasurements
 
 
 @dataclass(frozen=True)
 class Measurements:
-    """This frame's LK result: features (n), measured pixels (n, 2), and which LK kept (n,) bool."""
+    """This frame's LK result: features (n), measured pixels (n, 2), and which LK kept (n,) bool.
+    whiten: (n, 2, 2) each measurement's whitening relative to meas_sigma_px (features.aperture_whitening),
+    None for isotropic measurements."""
 
     features: FeatureSet
     px: np.ndarray
     ok: np.ndarray
+    whiten: np.ndarray | None = None
+    # The cloth's outline measured against node positions (n, 3) (clothd/core/outline_edges.py), or None.
+    edges: Callable[[np.ndarray], EdgeMeasurements] | None = None
 
 
 @dataclass(frozen=True)

@@ -93,17 +93,47 @@ class MeshEstimator:
         accepted = np.ones(len(m.ok), bool)
         idx = np.flatnonzero(m.ok)
         sub = m.features.binding.subset(idx)
-        pred, J = measurement_jacobian(self.camera_model, belief.positions_m, sub)
+        seen_m = self._seen_positions_m()
+        pred, J = measurement_jacobian(self.camera_model, seen_m, sub)
         # The camera corrects the nodes on the table plane only. From above, height barely moves a pixel,
         # and a filter free to use it explained in-plane model error with it: nodes floated 15-20 mm up
         # on flat cloth. Height comes from inextensibility instead (_lift_folds).
+        residual = m.px[idx] - pred
+        whiten = None if m.whiten is None else m.whiten[idx]
+        quads, nodes = sub.quad, sub.nodes
+        if m.edges is not None:
+            # The outline's points join the features: same model, whitened to measure across the edge only.
+            edges = m.edges(seen_m)
+            on = np.flatnonzero(edges.ok)
+            eb = edges.binding.subset(on)
+            epred, eJ = measurement_jacobian(self.camera_model, seen_m, eb)
+            ew = edges.whiten[on]
+            whiten = np.concatenate([np.tile(np.eye(2), (len(idx), 1, 1)) if whiten is None else whiten, ew])
+            residual = np.concatenate([residual, edges.px[on] - epred])
+            J = np.concatenate([J, eJ])
+            quads, nodes = np.concatenate([quads, eb.quad]), np.concatenate([nodes, eb.nodes])
         J[..., 2] = 0.0
+        if whiten is not None:
+            # An anisotropic R_i = sigma² W_i⁻² enters the isotropic correction as W_i ν and W_i J: the
+            # information Jᵀ R⁻¹ J, Jᵀ R⁻¹ ν and the gate's Mahalanobis distance are then exactly R_i's.
+            residual = np.einsum("kab,kb->ka", whiten, residual)
+            J = np.einsum("kab,kcbd->kcad", whiten, J)
         stats, inside = belief.correct(
-            sub.quad, sub.nodes, J, m.px[idx] - pred, e.meas_sigma_px**2, e.gate_chi2, e.smoothness_sigma_m
+            quads, nodes, J, residual, e.meas_sigma_px**2, e.gate_chi2, e.smoothness_sigma_m
         )
+        inside = inside[: len(idx)]
         accepted[idx[~inside]] = False
         self._lift_folds()
         return stats, accepted
+
+    def _seen_positions_m(self) -> np.ndarray:
+        """Node positions (n, 3) as the frame shows them: where they were in the middle of the exposure,
+        p - v exposure_s / 2 (to first order; the velocity as predicted). With exposure_s 0, p. The
+        Jacobian with respect to p is the same, so only where h(x) is evaluated changes."""
+        _, belief = self._started()
+        if self.ekf.exposure_s <= 0.0:
+            return belief.positions_m
+        return np.asarray(belief.positions_m - (0.5 * self.ekf.exposure_s) * belief.x[:, 3:6])
 
     def _lift_folds(self) -> None:
         """Set the node heights from how much shorter the cloth is on the table than at rest."""
@@ -116,8 +146,9 @@ class MeshEstimator:
         belief.set_heights(z.ravel(), self.ekf.initial_pos_sigma_m, self.ekf.initial_vel_sigma_m_s)
 
     def cloth_coordinates(self, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        mesh, belief = self._started()
-        return cloth_coordinates(mesh, self.camera_model.project(belief.positions_m), px)
+        mesh, _ = self._started()
+        # px were found in this frame: bind them through the nodes as the frame shows them.
+        return cloth_coordinates(mesh, self.camera_model.project(self._seen_positions_m()), px)
 
     def outline_px(self) -> np.ndarray | None:
         mesh, belief = self._started()
