@@ -29,13 +29,22 @@ class FramePhaseLock:
         self.max_shift_s = max_shift_s
         self.wait_s = wait_s
         self._arrivals: deque[float] = deque(maxlen=ARRIVALS_KEPT)
+        # Set as frames arrive: the camera's period while locked, and when the last frame was due on the
+        # arrivals' grid (its median phase: late frames are the usual jitter, and the compute waits for them).
+        self._frame_s: float | None = None
+        self._last_due_s = 0.0
 
     def frame_arrived(self, t_mono_s: float) -> None:
         """A new frame the compute used, stamped when it arrived (the host's monotonic clock)."""
-        if not self._arrivals or t_mono_s > self._arrivals[-1]:
-            self._arrivals.append(t_mono_s)
+        if self._arrivals and t_mono_s <= self._arrivals[-1]:
+            return
+        self._arrivals.append(t_mono_s)
+        self._frame_s = self._whole_ticks_period_s()
+        if self._frame_s is not None:
+            back = np.arange(len(self._arrivals))[::-1]  # frames back from the last
+            self._last_due_s = float(np.median(np.asarray(self._arrivals) + back * self._frame_s))
 
-    def frame_period_s(self) -> float | None:
+    def _whole_ticks_period_s(self) -> float | None:
         """The camera's frame period while it is a whole number of ticks; None otherwise."""
         if len(self._arrivals) < MIN_ARRIVALS:
             return None
@@ -48,18 +57,15 @@ class FramePhaseLock:
 
     @property
     def locked(self) -> bool:
-        return self.frame_period_s() is not None
+        return self._frame_s is not None
 
     def _next_due_s(self, after_s: float) -> float | None:
-        """When the first frame not yet seen is due, on the arrivals' grid (its median phase: late frames
-        are the usual jitter, and the compute waits for them), at or after after_s - one period."""
-        frame_s = self.frame_period_s()
+        """When the first frame not yet seen is due, on the arrivals' grid, at or after after_s - one
+        period."""
+        frame_s = self._frame_s
         if frame_s is None:
             return None
-        last = self._arrivals[-1]
-        k = np.arange(len(self._arrivals))[::-1]  # frames back from the last
-        phase_s = float(np.median(np.asarray(self._arrivals) + k * frame_s)) - last
-        due = last + phase_s + frame_s
+        due = self._last_due_s + frame_s
         while due < after_s - self.period_s:  # frames were missed (camera paused): the grid goes on
             due += frame_s
         return due
