@@ -6,8 +6,11 @@ delayed every API request and tick timer behind them (docs/benchmarks.md, "The c
 daemon sends one TickRequest per tick over a pipe (compute_process.py) and gets one TickReply back;
 this process is the only one that calls Taichi.
 
-Any exception in a tick is answered with all-stop commands and state "fault"; the daemon treats the
-death of the process itself as a fault too, and stops the modules.
+A tick replies as soon as its commands are ready; what they do not wait for (the tracker's upkeep, the
+recording and the annotated view) follows in `after_reply`, and the view and its timing travel with the
+next reply. Any exception in a tick is answered with all-stop commands and state "fault", and one in its
+after-reply work answers the next tick so; the daemon treats the death of the process itself as a fault
+too, and stops the modules.
 """
 
 from __future__ import annotations
@@ -88,6 +91,18 @@ class ComputeSpec:
     foxglove: FoxgloveConfig | None = None  # the live server's section (None: off)
 
 
+@dataclass(frozen=True)
+class _AfterReply:
+    """What a tick leaves for after its reply: its request, frame, the estimate it tracked (None when the
+    frame was not new) and the estimate and flatness its commands came from."""
+
+    req: TickRequest
+    frame: CameraFrame | None
+    tracked: Estimate | None
+    estimate: Estimate | None
+    flatness: Flatness | None
+
+
 class Compute:
     """One tick's tracking and control, and the view; lives in the compute process."""
 
@@ -112,6 +127,10 @@ class Compute:
         self._estimate: Estimate | None = None
         self._flatness: Flatness | None = None  # of _estimate: read once per frame, kept between frames
         self._last_frame_index = -1
+        self._after: _AfterReply | None = None  # the last tick's work left for after its reply
+        self._late_timing: dict[str, float] = {}  # that work's stage times, for the next reply
+        self._late_view: bytes | None = None  # the view it drew, for the next reply
+        self._after_failed = False
 
     def start(self) -> None:
         if self.foxglove is not None:
@@ -137,7 +156,10 @@ class Compute:
         )
 
     def tick(self, req: TickRequest) -> TickReply:
-        timing: dict[str, float] = {}
+        if self._after_failed:
+            self._after_failed = False
+            return self.stop_reply("fault")
+        timing, self._late_timing = self._late_timing, {}
         frame = self._frame(req.frame_wait_until_mono_s, timing)  # its wait is not the compute's time
         t0 = time.perf_counter()
         if req.reset:
@@ -149,42 +171,66 @@ class Compute:
         self._record_requests(req)
         new_frame = frame is not None and frame.index != self._last_frame_index
         est = self._estimate
+        tracked = None
         if frame is not None and new_frame:
-            est = self.tracker.step(frame.image, frame.t_mono_s, req.commands_in_force)
+            est = tracked = self.tracker.track(frame.image, frame.t_mono_s, req.commands_in_force)
             self._estimate = est
             self._flatness = self._read_flatness(est)
             self._last_frame_index = frame.index
             timing.update({f"tracker_{k}": v for k, v in est.timing_s.items()})
-            if self.recorder is not None:
-                t_rec = time.perf_counter()
-                # The commands in force while this frame was captured: replay feeds them back the same way.
-                self.recorder.add(frame.image, frame.t_mono_s, req.commands_in_force, est)
-                timing["record"] = time.perf_counter() - t_rec
-            if self.foxglove is not None:  # queued only: the writer thread encodes and writes
-                self.foxglove.add(frame.image, frame.t_mono_s, req.commands_in_force, est)
         t1 = time.perf_counter()
         flatness = self._flatness
         state, commands, halt = self._control(frame is not None, est, req.setpoint, flatness)
         timing["control"] = time.perf_counter() - t1
         timing["compute"] = time.perf_counter() - t0
-        jpeg = None
-        if req.want_view and frame is not None:
-            jpeg = self.view.render(frame.image, est, req.setpoint, flatness)
-        frame_t = frame.t_mono_s if frame is not None else None
-        recording = self._recording_status()
+        self._after = _AfterReply(req, frame, tracked, est, flatness)
+        view, self._late_view = self._late_view, None
         return TickReply(
             state,
             est,
             commands,
             new_frame,
-            frame_t,
+            frame.t_mono_s if frame is not None else None,
             self.frames.health(),
             timing,
-            jpeg,
-            recording,
+            view,
+            self._recording_status(),
             halt,
             flatness,
         )
+
+    def after_reply(self) -> None:
+        """The last tick's work that its commands do not wait for: the tracker's upkeep, the recording of
+        the frame and the view. A failure here stops the modules at the next tick."""
+        after, self._after = self._after, None
+        if after is None:
+            return
+        try:
+            self._do_after(after)
+        except Exception:  # as in a tick: a bug must not take the loop with it
+            log.exception("a tick's after-reply work failed; stopping the modules, tracking afresh")
+            self._after_failed = True
+            self.tracker.reset()  # whatever the upkeep left half done
+            self._estimate = self._flatness = None
+
+    def _do_after(self, after: _AfterReply) -> None:
+        timing = self._late_timing
+        upkeep_s = self.tracker.upkeep()
+        if upkeep_s is not None:
+            timing["tracker_resample"] = upkeep_s
+        frame, req = after.frame, after.req
+        if after.tracked is not None and frame is not None:
+            if self.recorder is not None:
+                t_rec = time.perf_counter()
+                # The commands in force while this frame was captured: replay feeds them back the same way.
+                self.recorder.add(frame.image, frame.t_mono_s, req.commands_in_force, after.tracked)
+                timing["record"] = time.perf_counter() - t_rec
+            if self.foxglove is not None:  # queued only: the writer thread encodes and writes
+                self.foxglove.add(frame.image, frame.t_mono_s, req.commands_in_force, after.tracked)
+        if req.want_view and frame is not None:
+            t_view = time.perf_counter()
+            self._late_view = self.view.render(frame.image, after.estimate, req.setpoint, after.flatness)
+            timing["view"] = time.perf_counter() - t_view
 
     def _frame(self, wait_until_mono_s: float | None, timing: dict[str, float]) -> CameraFrame | None:
         """The newest frame; when the tick started as a frame was due, waiting for it up to the bound."""
@@ -283,5 +329,6 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
                 log.exception("tick failed; stopping the modules")
                 reply = compute.stop_reply("fault")
             conn.send(reply)
+            compute.after_reply()
     finally:
         compute.close()

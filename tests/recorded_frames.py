@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from clothd.compute import Compute, ComputeSpec
+from clothd.compute import Compute, ComputeSpec, TickReply, TickRequest
 from clothd.config import CellConfig, ControlConfig, TrackerConfig
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.workspace import Workspace
@@ -63,3 +63,10 @@ def compute_on(recording: Path, frames: int = 4, cell: CellConfig | None = None,
     )
     built = dataclasses.replace(built, **spec)
     return Compute(built, built.frame_source())
+
+
+def tick(compute: Compute, req: TickRequest) -> TickReply:
+    """One tick as the compute process serves it: the reply, then the work left for after it."""
+    reply = compute.tick(req)
+    compute.after_reply()
+    return reply

@@ -20,7 +20,7 @@ import pytest
 import yaml
 from foxglove_client import SUBPROTOCOL, FoxgloveClient
 from mcap_files import FOXGLOVE_SCHEMAS, read_mcap, read_mcap_front_to_back
-from recorded_frames import compute_on
+from recorded_frames import compute_on, tick
 from websockets.sync.client import connect
 from websockets.typing import Subprotocol
 
@@ -45,7 +45,7 @@ def _commands(k: int) -> ModuleCommands:
 
 
 def _tick(compute: Compute, k: int, **request: Any) -> TickReply:
-    return compute.tick(TickRequest(IDLE, _commands(k), reset=False, want_view=False, **request))
+    return tick(compute, TickRequest(IDLE, _commands(k), reset=False, want_view=False, **request))
 
 
 def test_a_session_recorded_as_mcap_reads_back_with_the_exports_channels(

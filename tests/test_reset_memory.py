@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from recorded_frames import compute_on
+from recorded_frames import compute_on, tick
 
 from clothd.compute import TickRequest
 from clothd.core.control import Setpoint
@@ -25,8 +25,8 @@ def test_resets_do_not_grow_the_compute(short_recording: Callable[[str], Path]) 
     stopped = ModuleCommands.all_stop(compute.spec.layout.n_modules)
     rss: dict[int, float] = {}
     for k in range(1, RESETS + 1):
-        compute.tick(TickRequest(idle, stopped, reset=True, want_view=False))  # re-initialises
-        reply = compute.tick(TickRequest(idle, stopped, reset=False, want_view=False))  # tracks
+        tick(compute, TickRequest(idle, stopped, reset=True, want_view=False))  # re-initialises
+        reply = tick(compute, TickRequest(idle, stopped, reset=False, want_view=False))  # tracks
         assert reply.estimate is not None and reply.estimate.tracking and reply.estimate.nodes_m is not None
         if k in (10, RESETS):
             rss[k] = rss_mb()

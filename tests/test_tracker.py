@@ -140,3 +140,25 @@ def test_lost_cloth_is_reported_and_tracking_reinitialises(short_recording: Reco
     assert tracker.step(blank, frames[1][0], None).status == "lost"
     assert tracker.step(blank, frames[2][0], None).status == "lost"
     assert tracker.step(frames[3][1], frames[3][0], None).status == "tracking"
+
+
+def test_tracking_then_upkeep_gives_what_a_step_gives(short_recording: Recorder) -> None:
+    """The live loop sends its commands between `track` and `upkeep`; split so, the tracker estimates
+    exactly what `step` does, and an upkeep left out is done by the next `track`."""
+    rec = short_recording("occlude")
+    footage = open_footage(rec)
+    camera = read_camera(rec / "camera.json")
+    stepped, split, skipped = (Tracker(TrackerConfig(model="mesh"), camera, None) for _ in range(3))
+    for k, (t_s, image) in enumerate(footage.frames()):
+        a = stepped.step(image, t_s, None)
+        b = split.track(image, t_s, None)
+        split.upkeep()
+        c = skipped.track(image, t_s, None)  # never upkept but by the next track
+        for est in (b, c):
+            assert est.nodes_m is not None and a.nodes_m is not None
+            np.testing.assert_array_equal(est.nodes_m, a.nodes_m)
+            np.testing.assert_array_equal(est.feature_id, a.feature_id)
+        if k == 20:
+            break
+    assert split.upkeep() is None  # nothing left to do
+    assert len(set(a.feature_id.tolist())) > 0

@@ -56,6 +56,7 @@ class Tracker:
     camera_model: the camera's geometry over the table; layout: the module array under the cloth (None
     when the footage has no conveyor input); roi "auto" finds the cloth in the first frame, "full" takes
     the whole frame as the cloth. `step` is called once per frame, in order; `reset` forgets the cloth.
+    A live loop calls `track` and, once the estimate's commands are out, `upkeep`: `step` is the two.
     """
 
     def __init__(
@@ -102,10 +103,34 @@ class Tracker:
         self.engine = self._engine_default
         self.anchors.engine = self.engine
         self.anchors.reset()
+        self._upkeep_frame: GrayFrame | None = None  # the tracked frame whose upkeep is still to do
 
     def step(self, image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None) -> Estimate:
         """Track one BGR frame captured at frame_t_s, with `commands` the modules' commands in force while
         it was taken (None: not known). The first frame, and the first after a loss, initialises."""
+        estimate = self.track(image, frame_t_s, commands)
+        upkeep_s = self.upkeep() or 0.0
+        if "tick" in estimate.timing_s:
+            estimate.timing_s["resample"] = upkeep_s
+            estimate.timing_s["tick"] += upkeep_s
+        return estimate
+
+    def upkeep(self) -> float | None:
+        """The last tracked frame's upkeep, which its estimate does not need: new features where the cloth
+        has too few, and the new features' anchors. Its time in seconds; None when there was none to do."""
+        frame, self._upkeep_frame = self._upkeep_frame, None
+        if frame is None:
+            return None
+        t0 = self.clock()
+        self._resample(frame)
+        if self.cfg.features.anchor:
+            assert self.features is not None
+            self.anchors.adopt(frame, self.features)
+        return self.clock() - t0
+
+    def track(self, image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None) -> Estimate:
+        """`step` up to the estimate; `upkeep` does the rest (or the next call, if it was not called)."""
+        self.upkeep()
         timing: dict[str, float] = {}
         t0 = self.clock()
         frame = self.engine.prepare(image)
@@ -145,13 +170,11 @@ class Tracker:
             self.reset()
             estimate = _lost(frame_t_s, timing)
         else:
-            self._resample(frame, image.shape[:2])
-            if self.cfg.features.anchor:
-                self.anchors.adopt(frame, features)
+            self._upkeep_frame = frame
         self.prev, self.prev_t_s = frame, frame_t_s
         t5 = self.clock()
         timing.update(
-            prepare=t1 - t0, predict=t2 - t1, klt=t3 - t2, update=t4 - t3, resample=t5 - t4, tick=t5 - t0
+            prepare=t1 - t0, predict=t2 - t1, klt=t3 - t2, update=t4 - t3, estimate=t5 - t4, tick=t5 - t0
         )
         return estimate
 
@@ -219,12 +242,12 @@ class Tracker:
         too_few = alive < max(MIN_FEATURES_ALIVE, self.cfg.features.max_features // 50)
         return too_few or stats.nis_per_measurement > self.cfg.ekf.divergence_nis
 
-    def _resample(self, frame: GrayFrame, shape: tuple[int, int]) -> None:
+    def _resample(self, frame: GrayFrame) -> None:
         """Detect new features where the cloth has too few, and bind them through the estimate."""
         features = self.features
         assert features is not None
         f = self.cfg.features
-        h, w = shape
+        h, w = frame.gray.shape[:2]
         if len(features) < MIN_FEATURES_TO_RESAMPLE:
             return
         outline = self.estimator.outline_px()

@@ -24,8 +24,9 @@ from clothd.core.camera_model import CameraModel
 from clothd.core.mesh import QuadMesh, measurement_jacobian
 from clothd.tools.offline import OfflineTracking
 
-# prepare: the frame's grey image and pyramid; resample: bookkeeping, the estimate, new features.
-STAGES = ("prepare", "klt", "predict", "update", "resample", "tick")
+# prepare: the frame's grey image and pyramid; estimate: bookkeeping and the estimate; resample: new
+# features and their anchors (the live loop does it after the commands are out).
+STAGES = ("prepare", "klt", "predict", "update", "estimate", "resample", "tick")
 WARMUP_TICKS = 3
 FILTERPY_BUDGET_S = 3.0  # one dense update slower than this is not worth repeating
 

@@ -27,7 +27,7 @@ from clothd.formats import write_estimates
 from clothd.tools.offline import OfflineTracking
 from clothd.view import draw_estimate
 
-TIMED_STAGES = ("prepare", "predict", "klt", "update", "resample", "tick")
+TIMED_STAGES = ("prepare", "predict", "klt", "update", "estimate", "resample", "tick")
 
 
 # Start-up (kernel compilation, initialisation) falls in the first ticks; the steady rate leaves them out.

@@ -1,0 +1,60 @@
+"""The compute replies as soon as a tick's commands are ready; the tracker's upkeep, the recording and the
+annotated view follow the reply, and what they make travels with the next one."""
+
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from recorded_frames import compute_on, tick
+
+from clothd.compute import TickRequest
+from clothd.core.control import Setpoint
+from clothd.core.messages import ModuleCommands
+
+IDLE = Setpoint("idle", None)
+
+
+def _request(n_modules: int, want_view: bool) -> TickRequest:
+    return TickRequest(IDLE, ModuleCommands.all_stop(n_modules), reset=False, want_view=want_view)
+
+
+def test_the_view_asked_for_comes_with_the_next_reply(short_recording: Callable[[str], Path]) -> None:
+    compute = compute_on(short_recording("translate"))
+    n = compute.spec.layout.n_modules
+    tick(compute, _request(n, want_view=False))  # initialises
+    asked = compute.tick(_request(n, want_view=True))
+    assert asked.view_jpeg is None and "view" not in asked.timing_s  # not drawn before the reply
+    assert "tracker_resample" not in asked.timing_s
+    compute.after_reply()
+    following = tick(compute, _request(n, want_view=False))
+    assert following.view_jpeg is not None
+    view = cv2.imdecode(np.frombuffer(following.view_jpeg, np.uint8), cv2.IMREAD_COLOR)
+    assert view.shape[:2] == (480, 640)
+    assert following.timing_s["view"] > 0 and "tracker_resample" in following.timing_s
+    assert tick(compute, _request(n, want_view=False)).view_jpeg is None  # drawn once
+
+
+def test_a_failure_after_the_reply_stops_the_modules_at_the_next_tick(
+    short_recording: Callable[[str], Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    compute = compute_on(short_recording("translate"))
+    n = compute.spec.layout.n_modules
+    tick(compute, _request(n, want_view=False))
+    moving = TickRequest(
+        Setpoint("move", np.array([0.02, 0.0, 0.0])), ModuleCommands.all_stop(n), reset=False, want_view=False
+    )
+    assert compute.tick(moving).commands.speed_m_s.any()
+
+    def broken() -> float:
+        raise RuntimeError("upkeep bug")
+
+    monkeypatch.setattr(compute.tracker, "upkeep", broken)
+    compute.after_reply()
+    monkeypatch.undo()
+    stopped = tick(compute, moving)
+    assert stopped.state == "fault" and stopped.halt_reason is not None
+    assert not stopped.commands.speed_m_s.any()
+    again = tick(compute, moving)  # the fault is answered once; the tracker starts afresh
+    assert again.state == "tracking" and again.estimate is not None and again.estimate.tracking
