@@ -85,3 +85,30 @@ def test_compress_buckles_and_flattens() -> None:
     assert heights[-1] <= 0.003
     # The fold rises while the sides push (0-0.75 s), not at the start.
     assert heights[0] < 0.006
+
+
+def _stretch_end_y_mm(name: str, seed: int, y_m: float | None = None) -> float:
+    """The truth cloth's centre y at the end of a shirt-stretch scenario, with hwsim's seed (the belts'
+    vibration) and, optionally, the cloth laid at another y."""
+    data = scenarios.load(name).model_dump()
+    data["seed"] = seed
+    if y_m is not None:
+        data["initial_pose"]["y_m"] = y_m
+    world = World(scenarios.parse(data), log_commands=False)
+    for _ in range(world.scenario.frame_count - 1):
+        world.step()
+    return 1000.0 * float(world.cloth_centre_m()[1])
+
+
+@pytest.mark.slow
+def test_the_centred_tug_of_war_is_a_coin_flip_and_the_offset_one_is_not() -> None:
+    """shirt-stretch pulls the cloth's halves apart evenly, so the belts' vibration picks the winner: its
+    centre ends 25 mm towards -y with seed 1 and +y with seed 2. shirt-stretch-offset (clothd bench tune's
+    held-out footage) lays the cloth 20 mm towards +y, so the upper half wins whatever the seed, and the
+    mirrored start ends mirrored."""
+    assert _stretch_end_y_mm("shirt-stretch", 1) == pytest.approx(-25.3, abs=1.0)
+    assert _stretch_end_y_mm("shirt-stretch", 2) == pytest.approx(25.3, abs=1.0)
+    ends = [_stretch_end_y_mm("shirt-stretch-offset", seed) for seed in (1, 2)]
+    assert ends[0] == pytest.approx(45.5, abs=1.0)
+    assert ends[1] == pytest.approx(ends[0], abs=0.5)
+    assert _stretch_end_y_mm("shirt-stretch-offset", 1, y_m=-0.02) == pytest.approx(-ends[0], abs=0.5)

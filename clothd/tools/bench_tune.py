@@ -3,11 +3,13 @@ footage it never saw, on the bars of issue 12.
 
 - Fabric: hwsim's shirting (hwsim/scenarios/shirt-*.yaml): light, soft, and slides on the belts; the
   tracker's default constants are hand-set for denim.
-- Training: shirt-shear and shirt-squeeze. Held out: shirt-twist, shirt-drag and shirt-stretch, with
-  drives the tune never saw (the issue asks for two; shirt-stretch, a tug of war between the cloth's
-  halves, is the hardest for the model, and stays in the bar). Beyond the bar: shirt-random, whose
-  error is in the model's input, not in the fabric (the modules accelerate at their limit all the
-  time, and the tracker's module model lags hwsim's modules).
+- Training: shirt-shear and shirt-squeeze. Held out: shirt-twist, shirt-drag and shirt-stretch-offset,
+  with drives the tune never saw (the issue asks for two; shirt-stretch-offset, a tug of war between the
+  cloth's halves, is the hardest for the model). Graded beside them, not in the bar (`BEYOND` says why):
+  shirt-stretch, the same tug of war with the cloth centred, whose winner is a coin flip decided by
+  hwsim's seeded belt vibration (docs/commissioning.md, "Tune"), and shirt-random, whose error is in the
+  model's input, not in the fabric (the modules accelerate at their limit all the time, and the
+  tracker's module model lags hwsim's modules).
 - The tune runs twice, from scratch, side by side in this one run, as the command a user runs (`clothd
   tune`, a process of its own): `--workers 1` and `--workers 2`, the same trials and seed; the speed-up
   is the ratio of their wall times (starting, measuring the recordings and starting the workers
@@ -46,8 +48,14 @@ from hwsim import scenario as scenarios
 from hwsim.scenario import ClothSpec
 
 TRAIN = ("shirt-shear", "shirt-squeeze")
-HELD_OUT = ("shirt-twist", "shirt-drag", "shirt-stretch")
-BEYOND = ("shirt-random",)
+HELD_OUT = ("shirt-twist", "shirt-drag", "shirt-stretch-offset")
+# Graded and printed, not in the bar, each with the reason.
+BEYOND = {
+    "shirt-stretch": "a coin flip: the halves pull evenly and hwsim's seeded belt vibration picks the "
+    "winner (the centre ends 25 mm to -y or +y by seed), which no model alone can predict",
+    "shirt-random": "its error is in the model's input (the tracker's module model lags hwsim's modules "
+    "at their acceleration limit), not in the fabric",
+}
 PREDICT_CUT_BAR = 0.40  # predict mode: held-out node RMSE at most 60 % of the defaults'
 WORKERS = (1, 2)
 
@@ -66,7 +74,7 @@ def _fabric() -> dict[str, Any]:
 def run_bench(cache: Path, out: Path, trials: int, seed: int) -> dict[str, Any]:
     defaults = load_config(None)
     start_taichi(defaults.taichi.arch)  # before hwsim records, so that the tracker's settings hold
-    recs = {name: scenario_recording(cache, name) for name in TRAIN + HELD_OUT + BEYOND}
+    recs = {name: scenario_recording(cache, name) for name in (*TRAIN, *HELD_OUT, *BEYOND)}
     runs: dict[str, dict[str, Any]] = {}
     for workers in WORKERS:
         out_w = out / f"workers-{workers}"
@@ -95,7 +103,7 @@ def run_bench(cache: Path, out: Path, trials: int, seed: int) -> dict[str, Any]:
     tuned = load_config(out / f"workers-{WORKERS[0]}" / BEST_YAML)
     rows = []
     for name, rec in recs.items():
-        role = "train" if name in TRAIN else "held-out" if name in HELD_OUT else "beyond the bar"
+        role = "train" if name in TRAIN else "held-out" if name in HELD_OUT else "not in the bar"
         for mode in ("predict", "mesh"):
             row: dict[str, Any] = {"recording": name, "role": role, "mode": mode}
             for label, cfg in (("default", defaults), ("tuned", tuned)):
@@ -115,6 +123,7 @@ def run_bench(cache: Path, out: Path, trials: int, seed: int) -> dict[str, Any]:
         "fabric": _fabric(),
         "train": list(TRAIN),
         "held_out": list(HELD_OUT),
+        "not_in_the_bar": dict(BEYOND),
         "cores": os.cpu_count(),
         "tune": runs,
         "speedup_workers_2": one["wall_s"] / two["wall_s"],
@@ -167,12 +176,14 @@ def format_result(result: dict[str, Any]) -> str:
         f"speed-up from --workers 2 on {result['cores']} cores: {result['speedup_workers_2']:.2f}x wall, "
         f"{result['search_speedup_workers_2']:.2f}x search (the trials alone)"
     )
-    lines += ["", f"{'recording':<14} {'role':<15} {'mode':<8} {'default':>10} {'tuned':>10} {'change':>8}"]
+    lines += ["", f"{'recording':<20} {'role':<15} {'mode':<8} {'default':>10} {'tuned':>10} {'change':>8}"]
     for r in result["graded"]:
         lines.append(
-            f"{r['recording']:<14} {r['role']:<15} {r['mode']:<8} {r['default_rmse_mm']:7.2f} mm "
+            f"{r['recording']:<20} {r['role']:<15} {r['mode']:<8} {r['default_rmse_mm']:7.2f} mm "
             f"{r['tuned_rmse_mm']:7.2f} mm {r['change_pct']:+7.1f}%"
         )
+    for name, why in result["not_in_the_bar"].items():
+        lines.append(f"{name} is not in the bar ({why})")
     p = result["pass"]
     lines.append("")
     lines.append(
