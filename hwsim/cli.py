@@ -55,6 +55,21 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_ridges(args: argparse.Namespace) -> int:
+    from dataclasses import asdict
+
+    from hwsim.ridge_hold import format_holds, ridge_holds
+
+    rows = []
+    for row in ridge_holds(args.scenario, args.hold_s, args.pushes, args.seed):
+        rows.append(row)
+        print(f"{row.case}: {row.settled_m * 1e3:.2f} -> {row.lowest_m * 1e3:.2f} mm", file=sys.stderr)
+    print(format_holds(rows))
+    if args.json:
+        args.json.write_text(json.dumps([asdict(r) | {"kept": r.kept} for r in rows], indent=2) + "\n")
+    return 0
+
+
 def _cmd_stretch(args: argparse.Namespace) -> int:
     from dataclasses import asdict
 
@@ -160,6 +175,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     st.add_argument("--json", type=Path)
     st.set_defaults(func=_cmd_stretch)
+    rh = sub.add_parser("ridges", help="which ridges the cloth keeps on still belts, in every direction")
+    rh.add_argument("--scenario", default="cell", help="whose cloth (default: the live cell's)")
+    rh.add_argument("--hold-s", type=float, default=10.0, help="how long each ridge is held")
+    rh.add_argument("--pushes", type=int, default=12, help="ridges pushed in by the hands along random lines")
+    rh.add_argument("--seed", type=int, default=0, help="the pushes' lines")
+    rh.add_argument("--json", type=Path)
+    rh.set_defaults(func=_cmd_ridges)
     ch = sub.add_parser(
         "charuco", help="render ChArUco calibration pictures through a scenario's camera, with the truth"
     )

@@ -6,7 +6,12 @@ per substep) on a mesh at least 3x finer, with
 
 - stretch: distance constraints on the grid edges, membrane stiffness `stretch_stiffness_n_m`
   (for a square lattice a spring's k equals the sheet's tension per unit strain, whatever the spacing);
-- shear: distance constraints on both diagonals of every cell;
+- shear: a constraint on each diagonal of every cell, measured so that bending does not count as shear.
+  A cell bent across one diagonal (a ridge running along the other) brings that diagonal's ends closer
+  in space while the cloth keeps its shape in its own plane; the diagonal is then measured along the
+  cloth, through the midpoint of the other (`_diagonal`). Plain distances would make every cell a rigid
+  plate, so that the sheet could fold only along rows and columns: a ridge at an angle to them was
+  forced flat, or held with its cells strained by up to 2 %;
 - bending: linear second-difference constraints C = x[i-1] - 2 x[i] + x[i+1] along rows and columns,
   i.e. the discrete curvature energy ½ B ∫ |∂²x|² dA of an (almost) inextensible sheet, with
   compliance h⁴ / (B · cell area);
@@ -45,6 +50,12 @@ _ON_TABLE_M = 1e-4  # a node laid lower than this (above its floor) rests on the
 # A flap lies on the cloth beneath it: its nodes' floor is one cloth thickness up (hwsim has no
 # self-contact; the floor stays with those nodes wherever they go).
 FLAP_THICKNESS_M = 0.001
+# How much shorter than the other a cell's diagonal must be to count as the one a fold crosses: the
+# choice only matters in a cell that is not flat, and any value from 1e-5 to 1e-3 held the same ridges.
+FOLD_STRAIN = 1e-4
+# A cell whose diagonals' midpoints lie closer than this (of the diagonal) is flat: its diagonals' lengths
+# along the cloth are their straight ones, to 1e-6 (the difference goes as the square).
+FLAT_CELL = 1e-3
 # A belt this fast shakes the cloth with the full vibration_m_s; slower belts proportionally less.
 _VIBRATION_REF_SPEED_M_S = 0.05
 
@@ -284,6 +295,50 @@ class ClothSim:
                 self.reaction[b] -= ti.cast(self.stuck[b], ti.f64) * impulse
 
     @ti.func
+    def _diagonal(
+        self, j: ti.i32, i: ti.i32, second: ti.template(), rest: ti.f64, alpha: ti.f64, k_h2: ti.f64
+    ):
+        """Shear on one diagonal of cell (j, i) (00-11, or 10-01 when `second`): its length along the cloth,
+        which is the straight length unless the cell is bent across it, and then the path through the other
+        diagonal's midpoint (on the bend). In a flat cell (the diagonals bisect each other) the two agree,
+        so which diagonal counts as bent (the shorter) matters only in a bent cell; the choice is blended
+        over FOLD_STRAIN, and both diagonals are always held. Free ends move as XPBD moves them; when every
+        end that could move is anchored, the true elastic force k·C goes to the stuck ones' reactions."""
+        cell = ti.Matrix([[j, i], [j, i + 1], [j + 1, i], [j + 1, i + 1]])  # 00, 10 (along s), 01, 11
+        ends = ti.Vector([0, 3, 1, 2])  # this diagonal's ends, then the other's
+        if ti.static(second):
+            ends = ti.Vector([1, 2, 0, 3])
+        a, b = self.x[cell[ends[0], 0], cell[ends[0], 1]], self.x[cell[ends[1], 0], cell[ends[1], 1]]
+        c, d = self.x[cell[ends[2], 0], cell[ends[2], 1]], self.x[cell[ends[3], 0], cell[ends[3], 1]]
+        straight = (a - b).norm()
+        mid = (c + d) / 2.0
+        via = (a - mid).norm() + (b - mid).norm()
+        bent = 1.0 / (
+            1.0 + ti.exp(-ti.math.clamp(((c - d).norm() - straight) / (FOLD_STRAIN * rest), -50.0, 50.0))
+        )
+        n = (a - b) / straight
+        ua, ub = (a - mid).normalized(), (b - mid).normalized()
+        grad = ti.Matrix.zero(ti.f64, 4, 3)  # rows in the order of `ends`
+        grad[0, :] = bent * ua + (1.0 - bent) * n
+        grad[1, :] = bent * ub - (1.0 - bent) * n
+        grad[2, :] = -bent * (ua + ub) / 2.0
+        grad[3, :] = grad[2, :]
+        constraint = bent * via + (1.0 - bent) * straight - rest
+        free = ti.f64(0.0)
+        for k in ti.static(range(4)):
+            node = ti.Vector([cell[ends[k], 0], cell[ends[k], 1]])
+            free += self._free_inv_mass(node) * grad[k, :].norm_sqr()
+        scale = -k_h2 * constraint
+        if free > 0.0:
+            scale = -constraint / (free + alpha)
+        for k in ti.static(range(4)):
+            node = ti.Vector([cell[ends[k], 0], cell[ends[k], 1]])
+            step = grad[k, :] * scale
+            if free > 0.0:
+                self.x[node] += self._free_inv_mass(node) * step
+            self.reaction[node] += ti.cast(self.stuck[node], ti.f64) * step
+
+    @ti.func
     def _bend(self, a: ti.template(), b: ti.template(), c: ti.template(), alpha: ti.f64):
         """Across a flap's fold the crease is set (a plastic crease): it carries no bending moment."""
         wa, wb, wc = self._free_inv_mass(a), self._free_inv_mass(b), self._free_inv_mass(c)
@@ -363,8 +418,23 @@ class ClothSim:
             flip = (substeps_done + step) % 2
             for jj, ii in ti.ndrange(ny - 1, nx - 1):
                 j, i = _swept(jj, ny - 1, flip), _swept(ii, nx - 1, flip)
-                self._distance(ti.Vector([j, i]), ti.Vector([j + 1, i + 1]), diag, alpha_shear)
-                self._distance(ti.Vector([j, i + 1]), ti.Vector([j + 1, i]), diag, alpha_shear)
+                flap = (
+                    self.folded[j, i]
+                    + self.folded[j, i + 1]
+                    + self.folded[j + 1, i]
+                    + self.folded[j + 1, i + 1]
+                )
+                bisect = (self.x[j, i] + self.x[j + 1, i + 1] - self.x[j, i + 1] - self.x[j + 1, i]).norm()
+                if 0 < flap < 4 or bisect < FLAT_CELL * diag:
+                    # Flat (its diagonals bisect each other), where the two measures agree, or across a
+                    # flap's crease: plain distances (slack in the crease).
+                    self._distance(ti.Vector([j, i]), ti.Vector([j + 1, i + 1]), diag, alpha_shear)
+                    self._distance(ti.Vector([j, i + 1]), ti.Vector([j + 1, i]), diag, alpha_shear)
+                    self._anchored_spring(ti.Vector([j, i]), ti.Vector([j + 1, i + 1]), diag, shear_k_h2)
+                    self._anchored_spring(ti.Vector([j, i + 1]), ti.Vector([j + 1, i]), diag, shear_k_h2)
+                else:
+                    self._diagonal(j, i, False, diag, alpha_shear, shear_k_h2)
+                    self._diagonal(j, i, True, diag, alpha_shear, shear_k_h2)
             for jj, ii in ti.ndrange(ny, nx - 2):
                 j, i = _swept(jj, ny, flip), _swept(ii, nx - 2, flip)
                 self._bend(ti.Vector([j, i]), ti.Vector([j, i + 1]), ti.Vector([j, i + 2]), alpha_bend)
@@ -375,9 +445,6 @@ class ClothSim:
                 self._anchored_spring(ti.Vector([j, i]), ti.Vector([j, i + 1]), dx, stretch_k_h2)
             for j, i in ti.ndrange(ny - 1, nx):
                 self._anchored_spring(ti.Vector([j, i]), ti.Vector([j + 1, i]), dy, stretch_k_h2)
-            for j, i in ti.ndrange(ny - 1, nx - 1):
-                self._anchored_spring(ti.Vector([j, i]), ti.Vector([j + 1, i + 1]), diag, shear_k_h2)
-                self._anchored_spring(ti.Vector([j, i + 1]), ti.Vector([j + 1, i]), diag, shear_k_h2)
             for j, i in ti.ndrange(ny, nx):
                 m = 1.0 / self.inv_mass[j, i]
                 if self.held[j, i] == 1:

@@ -34,8 +34,9 @@ def _height_m(world: World) -> float:
         {"height_m": 0.010},
         {"height_m": 0.020, "sigma_m": 0.016},
         {"height_m": 0.012, "at_m": [0.0, 0.0], "direction_rad": 1.2},
+        {"height_m": 0.010, "direction_rad": math.pi / 4},
     ],
-    ids=["10mm", "20mm", "12mm-oblique"],
+    ids=["10mm", "20mm", "12mm-oblique", "10mm-diagonal"],
 )
 def test_a_laid_in_ridge_stays_for_a_minute_on_still_belts(ridge: dict[str, object]) -> None:
     world = _world([ridge])
@@ -72,7 +73,9 @@ def test_the_live_cloth_does_not_stretch_when_the_belts_turn_it() -> None:
     assert stretch.max_strain < 0.01
 
 
-@pytest.mark.parametrize("slack_m, direction_rad", [(0.006, 0.1), (0.006, 1.9), (0.008, 1.31)])
+@pytest.mark.parametrize(
+    "slack_m, direction_rad", [(0.006, 0.1), (0.006, 1.9), (0.008, 1.31), (0.008, math.pi / 4)]
+)
 def test_a_push_leaves_a_ridge_that_stays(slack_m: float, direction_rad: float) -> None:
     """The hands draw the line up as they close in: a kick up at the start alone let most pushes
     squeeze the strip flat in its plane, and it sprang back when they let go (docs/hwsim.md, "Hands")."""
