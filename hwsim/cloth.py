@@ -432,9 +432,13 @@ class ClothSim:
                     self._distance(ti.Vector([j, i + 1]), ti.Vector([j + 1, i]), diag, alpha_shear)
                     self._anchored_spring(ti.Vector([j, i]), ti.Vector([j + 1, i + 1]), diag, shear_k_h2)
                     self._anchored_spring(ti.Vector([j, i + 1]), ti.Vector([j + 1, i]), diag, shear_k_h2)
-                else:
+                elif flip == 0:
+                    # Each diagonal goes first every other substep: a mirror image swaps them.
                     self._diagonal(j, i, False, diag, alpha_shear, shear_k_h2)
                     self._diagonal(j, i, True, diag, alpha_shear, shear_k_h2)
+                else:
+                    self._diagonal(j, i, True, diag, alpha_shear, shear_k_h2)
+                    self._diagonal(j, i, False, diag, alpha_shear, shear_k_h2)
             for jj, ii in ti.ndrange(ny, nx - 2):
                 j, i = _swept(jj, ny, flip), _swept(ii, nx - 2, flip)
                 self._bend(ti.Vector([j, i]), ti.Vector([j, i + 1]), ti.Vector([j, i + 2]), alpha_bend)
