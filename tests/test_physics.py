@@ -103,11 +103,12 @@ def _stretch_end_y_mm(name: str, seed: int, y_m: float | None = None) -> float:
 @pytest.mark.slow
 def test_the_centred_tug_of_war_is_a_coin_flip_and_the_offset_one_is_not() -> None:
     """shirt-stretch pulls the cloth's halves apart evenly, so the belts' vibration picks the winner: its
-    centre ends 25 mm towards -y with seed 1 and +y with seed 2. shirt-stretch-offset (clothd bench tune's
-    held-out footage) lays the cloth 20 mm towards +y, so the upper half wins whatever the seed, and the
-    mirrored start ends mirrored."""
+    centre ends 25 mm towards -y with seed 1 and +y with seed 10 (which seed goes which way changes with
+    any change to hwsim's solver: pick two again from a sweep over seeds). shirt-stretch-offset (clothd
+    bench tune's held-out footage) lays the cloth 20 mm towards +y, so the upper half wins whatever the
+    seed, and the mirrored start ends mirrored."""
     assert _stretch_end_y_mm("shirt-stretch", 1) == pytest.approx(-25.3, abs=1.0)
-    assert _stretch_end_y_mm("shirt-stretch", 2) == pytest.approx(25.3, abs=1.0)
+    assert _stretch_end_y_mm("shirt-stretch", 10) == pytest.approx(25.3, abs=1.0)
     ends = [_stretch_end_y_mm("shirt-stretch-offset", seed) for seed in (1, 2)]
     assert ends[0] == pytest.approx(45.5, abs=1.0)
     assert ends[1] == pytest.approx(ends[0], abs=0.5)
