@@ -8,6 +8,8 @@ import pytest
 
 from clothd.config import FlatnessConfig
 from clothd.core.flatness import FlatnessMonitor, Ridge, find_ridges, quad_shortening
+from hwsim.ridges import lay_ridges
+from hwsim.scenario import Ridge as HwsimRidge
 
 SIZE_M = (0.25, 0.20)
 NX, NY = 12, 12
@@ -66,6 +68,59 @@ def test_two_ridges_are_two_and_the_higher_comes_first() -> None:
     f = monitor.update(nodes, SIZE_M)
     assert f.compressed_area_pct == pytest.approx(100.0 * 2 / (NX - 1))
     assert not f.flat and f.max_height_m == pytest.approx(0.012)
+
+
+def _laid(
+    direction_rad: float, offsets_m: tuple[float, ...], height_m: float = 0.013, sigma_m: float = 0.012
+) -> np.ndarray:
+    """The default mesh's nodes with a ridge (height, σ) along direction_rad through each point offsets_m
+    off the centre, across the ridge (+ to the right of its direction), laid as hwsim lays one: the cloth
+    keeps its length over a Gaussian bump."""
+    x = (np.arange(NX) - (NX - 1) / 2) * SPACING_M[0]
+    y = (np.arange(NY) - (NY - 1) / 2) * SPACING_M[1]
+    across = (math.sin(direction_rad), -math.cos(direction_rad))
+    ridges = [
+        HwsimRidge(
+            height_m=height_m,
+            sigma_m=sigma_m,
+            direction_rad=direction_rad,
+            at_m=(at * across[0], at * across[1]),
+        )
+        for at in offsets_m
+    ]
+    xy, z = lay_ridges(np.stack(np.meshgrid(x, y), axis=-1), ridges)
+    return np.concatenate([xy, z[..., None]], axis=-1)
+
+
+@pytest.mark.parametrize("direction_deg", [20.0, 45.0, 70.0, 105.0, 135.0, 160.0])
+def test_a_ridge_slanted_to_the_threads_is_read_in_its_own_direction(direction_deg: float) -> None:
+    """A quad's x and y edges alone cannot tell a ridge at +φ to the threads from one at -φ; read from
+    them only, every ridge came out along a mesh axis (45° off, at worst) and half as deep."""
+    straight = _ridges(_laid(math.pi / 2, (0.0,)))
+    (ridge,) = _ridges(_laid(math.radians(direction_deg), (0.0,)))
+    off_deg = math.degrees(math.remainder(ridge.direction_rad - math.radians(direction_deg), math.pi))
+    assert abs(off_deg) < 5.0
+    assert ridge.slack_m == pytest.approx(straight[0].slack_m, rel=0.3)
+
+
+@pytest.mark.parametrize("direction_deg", [0.0, 30.0, 105.0])
+def test_two_parallel_ridges_a_belt_apart_are_two(direction_deg: float) -> None:
+    """70 mm apart their compressed quads touch; read as one ridge, its line ran between them, and the
+    belts between them pushed material into both (the flatten bench's one failing start)."""
+    gap_m = 0.07
+    ridges = _ridges(_laid(math.radians(direction_deg), (-gap_m / 2, gap_m / 2)))
+    assert len(ridges) == 2
+    across = np.array([math.sin(math.radians(direction_deg)), -math.cos(math.radians(direction_deg))])
+    lines_m = sorted(float(r.quad_centres_m.mean(axis=0) @ across) for r in ridges)
+    assert lines_m == pytest.approx([-gap_m / 2, gap_m / 2], abs=0.012)
+
+
+def test_one_broad_ridge_is_not_parted() -> None:
+    """Its foot on either side is compressed and its crest hardly (the cloth there is level): on a fine
+    mesh those are two bands, one ridge still, no belt fits between them."""
+    for direction_deg in range(0, 180, 15):
+        ridges = _ridges(_laid(math.radians(direction_deg), (0.0,), height_m=0.02, sigma_m=0.025))
+        assert len(ridges) == 1, direction_deg
 
 
 def test_the_flat_flag_has_hysteresis() -> None:

@@ -92,63 +92,149 @@ def find_flaps(
 
 def quad_shortening(nodes_xy_m: np.ndarray, rest_spacing_m: tuple[float, float]) -> np.ndarray:
     """(ny-1, nx-1): for each quad, how much shorter it is on the table than at rest in its most shortened
-    direction: half the largest eigenvalue of its compression tensor (its two edges along that direction,
-    on average). A ridge across a quad shortens the edges it crosses; a quad only sheared (its area
+    direction: the largest eigenvalue of its shortening tensor. A ridge across a quad, in any direction,
+    shortens it across the ridge by its slack over the quad's width; a quad only sheared (its area
     smaller, no edge shorter) holds no slack, and is not counted."""
-    return np.asarray(np.linalg.eigvalsh(_compression_tensor(nodes_xy_m, rest_spacing_m))[..., -1] / 2.0)
+    return np.asarray(np.linalg.eigvalsh(_shortening_tensor(nodes_xy_m, rest_spacing_m))[..., -1])
 
 
-def _compression_tensor(nodes_xy_m: np.ndarray, rest_spacing_m: tuple[float, float]) -> np.ndarray:
-    """(ny-1, nx-1, 2, 2): per quad, Σ (1 - d/L)₊ ê êᵀ over its four edges (ê the unit edge direction)."""
-    t = np.zeros((*nodes_xy_m.shape[:2], 2, 2))[:-1, :-1]
-    for axis, rest in ((1, rest_spacing_m[0]), (0, rest_spacing_m[1])):
-        e = np.diff(nodes_xy_m, axis=axis)
-        length = np.maximum(np.linalg.norm(e, axis=-1), 1e-12)
-        short = np.clip(1.0 - length / rest, 0.0, None)
-        outer = short[..., None, None] * np.einsum(
-            "...i,...j->...ij", e / length[..., None], e / length[..., None]
-        )
-        # Each quad has two edges along each axis: those of the node rows (columns) on either side of it.
-        t += outer[:-1] + outer[1:] if axis == 1 else outer[:, :-1] + outer[:, 1:]
-    return t
+def _shortening_tensor(nodes_xy_m: np.ndarray, rest_spacing_m: tuple[float, float]) -> np.ndarray:
+    """(ny-1, nx-1, 2, 2): per quad, the tensor C whose êᵀ C ê is the quad's shortening 1 - d/L along ê.
+
+    Cloth threads hardly stretch, so the slack along the mesh's x and y (its warp and weft) is what its
+    x and y edges are short by (the mean of the quad's two each, not below 0), and these are C's diagonal
+    in the quad's own axes. They cannot tell a ridge at +φ to the threads from one at -φ: the quad's two
+    diagonals can, and give the cross term, (s₊ - s₋) / (2 sin 2φ) for diagonals at ±φ to x. The cross
+    term is kept within ±√(C_xx C_yy), so that C ≥ 0: a quad only sheared (edges at rest, one diagonal
+    short, one long) holds no slack. Built from the x and y edges alone, C's axes were always the mesh's,
+    and a ridge at 45° to the threads was read at 0° or 90° and as half as deep."""
+    lx, ly = rest_spacing_m
+    ex = np.diff(nodes_xy_m, axis=1)  # (ny, nx-1, 2)
+    ey = np.diff(nodes_xy_m, axis=0)  # (ny-1, nx, 2)
+    short_x = np.clip(1.0 - np.linalg.norm(ex, axis=-1) / lx, 0.0, None)
+    short_y = np.clip(1.0 - np.linalg.norm(ey, axis=-1) / ly, 0.0, None)
+    c_xx = (short_x[:-1] + short_x[1:]) / 2.0
+    c_yy = (short_y[:, :-1] + short_y[:, 1:]) / 2.0
+    x_hat = _unit(ex[:-1] + ex[1:])
+    y_hat = _unit(ey[:, :-1] + ey[:, 1:])
+    diagonal_m = math.hypot(lx, ly)
+    up = np.linalg.norm(nodes_xy_m[1:, 1:] - nodes_xy_m[:-1, :-1], axis=-1)  # along +x +y
+    down = np.linalg.norm(nodes_xy_m[:-1, 1:] - nodes_xy_m[1:, :-1], axis=-1)  # along +x -y
+    c_xy = (down - up) / diagonal_m / (2.0 * math.sin(2.0 * math.atan2(ly, lx)))
+    bound = np.sqrt(c_xx * c_yy)
+    c_xy = np.clip(c_xy, -bound, bound)
+    xy_sym = np.einsum("...i,...j->...ij", x_hat, y_hat)
+    return np.asarray(
+        c_xx[..., None, None] * np.einsum("...i,...j->...ij", x_hat, x_hat)
+        + c_yy[..., None, None] * np.einsum("...i,...j->...ij", y_hat, y_hat)
+        + c_xy[..., None, None] * (xy_sym + np.swapaxes(xy_sym, -1, -2))
+    )
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return np.asarray(v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12))
+
+
+VALLEY_RATIO = 0.5  # a dip across a component below this share of the peaks on both its sides parts it
+PARALLEL_GAP_M = 0.06  # parallel ridges nearer than this are one: no belt (65 mm) fits between them
+PARALLEL_DEG = 20.0  # bands of a ridge compressed within this of one direction are one ridge's
 
 
 def find_ridges(
     nodes_m: np.ndarray, rest_spacing_m: tuple[float, float], shortening: np.ndarray, compressed: np.ndarray
 ) -> tuple[Ridge, ...]:
-    """The ridges of the mesh nodes_m (ny, nx, 3): the connected sets of the `compressed` quads (bool,
-    (ny-1, nx-1)), highest first; `shortening` is quad_shortening's of the same nodes."""
+    """The ridges of the mesh nodes_m (ny, nx, 3) among its `compressed` quads (bool, (ny-1, nx-1)),
+    highest first; `shortening` is quad_shortening's of the same nodes.
+
+    A ridge's two feet are compressed and its crest hardly (the cloth lies level there), so on a fine
+    mesh one ridge is two bands of quads with a row between. Bands of connected quads a quad apart or
+    less, compressed in the same direction (within PARALLEL_DEG), are taken together; what is taken
+    together is then parted where it holds parallel ridges far enough apart for belts between them
+    (`_part_parallel`)."""
     xy = nodes_m[..., :2]
-    count, labels = cv2.connectedComponents(compressed.astype(np.uint8), connectivity=8)
-    tensor = _compression_tensor(xy, rest_spacing_m)
+    tensor = _shortening_tensor(xy, rest_spacing_m)
+    quad_centres = (xy[:-1, :-1] + xy[:-1, 1:] + xy[1:, 1:] + xy[1:, :-1]) / 4.0
+    _, bands = cv2.connectedComponents(compressed.astype(np.uint8), connectivity=8)
+    near = cv2.dilate(compressed.astype(np.uint8), np.ones((3, 3), np.uint8))
+    count, groups = cv2.connectedComponents(near, connectivity=8)
+    parts = []
+    for k in range(1, count):
+        members = [bands == b for b in np.unique(bands[(groups == k) & compressed])]
+        directions = np.array([_across(band, tensor) for band in members])
+        parallel = np.abs(directions @ directions.T).min() >= math.cos(math.radians(PARALLEL_DEG))
+        for quads in [np.logical_or.reduce(members)] if parallel else members:
+            parts.extend(_part_parallel(quads, tensor, quad_centres, shortening, min(rest_spacing_m)))
+    ridges = [_ridge(quads, nodes_m, tensor, quad_centres, shortening, rest_spacing_m) for quads in parts]
+    return tuple(sorted(ridges, key=lambda r: (-r.height_m, -r.area_m2)))
+
+
+def _across(quads: np.ndarray, tensor: np.ndarray) -> np.ndarray:
+    """The unit direction the quads are most compressed along: their summed tensor's principal axis."""
+    evals, evecs = np.linalg.eigh(tensor[quads].sum(axis=0))
+    return np.asarray(evecs[:, np.argmax(evals)])
+
+
+def _part_parallel(
+    quads: np.ndarray, tensor: np.ndarray, quad_centres: np.ndarray, shortening: np.ndarray, bin_m: float
+) -> list[np.ndarray]:
+    """The quads (bool mask) as one ridge or, where they hold parallel ridges, several. Two ridges a
+    belt's width apart have compressed quads that touch; read as one, their line runs between them and
+    the belts between them push material into both (docs/flattening.md). Across their common direction
+    their shortening, smoothed over half a quad (the quads of a slanted ridge lie on a grid, not on its
+    line), then has two peaks and a dip; the quads are parted at the deepest dip below VALLEY_RATIO of
+    the peaks on both sides, where the sides' centres (weighted by shortening) lie PARALLEL_GAP_M apart
+    or more, and each side is looked at again. One ridge's two feet, 2σ apart, stay together."""
+    centres = quad_centres[quads]
+    offset = centres @ _across(quads, tensor)
+    grid = np.arange(offset.min() - bin_m, offset.max() + bin_m, bin_m / 4.0)
+    kernel = np.exp(-0.5 * ((grid[:, None] - offset[None, :]) / (bin_m / 2.0)) ** 2)
+    profile = kernel @ shortening[quads]
+    best, cut_m = VALLEY_RATIO, None
+    for i in range(1, len(grid) - 1):
+        if not profile[i] <= min(profile[i - 1], profile[i + 1]):
+            continue
+        ratio = profile[i] / min(profile[:i].max(), profile[i:].max())
+        gap_m = np.average(grid[i:], weights=profile[i:]) - np.average(grid[:i], weights=profile[:i])
+        if ratio < best and gap_m >= PARALLEL_GAP_M:
+            best, cut_m = ratio, grid[i]
+    if cut_m is None:
+        return [quads]
+    near = np.zeros_like(quads)
+    near[quads] = offset < cut_m
+    far = quads & ~near
+    return [
+        part for side in (near, far) for part in _part_parallel(side, tensor, quad_centres, shortening, bin_m)
+    ]
+
+
+def _ridge(
+    quads: np.ndarray,
+    nodes_m: np.ndarray,
+    tensor: np.ndarray,
+    quad_centres: np.ndarray,
+    shortening: np.ndarray,
+    rest_spacing_m: tuple[float, float],
+) -> Ridge:
     quad_height = np.maximum.reduce(
         [nodes_m[:-1, :-1, 2], nodes_m[:-1, 1:, 2], nodes_m[1:, 1:, 2], nodes_m[1:, :-1, 2]]
     )
     rest_area = rest_spacing_m[0] * rest_spacing_m[1]
-    quad_centres = (xy[:-1, :-1] + xy[:-1, 1:] + xy[1:, 1:] + xy[1:, :-1]) / 4.0
-    ridges = []
-    for k in range(1, count):
-        quads = labels == k
-        top = np.unravel_index(np.argmax(np.where(quads, quad_height, -np.inf)), quads.shape)
-        corners = nodes_m[top[0] : top[0] + 2, top[1] : top[1] + 2].reshape(-1, 3)
-        peak = corners[np.argmax(corners[:, 2])]
-        evals, evecs = np.linalg.eigh(tensor[quads].sum(axis=0))
-        across = evecs[:, np.argmax(evals)]
-        along = np.array([-across[1], across[0]])  # the line runs perpendicular to `across`
-        centres = quad_centres[quads]
-        reach = centres @ along
-        length = float(reach.max() - reach.min()) + math.sqrt(rest_area)
-        ridges.append(
-            Ridge(
-                position_m=(float(peak[0]), float(peak[1])),
-                direction_rad=math.atan2(along[1], along[0]) % math.pi,
-                height_m=float(peak[2]),
-                area_m2=float(quads.sum() * rest_area),
-                slack_m=float((shortening[quads] * rest_area).sum()) / length,
-                quad_centres_m=centres,
-            )
-        )
-    return tuple(sorted(ridges, key=lambda r: (-r.height_m, -r.area_m2)))
+    top = np.unravel_index(np.argmax(np.where(quads, quad_height, -np.inf)), quads.shape)
+    corners = nodes_m[top[0] : top[0] + 2, top[1] : top[1] + 2].reshape(-1, 3)
+    peak = corners[np.argmax(corners[:, 2])]
+    across = _across(quads, tensor)
+    along = np.array([-across[1], across[0]])  # the line runs perpendicular to `across`
+    centres = quad_centres[quads]
+    reach = centres @ along
+    length = float(reach.max() - reach.min()) + math.sqrt(rest_area)
+    return Ridge(
+        position_m=(float(peak[0]), float(peak[1])),
+        direction_rad=math.atan2(along[1], along[0]) % math.pi,
+        height_m=float(peak[2]),
+        area_m2=float(quads.sum() * rest_area),
+        slack_m=float((shortening[quads] * rest_area).sum()) / length,
+        quad_centres_m=centres,
+    )
 
 
 class FlatnessMonitor:
