@@ -5,8 +5,8 @@ An overhead camera sees a wrinkle as cloth that is shorter on the table than at 
 a quad of the mesh whose edges along some direction are shorter on the table than at rest by more than a
 tolerance holds slack, which has risen out of the plane (a quad only sheared has lost area, not length).
 The node heights come from the same shortening (core/folds.py). A ridge is a connected set of compressed
-quads; it runs across its compressed direction, which is the principal axis of the quads' compression
-tensor Σ (1 - d/L) e eᵀ over their shortened edges e.
+quads (find_ridges: one ridge's two feet joined, parallel ridges parted); it runs across its compressed
+direction, the principal axis of the sum of its quads' shortening tensors.
 
 A flap, a corner folded over onto the cloth, shows no slack: it shows as cloth missing where the estimate
 puts some. The tracker reports, per quad, whether the cloth is seen at its centre (Estimate.quad_seen); a
