@@ -70,6 +70,7 @@ class TickReply:
     recording: RecordingStatus | None = None
     halt_reason: str | None = None  # the commands stopped the modules for a fault of this tick
     flatness: Flatness | None = None  # of this tick's estimate, when it has a mesh and tracks
+    compute_mono_s: tuple[float, float] | None = None  # host monotonic: the compute began, and replied
 
 
 @dataclass(frozen=True)
@@ -161,7 +162,7 @@ class Compute:
             return self.stop_reply("fault")
         timing, self._late_timing = self._late_timing, {}
         frame = self._frame(req.frame_wait_until_mono_s, timing)  # its wait is not the compute's time
-        t0 = time.perf_counter()
+        t0, began_mono_s = time.perf_counter(), time.monotonic()
         if req.reset:
             self.tracker.reset()
             self.controller.reset()
@@ -197,6 +198,7 @@ class Compute:
             self._recording_status(),
             halt,
             flatness,
+            (began_mono_s, time.monotonic()),
         )
 
     def after_reply(self) -> None:

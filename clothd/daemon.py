@@ -109,6 +109,7 @@ class Daemon:
         self._pending: asyncio.Future[TickReply] | None = None  # the compute in flight
         self._stale_ticks = 0  # ticks in a row the compute has not answered in time
         self._unsent_frame_t_s: float | None = None  # capture time behind commands not yet sent
+        self._unsent_compute_s: tuple[float, float] | None = None  # when its compute began and replied
         self._commands = ModuleCommands.all_stop(settings.n_modules)  # the newest from the compute
         self._in_force = self._commands  # what the modules were last told: the model's input
         self._reset_requested = False
@@ -280,7 +281,7 @@ class Daemon:
         self._in_force = self._commands if sent else ModuleCommands.all_stop(self.settings.n_modules)
         self.stats.ticks += 1
         if self._unsent_frame_t_s is not None:
-            self.stats.latency.add_s(time.monotonic() - self._unsent_frame_t_s)
+            self.stats.latency.add(self._unsent_frame_t_s, self._unsent_compute_s, time.monotonic())
             self._unsent_frame_t_s = None
         self.publish()
 
@@ -313,7 +314,7 @@ class Daemon:
             self._compute_died(err)
         self._commands = reply.commands
         if reply.new_frame and reply.frame_t_mono_s is not None:
-            self._unsent_frame_t_s = reply.frame_t_mono_s
+            self._unsent_frame_t_s, self._unsent_compute_s = reply.frame_t_mono_s, reply.compute_mono_s
             if self.phase is not None:
                 self.phase.frame_arrived(reply.frame_t_mono_s)
         self.stats.add_stages(reply.timing_s)

@@ -38,6 +38,40 @@ class Window:
         }
 
 
+class FrameToCommand:
+    """Each frame's way from its arrival to its commands on the wire (milliseconds), in three parts:
+    `wait`, until the compute takes it (the tick's phase, and the wait for a frame due); `compute`; and
+    `delivery`, the reply's way back to the event loop and the send. The percentiles say how long; the
+    tail's parts say why (the status keeps no samples)."""
+
+    TAIL_PCT = 95.0  # the tail: the frames at or above this percentile of the whole way
+
+    def __init__(self) -> None:
+        self.total = Window()
+        self._parts_ms: deque[tuple[float, float, float, float]] = deque(maxlen=WINDOW)
+
+    def add(self, arrived_s: float, compute_s: tuple[float, float] | None, sent_s: float) -> None:
+        """A frame arrived at arrived_s, computed from compute_s[0] to [1], sent at sent_s (monotonic)."""
+        self.total.add_s(sent_s - arrived_s)
+        if compute_s is not None:
+            start, end = compute_s
+            parts_s = (sent_s - arrived_s, start - arrived_s, end - start, sent_s - end)
+            self._parts_ms.append((1e3 * parts_s[0], 1e3 * parts_s[1], 1e3 * parts_s[2], 1e3 * parts_s[3]))
+
+    def tail(self) -> dict[str, float | int | None]:
+        """The mean of each part over the frames in the tail (TAIL_PCT and above)."""
+        if not self._parts_ms:
+            return {"frames": 0, "wait_ms": None, "compute_ms": None, "delivery_ms": None}
+        a = np.array(self._parts_ms)
+        tail = a[a[:, 0] >= np.percentile(a[:, 0], self.TAIL_PCT)]
+        return {
+            "frames": len(tail),
+            "wait_ms": float(tail[:, 1].mean()),
+            "compute_ms": float(tail[:, 2].mean()),
+            "delivery_ms": float(tail[:, 3].mean()),
+        }
+
+
 class LoopStats:
     SUMMARY_EVERY_S = 0.5  # percentiles over the windows are recomputed at most this often
 
@@ -46,7 +80,7 @@ class LoopStats:
         self._summary_t_s = -math.inf
         self.stages: dict[str, Window] = {}
         self.jitter = Window()
-        self.latency = Window()
+        self.latency = FrameToCommand()
         self.gc_pause = Window()  # full collections in the daemon's process, any thread
         self._gc_start_s: float | None = None
         self.ticks = 0
@@ -87,7 +121,8 @@ class LoopStats:
             "frame_locked": self.frame_locked,
             "stages": {name: w.summary() for name, w in self.stages.items()},
             "jitter": self.jitter.summary(),
-            "frame_to_command": self.latency.summary(),
+            "frame_to_command": self.latency.total.summary(),
+            "frame_to_command_tail": self.latency.tail(),
             "gc_pause": self.gc_pause.summary(),
         }
 

@@ -54,6 +54,16 @@ class Window(BaseModel):
     max_ms: float | None
 
 
+class LatencyTail(BaseModel):
+    """Why the slowest frames were slow: each part's mean over the frames at or above the 95th percentile
+    of frame-to-command (clothd/loop_stats.py FrameToCommand)."""
+
+    frames: int
+    wait_ms: float | None = Field(description="from the frame's arrival until the compute took it")
+    compute_ms: float | None
+    delivery_ms: float | None = Field(description="from the compute's reply to the commands sent")
+
+
 class Timing(BaseModel):
     ticks: int
     missed_ticks: int
@@ -66,6 +76,9 @@ class Timing(BaseModel):
     stages: dict[str, Window]
     jitter: Window
     frame_to_command: Window
+    frame_to_command_tail: LatencyTail = LatencyTail(
+        frames=0, wait_ms=None, compute_ms=None, delivery_ms=None
+    )
     gc_pause: Window = Field(
         Window(mean_ms=None, p50_ms=None, p99_ms=None, max_ms=None),
         description="full garbage collections in the daemon's process: the tick waits them out",
