@@ -216,7 +216,7 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
 
     cv2.setNumThreads(1)
     start_taichi(load_config(args.config).taichi.arch)
-    recording = scenario_recording(args.cache, "translate")
+    recording = scenario_recording(args.cache, args.scenario)
     budgets = tuple(args.features) if args.features else DEFAULT_BUDGETS
     meshes = tuple(args.mesh) if args.mesh else DEFAULT_MESHES
     rows = run_speed(recording, budgets, meshes, frames=args.frames)
@@ -526,6 +526,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     bs.add_argument(
         "--cache", type=Path, default=Path("out/bench"), help="where shipped scenarios are recorded"
+    )
+    bs.add_argument(
+        "--scenario",
+        default="translate",
+        help="the shipped scenario tracked: translate (250 x 200 mm, ~900 corners) or panel (500 x 360 mm, "
+        "enough corners for a 2000-feature budget)",
     )
     bs.add_argument("--config", type=Path, help="taichi.arch is taken from it")
     bs.add_argument("--json", type=Path)

@@ -8,7 +8,11 @@ this process is the only one that calls Taichi.
 
 A tick replies as soon as its commands are ready; what they do not wait for (the tracker's upkeep, the
 recording and the annotated view) follows in `after_reply`, and the view and its timing travel with the
-next reply. Any exception in a tick is answered with all-stop commands and state "fault", and one in its
+next reply. Between requests the process tracks a frame as soon as it arrives (`track_ahead`), with the
+commands the daemon says it has just sent (InForce): a frame that arrives before its tick asks is then
+tracked while it waits, and its tick only controls (docs/architecture.md, "A frame's path").
+
+Any exception in a tick is answered with all-stop commands and state "fault", and one in its
 after-reply work answers the next tick so; the daemon treats the death of the process itself as a fault
 too, and stops the modules.
 """
@@ -44,6 +48,8 @@ from clothd.view import ViewRenderer
 
 log = logging.getLogger(__name__)
 
+AHEAD_POLL_S = 0.002  # between requests, how often the compute looks for a frame to track ahead
+
 
 @dataclass(frozen=True)
 class TickRequest:
@@ -55,6 +61,14 @@ class TickRequest:
     record_stop: bool = False
     # Wait until this time (host monotonic) for a frame not yet used: the tick started as one was due.
     frame_wait_until_mono_s: float | None = None
+
+
+@dataclass(frozen=True)
+class InForce:
+    """What the daemon has just told the modules (sent after each tick's send, no reply): the input a
+    frame that arrives before the next request is tracked with."""
+
+    commands: ModuleCommands
 
 
 @dataclass(frozen=True)
@@ -90,6 +104,18 @@ class ComputeSpec:
     frame_source: Callable[[], FrameSource]
     recording_format: str = "directory"  # recording.format
     foxglove: FoxgloveConfig | None = None  # the live server's section (None: off)
+    track_ahead: bool = True  # loop.track_ahead: track a frame as it arrives, not when its tick asks
+
+
+@dataclass(frozen=True)
+class _Ahead:
+    """A frame tracked as it arrived, before its tick asked: when and with which commands."""
+
+    frame: CameraFrame
+    estimate: Estimate
+    flatness: Flatness | None
+    commands_in_force: ModuleCommands
+    began_mono_s: float
 
 
 @dataclass(frozen=True)
@@ -99,6 +125,7 @@ class _AfterReply:
 
     req: TickRequest
     frame: CameraFrame | None
+    commands_in_force: ModuleCommands  # those the frame was tracked with
     tracked: Estimate | None
     estimate: Estimate | None
     flatness: Flatness | None
@@ -132,6 +159,8 @@ class Compute:
         self._late_timing: dict[str, float] = {}  # that work's stage times, for the next reply
         self._late_view: bytes | None = None  # the view it drew, for the next reply
         self._after_failed = False
+        self._in_force: ModuleCommands | None = None  # what the modules were last told, as far as known
+        self._ahead: _Ahead | None = None  # a frame tracked before its tick asked
 
     def start(self) -> None:
         if self.foxglove is not None:
@@ -156,12 +185,43 @@ class Compute:
             halt_reason=f"the compute failed ({state})",
         )
 
+    def in_force(self, commands: ModuleCommands) -> None:
+        """The daemon has just told the modules this (InForce)."""
+        self._in_force = commands
+
+    def track_ahead(self) -> None:
+        """Between requests: track a frame that has arrived since the last tick, with the commands in
+        force, so that its tick finds it tracked. One at a time: the next waits for a tick to take it."""
+        if self._ahead is not None or self._in_force is None or self._after_failed:
+            return
+        frame = self.frames.latest()
+        if frame is None or frame.index == self._last_frame_index:
+            return
+        began_mono_s = time.monotonic()
+        try:
+            est = self.tracker.track(frame.image, frame.t_mono_s, self._in_force)
+            flatness = self._read_flatness(est)
+        except Exception:  # as in a tick: the next tick answers with all-stop
+            log.exception("tracking a frame ahead of its tick failed; stopping the modules, tracking afresh")
+            self._after_failed = True
+            self.tracker.reset()
+            self._estimate = self._flatness = None
+            return
+        self._ahead = _Ahead(frame, est, flatness, self._in_force, began_mono_s)
+
     def tick(self, req: TickRequest) -> TickReply:
+        self._in_force = req.commands_in_force
+        ahead, self._ahead = self._ahead, None
         if self._after_failed:
             self._after_failed = False
             return self.stop_reply("fault")
+        if req.reset:
+            ahead = None  # tracked on the state the reset discards: the frame is tracked afresh below
         timing, self._late_timing = self._late_timing, {}
-        frame = self._frame(req.frame_wait_until_mono_s, timing)  # its wait is not the compute's time
+        if ahead is not None:
+            frame: CameraFrame | None = ahead.frame
+        else:
+            frame = self._frame(req.frame_wait_until_mono_s, timing)  # its wait is not the compute's time
         t0, began_mono_s = time.perf_counter(), time.monotonic()
         if req.reset:
             self.tracker.reset()
@@ -173,18 +233,24 @@ class Compute:
         new_frame = frame is not None and frame.index != self._last_frame_index
         est = self._estimate
         tracked = None
-        if frame is not None and new_frame:
+        tracked_with = req.commands_in_force
+        if ahead is not None:
+            est = tracked = ahead.estimate
+            self._flatness = ahead.flatness
+            tracked_with, began_mono_s = ahead.commands_in_force, ahead.began_mono_s
+        elif frame is not None and new_frame:
             est = tracked = self.tracker.track(frame.image, frame.t_mono_s, req.commands_in_force)
-            self._estimate = est
             self._flatness = self._read_flatness(est)
+        if tracked is not None and frame is not None:
+            self._estimate = tracked
             self._last_frame_index = frame.index
-            timing.update({f"tracker_{k}": v for k, v in est.timing_s.items()})
+            timing.update({f"tracker_{k}": v for k, v in tracked.timing_s.items()})
         t1 = time.perf_counter()
         flatness = self._flatness
         state, commands, halt = self._control(frame is not None, est, req.setpoint, flatness)
         timing["control"] = time.perf_counter() - t1
         timing["compute"] = time.perf_counter() - t0
-        self._after = _AfterReply(req, frame, tracked, est, flatness)
+        self._after = _AfterReply(req, frame, tracked_with, tracked, est, flatness)
         view, self._late_view = self._late_view, None
         return TickReply(
             state,
@@ -225,10 +291,10 @@ class Compute:
             if self.recorder is not None:
                 t_rec = time.perf_counter()
                 # The commands in force while this frame was captured: replay feeds them back the same way.
-                self.recorder.add(frame.image, frame.t_mono_s, req.commands_in_force, after.tracked)
+                self.recorder.add(frame.image, frame.t_mono_s, after.commands_in_force, after.tracked)
                 timing["record"] = time.perf_counter() - t_rec
             if self.foxglove is not None:  # queued only: the writer thread encodes and writes
-                self.foxglove.add(frame.image, frame.t_mono_s, req.commands_in_force, after.tracked)
+                self.foxglove.add(frame.image, frame.t_mono_s, after.commands_in_force, after.tracked)
         if req.want_view and frame is not None:
             t_view = time.perf_counter()
             self._late_view = self.view.render(frame.image, after.estimate, req.setpoint, after.flatness)
@@ -319,12 +385,20 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
     conn.send("ready")
     try:
         while True:
+            # Between requests, a frame is tracked as soon as it is there (polled: a request is taken the
+            # moment it arrives, a frame within AHEAD_POLL_S).
+            if spec.track_ahead and not conn.poll(AHEAD_POLL_S):
+                compute.track_ahead()
+                continue
             try:
                 req = conn.recv()
             except EOFError:
                 return
             if req is None:
                 return
+            if isinstance(req, InForce):
+                compute.in_force(req.commands)
+                continue
             try:
                 reply = compute.tick(req)
             except Exception:  # a bug in a stage must not take the loop, or the modules, with it

@@ -10,7 +10,7 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-from clothd.compute import ComputeSpec, TickReply, TickRequest, serve_compute
+from clothd.compute import ComputeSpec, InForce, TickReply, TickRequest, serve_compute
 from clothd.errors import ConfigError, HardwareError
 
 START_TIMEOUT_S = 120.0
@@ -51,6 +51,12 @@ class ComputeProcess:
         return asyncio.ensure_future(
             asyncio.get_running_loop().run_in_executor(self._receiver, self._conn.recv)
         )
+
+    def tell_in_force(self, in_force: InForce) -> None:
+        """What the modules were just told, for the frames tracked before the next request (no reply).
+        OSError: the process died."""
+        if self.spec.track_ahead:
+            self._conn.send(in_force)
 
     async def stop(self) -> None:
         """Ask the process to finish (it stops the camera and any recording), then make sure it has."""

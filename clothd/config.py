@@ -182,6 +182,9 @@ class LoopConfig(_Strict):
         12.0, ge=0, le=30, description="how long past the lead a tick's compute waits for a due frame"
     )
     phase_step_ms: float = Field(1.0, gt=0, le=5, description="the most a tick's phase moves per tick")
+    track_ahead: bool = Field(
+        True, description="the compute tracks a frame as it arrives, not when the tick asks for commands"
+    )
 
     @model_validator(mode="after")
     def _frame_wait_leaves_time_to_compute(self) -> LoopConfig:

@@ -25,7 +25,7 @@ from typing import NoReturn
 
 import numpy as np
 
-from clothd.compute import TickReply, TickRequest
+from clothd.compute import InForce, TickReply, TickRequest
 from clothd.compute_process import ComputeProcess
 from clothd.core.control import Mode, Setpoint
 from clothd.core.messages import ModuleCommands
@@ -110,6 +110,8 @@ class Daemon:
         self._stale_ticks = 0  # ticks in a row the compute has not answered in time
         self._unsent_frame_t_s: float | None = None  # capture time behind commands not yet sent
         self._unsent_compute_s: tuple[float, float] | None = None  # when its compute began and replied
+        self._asked_s: float | None = None  # when the compute in flight was asked
+        self._unsent_asked_s: float | None = None  # ... and the one behind the commands not yet sent
         self._commands = ModuleCommands.all_stop(settings.n_modules)  # the newest from the compute
         self._in_force = self._commands  # what the modules were last told: the model's input
         self._reset_requested = False
@@ -261,7 +263,7 @@ class Daemon:
             self._use(self._pending, now)
             self._pending = None
         if self._pending is None:
-            self._pending = self._request(now)
+            self._pending, self._asked_s = self._request(now), now
         budget_s = next_deadline_s - time.monotonic() - SEND_MARGIN_S
         done, _ = await asyncio.wait({self._pending}, timeout=max(0.0, budget_s))
         if done:
@@ -279,9 +281,15 @@ class Daemon:
         sent = self.link.send_commands(self._commands)
         # A link that is down or e-stopped moves nothing: the controller's watchdog or e-stop holds them.
         self._in_force = self._commands if sent else ModuleCommands.all_stop(self.settings.n_modules)
+        try:
+            self.compute.tell_in_force(InForce(self._in_force))
+        except OSError as err:
+            self._compute_died(err)
         self.stats.ticks += 1
         if self._unsent_frame_t_s is not None:
-            self.stats.latency.add(self._unsent_frame_t_s, self._unsent_compute_s, time.monotonic())
+            self.stats.latency.add(
+                self._unsent_frame_t_s, self._unsent_asked_s, self._unsent_compute_s, time.monotonic()
+            )
             self._unsent_frame_t_s = None
         self.publish()
 
@@ -315,6 +323,7 @@ class Daemon:
         self._commands = reply.commands
         if reply.new_frame and reply.frame_t_mono_s is not None:
             self._unsent_frame_t_s, self._unsent_compute_s = reply.frame_t_mono_s, reply.compute_mono_s
+            self._unsent_asked_s = self._asked_s
             if self.phase is not None:
                 self.phase.frame_arrived(reply.frame_t_mono_s)
         self.stats.add_stages(reply.timing_s)

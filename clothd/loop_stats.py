@@ -39,36 +39,46 @@ class Window:
 
 
 class FrameToCommand:
-    """Each frame's way from its arrival to its commands on the wire (milliseconds), in three parts:
-    `wait`, until the compute takes it (the tick's phase, and the wait for a frame due); `compute`; and
-    `delivery`, the reply's way back to the event loop and the send. The percentiles say how long; the
-    tail's parts say why (the status keeps no samples)."""
+    """Each frame's way from its arrival to its commands on the wire (milliseconds), in three parts that
+    add up: `wait`, until the compute began on it; `compute`; and `delivery`, the reply's way back to the
+    event loop and the send. Besides, `tick`: how long the frame waited for its tick to ask the compute
+    (0 for a frame that arrived after the ask; with the frame tracked ahead, it overlaps the compute).
+    The percentiles say how long; the tail's parts say why (the status keeps no samples)."""
 
     TAIL_PCT = 95.0  # the tail: the frames at or above this percentile of the whole way
+    PARTS = ("wait", "compute", "delivery", "tick")
 
     def __init__(self) -> None:
         self.total = Window()
-        self._parts_ms: deque[tuple[float, float, float, float]] = deque(maxlen=WINDOW)
+        self._parts_ms: deque[np.ndarray] = deque(maxlen=WINDOW)
 
-    def add(self, arrived_s: float, compute_s: tuple[float, float] | None, sent_s: float) -> None:
-        """A frame arrived at arrived_s, computed from compute_s[0] to [1], sent at sent_s (monotonic)."""
+    def add(
+        self, arrived_s: float, asked_s: float | None, compute_s: tuple[float, float] | None, sent_s: float
+    ) -> None:
+        """A frame that arrived at arrived_s, asked for at asked_s, computed from compute_s[0] to [1] and
+        sent at sent_s (host monotonic)."""
         self.total.add_s(sent_s - arrived_s)
-        if compute_s is not None:
-            start, end = compute_s
-            parts_s = (sent_s - arrived_s, start - arrived_s, end - start, sent_s - end)
-            self._parts_ms.append((1e3 * parts_s[0], 1e3 * parts_s[1], 1e3 * parts_s[2], 1e3 * parts_s[3]))
+        if compute_s is None or asked_s is None:
+            return
+        start, end = compute_s
+        parts_s = (
+            sent_s - arrived_s,
+            start - arrived_s,
+            end - start,
+            sent_s - end,
+            max(asked_s - arrived_s, 0),
+        )
+        self._parts_ms.append(1e3 * np.array(parts_s))
 
     def tail(self) -> dict[str, float | int | None]:
         """The mean of each part over the frames in the tail (TAIL_PCT and above)."""
         if not self._parts_ms:
-            return {"frames": 0, "wait_ms": None, "compute_ms": None, "delivery_ms": None}
+            return {"frames": 0} | {f"{part}_ms": None for part in self.PARTS}
         a = np.array(self._parts_ms)
         tail = a[a[:, 0] >= np.percentile(a[:, 0], self.TAIL_PCT)]
-        return {
-            "frames": len(tail),
-            "wait_ms": float(tail[:, 1].mean()),
-            "compute_ms": float(tail[:, 2].mean()),
-            "delivery_ms": float(tail[:, 3].mean()),
+        means = tail[:, 1:].mean(axis=0)
+        return {"frames": len(tail)} | {
+            f"{part}_ms": float(m) for part, m in zip(self.PARTS, means, strict=True)
         }
 
 

@@ -133,6 +133,7 @@ def build(cfg: Config) -> Parts:
         frame_source=functools.partial(VideoCaptureSource, cfg.camera),
         recording_format=cfg.recording.format,
         foxglove=cfg.foxglove,
+        track_ahead=cfg.loop.track_ahead,
     )
     settings = DaemonSettings(
         period_s=cfg.loop.period_s,

@@ -56,12 +56,15 @@ class Window(BaseModel):
 
 class LatencyTail(BaseModel):
     """Why the slowest frames were slow: each part's mean over the frames at or above the 95th percentile
-    of frame-to-command (clothd/loop_stats.py FrameToCommand)."""
+    of frame-to-command (clothd/loop_stats.py FrameToCommand). wait + compute + delivery is the whole."""
 
     frames: int
-    wait_ms: float | None = Field(description="from the frame's arrival until the compute took it")
+    wait_ms: float | None = Field(description="from the frame's arrival until the compute began on it")
     compute_ms: float | None
     delivery_ms: float | None = Field(description="from the compute's reply to the commands sent")
+    tick_ms: float | None = Field(
+        description="how long the frame waited for its tick to ask (overlaps compute when tracked ahead)"
+    )
 
 
 class Timing(BaseModel):
@@ -77,7 +80,7 @@ class Timing(BaseModel):
     jitter: Window
     frame_to_command: Window
     frame_to_command_tail: LatencyTail = LatencyTail(
-        frames=0, wait_ms=None, compute_ms=None, delivery_ms=None
+        frames=0, wait_ms=None, compute_ms=None, delivery_ms=None, tick_ms=None
     )
     gc_pause: Window = Field(
         Window(mean_ms=None, p50_ms=None, p99_ms=None, max_ms=None),

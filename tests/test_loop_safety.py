@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from recorded_frames import compute_on
 
-from clothd.compute import TickReply, TickRequest
+from clothd.compute import InForce, TickReply, TickRequest
 from clothd.config import AreaConfig, CellConfig
 from clothd.core.control import Setpoint
 from clothd.core.ekf import UpdateStats
@@ -92,6 +92,7 @@ class FakeCompute:
 
     def __init__(self) -> None:
         self.requests: list[TickRequest] = []
+        self.in_force: list[ModuleCommands] = []  # what the daemon said it had sent, after each tick
         self.silent = False
         self.state = "tracking"
         self.halt_reason: str | None = None
@@ -101,6 +102,9 @@ class FakeCompute:
 
     async def stop(self) -> None:
         pass
+
+    def tell_in_force(self, in_force: InForce) -> None:
+        self.in_force.append(in_force.commands)
 
     def request(self, req: TickRequest) -> asyncio.Future[TickReply]:
         self.requests.append(req)
@@ -297,3 +301,18 @@ def test_a_cloth_at_the_workspace_edge_is_stopped_in_closed_loop(
     roomy.tick(TickRequest(move, stopped, reset=False, want_view=False))
     reply = roomy.tick(TickRequest(move, stopped, reset=False, want_view=False))
     assert reply.halt_reason is None and reply.commands.speed_m_s.any()
+
+
+def test_the_compute_is_told_what_went_out_after_every_tick() -> None:
+    """It tracks frames that arrive before the next request with these commands (compute.track_ahead):
+    what was sent, or all-stop while the link moves nothing."""
+
+    async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
+        _move(daemon)
+        await _ticks(daemon, 3)
+        assert compute.in_force[-1] is link.sent[-1] and compute.in_force[-1].speed_m_s.any()
+        link.estop()
+        await _ticks(daemon, 2)
+        assert not compute.in_force[-1].speed_m_s.any()
+
+    _run(scenario)

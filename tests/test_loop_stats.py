@@ -40,30 +40,33 @@ def test_no_collection_yet_reads_as_none() -> None:
 
 
 def test_the_latency_tail_is_split_into_its_parts() -> None:
-    """95 frames wait 1 ms and compute 9 ms; 5 wait 20 ms: the tail says it was the wait."""
+    """95 frames arrive just after their tick asked and compute 9 ms; 5 arrive 20 ms before their tick
+    asked and are computed only then: the tail says they waited, for their tick."""
     stats = LoopStats()
     for k in range(100):
         arrived = float(k)
-        wait_s = 0.020 if k % 20 == 0 else 0.001
-        start = arrived + wait_s
-        stats.latency.add(arrived, (start, start + 0.009), start + 0.009 + 0.0005)
+        asked = arrived + (0.020 if k % 20 == 0 else -0.001)
+        start = max(asked, arrived) + 0.0002
+        stats.latency.add(arrived, asked, (start, start + 0.009), start + 0.009 + 0.0005)
     summary = stats.summary()
     tail = summary["frame_to_command_tail"]
     assert isinstance(tail, dict)
     assert tail["frames"] == 5
-    assert tail["wait_ms"] == pytest.approx(20.0)
+    assert tail["wait_ms"] == pytest.approx(20.2)
+    assert tail["tick_ms"] == pytest.approx(20.0)
     assert tail["compute_ms"] == pytest.approx(9.0)
     assert tail["delivery_ms"] == pytest.approx(0.5)
-    assert summary["frame_to_command"]["p50_ms"] == pytest.approx(10.5)  # type: ignore[index]
+    assert summary["frame_to_command"]["p50_ms"] == pytest.approx(9.7)  # type: ignore[index]
 
 
 def test_a_frame_without_compute_times_counts_in_the_latency_not_its_tail() -> None:
     stats = LoopStats()
-    stats.latency.add(0.0, None, 0.012)
+    stats.latency.add(0.0, None, None, 0.012)
     assert stats.summary()["frame_to_command_tail"] == {
         "frames": 0,
         "wait_ms": None,
         "compute_ms": None,
         "delivery_ms": None,
+        "tick_ms": None,
     }
     assert stats.latency.total.summary()["max_ms"] == pytest.approx(12.0)

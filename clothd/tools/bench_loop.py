@@ -182,6 +182,7 @@ async def measure_run(client: httpx.AsyncClient, base: str, run_s: float) -> dic
         "latency_p50_ms": latency["p50_ms"],
         "latency_p99_ms": latency["p99_ms"],
         "latency_tail_wait_ms": tail["wait_ms"],
+        "latency_tail_tick_ms": tail["tick_ms"],
         "latency_tail_compute_ms": tail["compute_ms"],
         "latency_tail_delivery_ms": tail["delivery_ms"],
     }
@@ -348,7 +349,8 @@ def format_result(r: dict[str, Any]) -> str:
             f"ticks resending the last commands {f('compute_overrun_pct', '%', '.2f')}",
             f"  the slowest 5 % of frames, on average: waiting {f('latency_tail_wait_ms', 'ms', '.1f')}, "
             f"compute {f('latency_tail_compute_ms', 'ms', '.1f')}, "
-            f"reply to send {f('latency_tail_delivery_ms', 'ms', '.1f')}",
+            f"reply to send {f('latency_tail_delivery_ms', 'ms', '.1f')}; "
+            f"their tick asked {f('latency_tail_tick_ms', 'ms', '.1f')} after they arrived",
             f"  under load (50 req/s /status, 4 WebSocket clients, 1 stalled{opcua}): /status p50 "
             f"{f('loaded_status_p50_ms', 'ms')}, p99 {f('loaded_status_p99_ms', 'ms')} (bar 10 ms); "
             f"missed ticks {f('loaded_missed_tick_pct', '%', '.3f')}, "

@@ -1,7 +1,8 @@
 """`clothd bench speed`: per-stage and whole-tick compute time of the mesh tracker at 640x480.
 
-For each feature budget and mesh size the real tracker ticks over an hwsim recording (translate), so
-KLT, prediction and correction run on real frames; the stage times are the tracker's own
+For each feature budget and mesh size the real tracker ticks over an hwsim recording (translate, or
+`--scenario panel`, a cloth twice the side that fills a 2000-feature budget), so KLT, prediction and
+correction run on real frames; the stage times are the tracker's own
 (time.perf_counter around each stage). Beside it, filterpy's dense EKF does the same correction
 (6 states per node, 2 measurements per feature, dense P, F, H) wherever it finishes within the budget.
 Figures are medians (p50) and 99th percentiles over the ticks after a warm-up. The tracker runs with one
