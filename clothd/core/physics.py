@@ -14,7 +14,10 @@ whenever the cloth was compressed or its rest lengths (measured at initialisatio
 
 Height is kinematic: the model moves the nodes in the plane and keeps the heights it is given (folds.py
 computes them from inextensibility after each correction), so the springs see the fold in 3-D and a
-folded edge, back at its rest length, pushes on nothing. A node on the table rests on it (normal force
+folded edge, back at its rest length, pushes on nothing. A spring whose ends differ in height by more than
+its rest length (the folds give a node its row's or its column's climb, whichever is higher, so a
+neighbour across can lie far below) cannot be made whole by any move in the plane; it is left out, where
+its strain limit had dragged its ends together and past each other, and folded the mesh over itself. A node on the table rests on it (normal force
 m·g) and feels friction against the belt under it: Coulomb with a regularised stick zone, applied
 implicitly on the velocity so it is stable at any step; the belt's surface velocity, from the module
 commands, is the control input u. A node up in a fold feels no belt. Symplectic Euler with at least
@@ -206,7 +209,10 @@ class MassSpring:
             a, b = self.pair[s][0], self.pair[s][1]
             d = self.x[b] - self.x[a]
             length = d.norm()
-            if length > 1e-12:
+            # Ends further apart in height than the spring is long: the kinematic heights are not
+            # consistent there, and no move in the plane could make the spring whole (see _substep's
+            # strain limiting); it is left out rather than let it drag its ends together.
+            if length > 1e-12 and ti.abs(d[2]) < self.rest[s]:
                 # Cloth pulls only once its crimp is taken up, and buckles rather than push.
                 extension = ti.max(length - (1.0 + m.slack) * self.rest[s], 0.0)
                 compression = ti.min(length - self.rest[s], 0.0)
@@ -235,7 +241,7 @@ class MassSpring:
             d = self.x[b] - self.x[a]
             length = d.norm()
             limit = (1.0 + m.strain_limit) * self.rest[s]
-            if length > limit:
+            if length > limit and ti.abs(d[2]) < self.rest[s]:
                 fix = 0.5 * (length - limit) * d / length
                 fix[2] = 0.0
                 self.x[a] += fix
