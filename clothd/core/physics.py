@@ -17,11 +17,12 @@ computes them from inextensibility after each correction), so the springs see th
 folded edge, back at its rest length, pushes on nothing. A spring whose ends differ in height by more than
 its rest length (the folds give a node its row's or its column's climb, whichever is higher, so a
 neighbour across can lie far below) cannot be made whole by any move in the plane; it is left out, where
-its strain limit had dragged its ends together and past each other, and folded the mesh over itself. A node on the table rests on it (normal force
-m·g) and feels friction against the belt under it: Coulomb with a regularised stick zone, applied
-implicitly on the velocity so it is stable at any step; the belt's surface velocity, from the module
-commands, is the control input u. A node up in a fold feels no belt. Symplectic Euler with at least
-`substeps` per tick, more when the springs need it for stability.
+its strain limit had dragged its ends together and past each other, and folded the mesh over itself.
+
+A node on the table rests on it (normal force m·g) and feels friction against the belt under it: Coulomb
+with a regularised stick zone, applied implicitly on the velocity so it is stable at any step; the belt's
+surface velocity, from the module commands, is the control input u. A node up in a fold feels no belt.
+Symplectic Euler with at least `substeps` per tick, more when the springs need it for stability.
 
 `step` advances the state in place; `transition_blocks` gives the per-node linearisation the filter
 propagates its covariance with (see mesh_ekf.py for why the spring couplings are not linearised).
