@@ -201,11 +201,8 @@ class Compute:
         try:
             est = self.tracker.track(frame.image, frame.t_mono_s, self._in_force)
             flatness = self._read_flatness(est)
-        except Exception:  # as in a tick: the next tick answers with all-stop
-            log.exception("tracking a frame ahead of its tick failed; stopping the modules, tracking afresh")
-            self._after_failed = True
-            self.tracker.reset()
-            self._estimate = self._flatness = None
+        except Exception:  # as in a tick: a bug must not take the loop with it
+            self._failed_between_ticks("tracking a frame ahead of its tick")
             return
         self._ahead = _Ahead(frame, est, flatness, self._in_force, began_mono_s)
 
@@ -276,10 +273,15 @@ class Compute:
         try:
             self._do_after(after)
         except Exception:  # as in a tick: a bug must not take the loop with it
-            log.exception("a tick's after-reply work failed; stopping the modules, tracking afresh")
-            self._after_failed = True
-            self.tracker.reset()  # whatever the upkeep left half done
-            self._estimate = self._flatness = None
+            self._failed_between_ticks("a tick's after-reply work")
+
+    def _failed_between_ticks(self, what: str) -> None:
+        """Work between requests failed: the next tick answers with all-stop, and tracking starts afresh
+        from whatever the tracker was left half done with."""
+        log.exception("%s failed; stopping the modules, tracking afresh", what)
+        self._after_failed = True
+        self.tracker.reset()
+        self._estimate = self._flatness = None
 
     def _do_after(self, after: _AfterReply) -> None:
         timing = self._late_timing

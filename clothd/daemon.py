@@ -108,10 +108,9 @@ class Daemon:
         self._last_view_s = -np.inf
         self._pending: asyncio.Future[TickReply] | None = None  # the compute in flight
         self._stale_ticks = 0  # ticks in a row the compute has not answered in time
-        self._unsent_frame_t_s: float | None = None  # capture time behind commands not yet sent
-        self._unsent_compute_s: tuple[float, float] | None = None  # when its compute began and replied
         self._asked_s: float | None = None  # when the compute in flight was asked
-        self._unsent_asked_s: float | None = None  # ... and the one behind the commands not yet sent
+        # The frame behind commands not yet sent: when it arrived, its compute was asked, began and replied.
+        self._unsent_frame: tuple[float, float | None, tuple[float, float] | None] | None = None
         self._commands = ModuleCommands.all_stop(settings.n_modules)  # the newest from the compute
         self._in_force = self._commands  # what the modules were last told: the model's input
         self._reset_requested = False
@@ -286,11 +285,9 @@ class Daemon:
         except OSError as err:
             self._compute_died(err)
         self.stats.ticks += 1
-        if self._unsent_frame_t_s is not None:
-            self.stats.latency.add(
-                self._unsent_frame_t_s, self._unsent_asked_s, self._unsent_compute_s, time.monotonic()
-            )
-            self._unsent_frame_t_s = None
+        if self._unsent_frame is not None:
+            self.stats.latency.add(*self._unsent_frame, time.monotonic())
+            self._unsent_frame = None
         self.publish()
 
     def _request(self, now: float) -> asyncio.Future[TickReply]:
@@ -322,8 +319,7 @@ class Daemon:
             self._compute_died(err)
         self._commands = reply.commands
         if reply.new_frame and reply.frame_t_mono_s is not None:
-            self._unsent_frame_t_s, self._unsent_compute_s = reply.frame_t_mono_s, reply.compute_mono_s
-            self._unsent_asked_s = self._asked_s
+            self._unsent_frame = (reply.frame_t_mono_s, self._asked_s, reply.compute_mono_s)
             if self.phase is not None:
                 self.phase.frame_arrived(reply.frame_t_mono_s)
         self.stats.add_stages(reply.timing_s)
