@@ -12,9 +12,14 @@ per substep) on a mesh at least 3x finer, with
   cloth, through the midpoint of the other (`_diagonal`). Plain distances would make every cell a rigid
   plate, so that the sheet could fold only along rows and columns: a ridge at an angle to them was
   forced flat, or held with its cells strained by up to 2 %;
-- bending: linear second-difference constraints C = x[i-1] - 2 x[i] + x[i+1] along rows and columns,
-  i.e. the discrete curvature energy ½ B ∫ |∂²x|² dA of an (almost) inextensible sheet, with
-  compliance h⁴ / (B · cell area);
+- bending: linear second-difference constraints along rows and columns, i.e. the discrete curvature
+  energy ½ B ∫ |∂²x|² dA of an (almost) inextensible sheet, with compliance h⁴ / (B · cell area), plus the
+  friction between the yarns (Grosberg's M = Bκ ± HB; KES's bending hysteresis 2HB): in parallel with the
+  elastic bend, a frictional element of stiffness k_f holds each bend at its stick point r until its
+  couple k_f·|Δ²x - r|/Δs² reaches HB, and then slips (`_slip_yarns`). The two are one constraint,
+  C = Δ²x - r·k_f/(B + k_f), of compliance h⁴ / ((B + k_f) · cell area). That is what holds a wrinkle on
+  a table: the yarns' friction carries the ridge's bend up to HB, so only its excess pushes the ridge's
+  feet apart (docs/hwsim.md, "The yarns' friction in bending");
 - table contact: z >= 0, its normal impulse m·Δz/h measured from the projection;
 - friction: Coulomb against the surface velocity of the belt under each node (the belts stand proud of
   the deck, so a node over a gap between belts is supported but feels no friction). A sliding node's
@@ -31,6 +36,7 @@ The whole frame (all substeps) is one serial kernel: no launch overhead per subs
 bit-for-bit reproducible, which a ground truth must be.
 """
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,8 +62,24 @@ FOLD_STRAIN = 1e-4
 # A cell whose diagonals' midpoints lie closer than this (of the diagonal) is flat: its diagonals' lengths
 # along the cloth are their straight ones, to 1e-6 (the difference goes as the square).
 FLAT_CELL = 1e-3
+# The yarns' frictional element sticks with this stiffness (k_f / B) until its couple reaches HB, i.e. for
+# a change of curvature of HB / k_f (11 m⁻¹ for the default cloth): Grosberg's friction is rigid until it
+# slips; 20 made the Gauss–Seidel solve blow up at 0.5 ms substeps.
+YARN_FRICTION_STIFFNESS = 4.0
 # A belt this fast shakes the cloth with the full vibration_m_s; slower belts proportionally less.
 _VIBRATION_REF_SPEED_M_S = 0.05
+
+
+def _bends_in_own_frames(x_m: np.ndarray) -> np.ndarray:
+    """Second differences along axis 1 of nodes x_m (ny, nx, 3), each in its own frame (along its chord,
+    across it, up): (ny, nx - 2, 3), as `ClothSim._bend_frame` measures them."""
+    bend = x_m[:, :-2] - 2.0 * x_m[:, 1:-1] + x_m[:, 2:]
+    chord = x_m[:, 2:, :2] - x_m[:, :-2, :2]
+    along = chord / np.linalg.norm(chord, axis=-1, keepdims=True)
+    across = np.stack([-along[..., 1], along[..., 0]], axis=-1)
+    level = bend[..., :2]
+    local = np.stack([(level * along).sum(axis=-1), (level * across).sum(axis=-1), bend[..., 2]], axis=-1)
+    return np.ascontiguousarray(local, dtype=np.float64)
 
 
 @ti.func
@@ -169,6 +191,10 @@ class ClothSim:
         self.kick = ti.field(ti.f64, shape=shape)
         self.floor = ti.field(ti.f64, shape=shape)  # what a node rests on: the table, or a flap's cloth
         self.folded = ti.field(ti.i32, shape=shape)  # 1: folded over by a flap
+        # Where the yarns' friction holds each bend (its stick point, a second difference), in the bend's own
+        # frame (along its chord, across it, up) so that it turns with the cloth.
+        self.set_along_s = ti.Vector.field(3, ti.f64, shape=(g.ny, g.nx - 2))
+        self.set_along_t = ti.Vector.field(3, ti.f64, shape=(g.ny - 2, g.nx))
         n_mod = table.modules_x * table.modules_y
         self.mod_speed = ti.field(ti.f64, shape=n_mod)
         self.mod_direction = ti.Vector.field(2, ti.f64, shape=n_mod)  # cos, sin of heading
@@ -178,8 +204,8 @@ class ClothSim:
 
     def lay(self, pose: Pose, module_heading_rad: np.ndarray) -> None:
         """Lay the cloth down at rest at `pose` on the stopped belts (turned to the given headings), as a
-        hand does: what lies on a belt sticks to it, and a ridge settles quasi-statically into the shape its
-        weight and stiffness give it, held by that friction alone."""
+        hand does: its yarns settled in the laid shape, what lies on a belt sticks to it, and a ridge settles
+        quasi-statically into the shape its weight, stiffness and friction give it."""
         x = self.grid.placed(pose)
         self.held.fill(0)
         self.set_positions(x)
@@ -194,11 +220,14 @@ class ClothSim:
             self.v.fill(0.0)
 
     def set_positions(self, x_m: np.ndarray) -> None:
-        """Place the cloth at rest at the given node positions (ny, nx, 3); nothing sticks until it has
-        come to rest on a belt."""
+        """Place the cloth at rest at the given node positions (ny, nx, 3), its yarns settled in that shape
+        (the frictional element holds every bend as it is); nothing sticks until it has come to rest on a
+        belt."""
         self.x.from_numpy(np.ascontiguousarray(x_m, dtype=np.float64))
         self.v.fill(0.0)
         self.stuck.fill(0)
+        self.set_along_s.from_numpy(_bends_in_own_frames(x_m))
+        self.set_along_t.from_numpy(_bends_in_own_frames(x_m.transpose(1, 0, 2)).transpose(1, 0, 2))
 
     def hold(self, held: np.ndarray, velocity_m_s: np.ndarray) -> None:
         """Hands hold the nodes where `held` (ny, nx) is set and move them at velocity_m_s (ny, nx, 3) until
@@ -238,6 +267,7 @@ class ClothSim:
         )
         s, t = self.spec, self.table
         substeps = max(1, round(dt_s / self.substep_s))
+        friction_k = YARN_FRICTION_STIFFNESS * s.bending_stiffness_n_m if s.bending_hysteresis_n > 0 else 0.0
         h = dt_s / substeps
         # Sweep directions alternate across calls too, so no direction wins over a run.
         parity = self._substeps_done % 2, (self._substeps_done * s.stretch_iterations) % 2
@@ -250,8 +280,11 @@ class ClothSim:
             h,
             1.0 / s.stretch_stiffness_n_m / h**2,
             1.0 / s.shear_stiffness_n_m / h**2,
-            # Bending compliance h⁴/(B·cell area), with dx ≈ dy: dx·dy/B.
-            self.grid.dx_m * self.grid.dy_m / s.bending_stiffness_n_m / h**2,
+            # Bending compliance h⁴/((B + k_f)·cell area), with dx ≈ dy: dx·dy/(B + k_f).
+            self.grid.dx_m * self.grid.dy_m / (s.bending_stiffness_n_m + friction_k) / h**2,
+            friction_k / (s.bending_stiffness_n_m + friction_k),
+            self._yield_m(self.grid.dx_m, friction_k),
+            self._yield_m(self.grid.dy_m, friction_k),
             s.friction.mu,
             s.friction.mu_static,
             s.stretch_stiffness_n_m * h**2,
@@ -260,6 +293,10 @@ class ClothSim:
             t.pitch_m,
             t.module_size_m / 2.0,
         )
+
+    def _yield_m(self, spacing_m: float, friction_k: float) -> float:
+        """How far the frictional element stretches before its couple k_f·|Δ²x - r|/Δs² reaches HB."""
+        return self.spec.bending_hysteresis_n * spacing_m**2 / friction_k if friction_k > 0 else math.inf
 
     @ti.func
     def _free_inv_mass(self, a: ti.template()) -> ti.f64:
@@ -339,18 +376,73 @@ class ClothSim:
             self.reaction[node] += ti.cast(self.stuck[node], ti.f64) * step
 
     @ti.func
-    def _bend(self, a: ti.template(), b: ti.template(), c: ti.template(), alpha: ti.f64):
-        """Across a flap's fold the crease is set (a plastic crease): it carries no bending moment."""
+    def _bend_frame(self, a: ti.template(), c: ti.template()) -> ti.types.matrix(3, 3, ti.f64):
+        """Rows: along the bend's chord a -> c (level), across it (level), up. A set kept in this frame turns
+        with the cloth on the table."""
+        chord = vec2d(self.x[c][0] - self.x[a][0], self.x[c][1] - self.x[a][1]).normalized()
+        return ti.Matrix([[chord[0], chord[1], 0.0], [-chord[1], chord[0], 0.0], [0.0, 0.0, 1.0]])
+
+    @ti.func
+    def _bend(
+        self,
+        a: ti.template(),
+        b: ti.template(),
+        c: ti.template(),
+        set_local: ti.template(),
+        alpha: ti.f64,
+        set_share: ti.f64,
+    ):
+        """The elastic bend towards straight and the yarns' frictional element towards its stick point
+        set_local, as one constraint towards set_local·set_share (set_share = k_f / (B + k_f)). Across a
+        flap's fold the crease is set (a plastic crease): it carries no bending moment."""
         wa, wb, wc = self._free_inv_mass(a), self._free_inv_mass(b), self._free_inv_mass(c)
         creased = self.folded[a] != self.folded[b] or self.folded[b] != self.folded[c]
         if wa + wb + wc > 0.0 and not creased:
-            dlam = -(self.x[a] - 2.0 * self.x[b] + self.x[c]) / (wa + 4.0 * wb + wc + alpha)
+            rest = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
+            if set_share > 0.0:
+                rest = self._bend_frame(a, c).transpose() @ set_local * set_share
+            dlam = -(self.x[a] - 2.0 * self.x[b] + self.x[c] - rest) / (wa + 4.0 * wb + wc + alpha)
             self.x[a] += wa * dlam
             self.x[b] -= 2.0 * wb * dlam
             self.x[c] += wc * dlam
             self.reaction[a] += ti.cast(self.stuck[a], ti.f64) * dlam
             self.reaction[b] -= 2.0 * ti.cast(self.stuck[b], ti.f64) * dlam
             self.reaction[c] += ti.cast(self.stuck[c], ti.f64) * dlam
+
+    @ti.func
+    def _elastic_bend(self, a: ti.template(), b: ti.template(), c: ti.template(), set_local: ti.template()):
+        """How far the bend a-b-c is from its stick point, in its own frame; zero across a flap's crease,
+        which bends freely."""
+        elastic = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
+        if self.folded[a] == self.folded[b] and self.folded[b] == self.folded[c]:
+            elastic = self._bend_frame(a, c) @ (self.x[a] - 2.0 * self.x[b] + self.x[c]) - set_local
+        return elastic
+
+    @ti.func
+    def _slip_yarns(self, j: ti.i32, i: ti.i32, yield_s: ti.f64, yield_t: ti.f64):
+        """Let the yarns at node (j, i) slip as far as its bend asks. The frictional couples of the two bends
+        centred there (along s and t) slip together, on their size: sqrt((Ms/HB)² + (Mt/HB)²) <= 1, an
+        ellipse in the stretch of the frictional elements with semi-axes yield_s and yield_t: one node's
+        yarns slip as one, whatever the direction of the bend. The return mapping scales both stretches
+        back onto the ellipse and moves the stick points by the rest."""
+        nx, ny = ti.static(self.grid.nx, self.grid.ny)
+        along_s = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
+        along_t = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
+        if 0 < i < nx - 1:
+            along_s = self._elastic_bend(
+                ti.Vector([j, i - 1]), ti.Vector([j, i]), ti.Vector([j, i + 1]), self.set_along_s[j, i - 1]
+            )
+        if 0 < j < ny - 1:
+            along_t = self._elastic_bend(
+                ti.Vector([j - 1, i]), ti.Vector([j, i]), ti.Vector([j + 1, i]), self.set_along_t[j - 1, i]
+            )
+        size = ti.sqrt(along_s.norm_sqr() / yield_s**2 + along_t.norm_sqr() / yield_t**2)
+        if size > 1.0:
+            slip = 1.0 - 1.0 / size
+            if 0 < i < nx - 1:
+                self.set_along_s[j, i - 1] += slip * along_s
+            if 0 < j < ny - 1:
+                self.set_along_t[j - 1, i] += slip * along_t
 
     @ti.func
     def _belt_velocity(self, p: ti.template(), pitch: ti.f64, half_belt: ti.f64) -> belt_hit:
@@ -376,6 +468,9 @@ class ClothSim:
         alpha_stretch: ti.f64,
         alpha_shear: ti.f64,
         alpha_bend: ti.f64,
+        set_share: ti.f64,
+        yield_s: ti.f64,
+        yield_t: ti.f64,
         mu: ti.f64,
         mu_static: ti.f64,
         stretch_k_h2: ti.f64,
@@ -441,10 +536,15 @@ class ClothSim:
                     self._diagonal(j, i, False, diag, alpha_shear, shear_k_h2)
             for jj, ii in ti.ndrange(ny, nx - 2):
                 j, i = _swept(jj, ny, flip), _swept(ii, nx - 2, flip)
-                self._bend(ti.Vector([j, i]), ti.Vector([j, i + 1]), ti.Vector([j, i + 2]), alpha_bend)
+                a, b, c = ti.Vector([j, i]), ti.Vector([j, i + 1]), ti.Vector([j, i + 2])
+                self._bend(a, b, c, self.set_along_s[j, i], alpha_bend, set_share)
             for jj, ii in ti.ndrange(ny - 2, nx):
                 j, i = _swept(jj, ny - 2, flip), _swept(ii, nx, flip)
-                self._bend(ti.Vector([j, i]), ti.Vector([j + 1, i]), ti.Vector([j + 2, i]), alpha_bend)
+                a, b, c = ti.Vector([j, i]), ti.Vector([j + 1, i]), ti.Vector([j + 2, i])
+                self._bend(a, b, c, self.set_along_t[j, i], alpha_bend, set_share)
+            if set_share > 0.0:
+                for j, i in ti.ndrange(ny, nx):
+                    self._slip_yarns(j, i, yield_s, yield_t)
             for j, i in ti.ndrange(ny, nx - 1):
                 self._anchored_spring(ti.Vector([j, i]), ti.Vector([j, i + 1]), dx, stretch_k_h2)
             for j, i in ti.ndrange(ny - 1, nx):

@@ -70,6 +70,12 @@ class ClothSpec(_Strict):
     stretch_stiffness_n_m: float = Field(2.0e4, gt=0, le=1e7)
     shear_stiffness_n_m: float = Field(2.0e3, gt=0, le=1e7)
     bending_stiffness_n_m: float = Field(1.0e-5, gt=0, le=1.0, description="flexural rigidity B, N·m")
+    bending_hysteresis_n: float = Field(
+        0.0,
+        ge=0,
+        le=1.0,
+        description="HB, the yarns' frictional couple in bending, N·m/m (half KES's 2HB; 0: purely elastic)",
+    )
     damping_1_s: float = Field(0.5, ge=0, le=100.0, description="velocity damping rate")
     friction: FrictionSpec = FrictionSpec()
     substep_s: float = Field(1.0 / 1000, ge=1e-5, le=0.01, description="XPBD substep")

@@ -14,6 +14,7 @@ from hwsim.stretch import stretch_under_turn
 from hwsim.world import World
 
 CELL_CLOTH = scenarios.load("cell").cloth.model_dump()  # the live cell's cloth, as `hwsim serve` runs it
+DENIM_BENDING_HYSTERESIS_N = scenarios.load("cell-yarn-friction").cloth.bending_hysteresis_n
 
 
 def _world(ridges: list[dict[str, object]], **overrides: object) -> World:
@@ -50,8 +51,32 @@ def test_a_laid_in_ridge_stays_for_a_minute_on_still_belts(ridge: dict[str, obje
     assert lowest_m >= 0.9 * laid_m
 
 
+def _lowest_over_m(world: World, seconds: float) -> float:
+    lowest_m = _height_m(world)
+    for _ in range(round(seconds * world.scenario.fps)):
+        world.step()
+        lowest_m = min(lowest_m, _height_m(world))
+    return lowest_m
+
+
 @pytest.mark.slow
-def test_a_ridge_flattens_when_the_belts_pull_its_sides_apart() -> None:
+@pytest.mark.parametrize("direction_deg", [30.0, 105.0])
+def test_a_small_ridge_across_the_threads_is_held_by_the_yarns_friction(direction_deg: float) -> None:
+    """5 mm, bent one cell wide, at an angle to the rows and columns: the yarns' friction in bending holds
+    it; without it (purely elastic bending, as before) it pushes its feet apart and falls flat."""
+    ridge = {"height_m": 0.005, "sigma_m": 0.008, "direction_rad": math.radians(direction_deg)}
+    world = _world([ridge], cloth=CELL_CLOTH | {"bending_hysteresis_n": DENIM_BENDING_HYSTERESIS_N})
+    laid_m = _height_m(world)
+    assert laid_m > 0.003
+    assert _lowest_over_m(world, 20.0) >= 0.9 * laid_m
+    elastic = _world([ridge])
+    elastic_laid_m = _height_m(elastic)
+    assert _lowest_over_m(elastic, 20.0) < 0.5 * elastic_laid_m
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("yarn_friction", [False, True], ids=["elastic", "yarn-friction"])
+def test_a_ridge_flattens_when_the_belts_pull_its_sides_apart(yarn_friction: bool) -> None:
     pull_m_s = 0.03
     left, right = [-0.3, -0.3, -0.01, 0.3], [0.01, -0.3, 0.3, 0.3]
     timeline = [
@@ -59,7 +84,10 @@ def test_a_ridge_flattens_when_the_belts_pull_its_sides_apart() -> None:
         {"t_s": 0.0, "modules": {"region_m": right}, "speed_m_s": pull_m_s, "heading_rad": 0.0},
         {"t_s": 1.0, "modules": {"all": True}, "speed_m_s": 0.0, "heading_rad": 0.0},
     ]
-    world = _world([{"height_m": 0.010}], timeline=timeline)
+    hysteresis_n = DENIM_BENDING_HYSTERESIS_N if yarn_friction else 0.0
+    world = _world(
+        [{"height_m": 0.010}], timeline=timeline, cloth=CELL_CLOTH | {"bending_hysteresis_n": hysteresis_n}
+    )
     assert _height_m(world) > 0.005
     for _ in range(round(2.0 * world.scenario.fps)):
         world.step()
