@@ -75,7 +75,8 @@ def _bends_in_own_frames(x_m: np.ndarray) -> np.ndarray:
     across it, up): (ny, nx - 2, 3), as `ClothSim._bend_frame` measures them."""
     bend = x_m[:, :-2] - 2.0 * x_m[:, 1:-1] + x_m[:, 2:]
     chord = x_m[:, 2:, :2] - x_m[:, :-2, :2]
-    along = chord / np.linalg.norm(chord, axis=-1, keepdims=True)
+    # A flap's crease may stack a chord's ends: no direction then, and no NaN.
+    along = chord / np.maximum(np.linalg.norm(chord, axis=-1, keepdims=True), 1e-12)
     across = np.stack([-along[..., 1], along[..., 0]], axis=-1)
     level = bend[..., :2]
     local = np.stack([(level * along).sum(axis=-1), (level * across).sum(axis=-1), bend[..., 2]], axis=-1)
@@ -377,9 +378,9 @@ class ClothSim:
 
     @ti.func
     def _bend_frame(self, a: ti.template(), c: ti.template()) -> ti.types.matrix(3, 3, ti.f64):
-        """Rows: along the bend's chord a -> c (level), across it (level), up. A set kept in this frame turns
-        with the cloth on the table."""
-        chord = vec2d(self.x[c][0] - self.x[a][0], self.x[c][1] - self.x[a][1]).normalized()
+        """Rows: along the bend's chord a -> c (level), across it (level), up. A stick point kept in this
+        frame turns with the cloth on the table."""
+        chord = vec2d(self.x[c][0] - self.x[a][0], self.x[c][1] - self.x[a][1]).normalized(1e-24)
         return ti.Matrix([[chord[0], chord[1], 0.0], [-chord[1], chord[0], 0.0], [0.0, 0.0, 1.0]])
 
     @ti.func

@@ -4,8 +4,7 @@ long, it has risen into a fold.
 An overhead camera hardly sees height (a node 20 mm up near the image centre moves a fraction of a
 pixel), so the filter estimates the nodes on the table plane and this module lifts them. Along every
 row and column of the mesh, an edge whose length on the table d is shorter than (1 - tolerance) of its
-rest length L has folded (and with it each neighbouring run of edges at least half as short: `_folded`),
-and rises by sqrt(L² - d²): the cloth does not stretch, so the 3-D edge
+rest length L has folded, and rises by sqrt(L² - d²): the cloth does not stretch, so the 3-D edge
 keeps its rest length and the model's springs are left at rest in the fold. A node with unfolded edges
 on both sides lies on the table; between two such nodes the cloth rises as far as it falls again, and
 each node is as high as the lower of its climbs from either side (a peaked fold, a flat-topped one, or
@@ -35,7 +34,7 @@ def _chain_heights(xy: np.ndarray, rest: np.ndarray, tolerance_strain: float) ->
     """Heights (c, k) of c neighbouring chains of k nodes along axis 1."""
     rest_length = np.linalg.norm(np.diff(rest, axis=1), axis=2)
     length = np.linalg.norm(np.diff(xy, axis=1), axis=2)
-    folded = _folded(length, rest_length, tolerance_strain)
+    folded = length < (1.0 - tolerance_strain) * rest_length
     rise = np.where(folded, np.sqrt(np.maximum(rest_length**2 - length**2, 0.0)), 0.0)  # (c, k-1)
     rise = _median_across(rise)
     flat = np.pad(rise == 0.0, ((0, 0), (1, 1)), constant_values=True)
@@ -43,22 +42,6 @@ def _chain_heights(xy: np.ndarray, rest: np.ndarray, tolerance_strain: float) ->
     climb_left = _climb(rise, on_table)
     climb_right = _climb(rise[:, ::-1], on_table[:, ::-1])[:, ::-1]
     return np.minimum(climb_left, climb_right)
-
-
-def _folded(length: np.ndarray, rest_length: np.ndarray, tolerance_strain: float) -> np.ndarray:
-    """(c, k-1) which edges have risen into a fold: those shorter than (1 - tolerance) of their rest length,
-    and with them each run of edges at least half that short that holds one of them (hysteresis, as Canny
-    links weak edges to strong ones). A ridge narrower than two edges puts most of its slack into one
-    edge and leaves its neighbours a little short; the fold must climb over one edge and come down over
-    another, so alone that edge lifted nothing. Mild compression everywhere holds no short edge: no fold."""
-    strong = length < (1.0 - tolerance_strain) * rest_length
-    weak = length < (1.0 - tolerance_strain / 2.0) * rest_length
-    linked = strong.copy()
-    for k in range(1, weak.shape[1]):  # along the chain, then back
-        linked[:, k] |= weak[:, k] & linked[:, k - 1]
-    for k in range(weak.shape[1] - 2, -1, -1):
-        linked[:, k] |= weak[:, k] & linked[:, k + 1]
-    return linked
 
 
 def _median_across(rise: np.ndarray) -> np.ndarray:
