@@ -1,15 +1,17 @@
 """The compute replies as soon as a tick's commands are ready; the tracker's upkeep, the recording and the
-annotated view follow the reply, and what they make travels with the next one."""
+annotated view follow the reply, and what they make travels with the next one. Work done between ticks
+(that, or tracking a frame ahead) that fails stops the modules at the next tick."""
 
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 import pytest
 from recorded_frames import compute_on, tick
 
-from clothd.compute import TickRequest
+from clothd.compute import Compute, TickRequest
 from clothd.core.control import Setpoint
 from clothd.core.messages import ModuleCommands
 
@@ -36,22 +38,30 @@ def test_the_view_asked_for_comes_with_the_next_reply(short_recording: Callable[
     assert tick(compute, _request(n, want_view=False)).view_jpeg is None  # drawn once
 
 
-def test_a_failure_after_the_reply_stops_the_modules_at_the_next_tick(
-    short_recording: Callable[[str], Path], monkeypatch: pytest.MonkeyPatch
+@pytest.mark.parametrize(
+    ("breaks", "between_ticks"),
+    [("upkeep", Compute.after_reply), ("track", Compute.track_ahead)],
+    ids=["after-the-reply", "tracking-ahead"],
+)
+def test_work_that_fails_between_ticks_stops_the_modules_at_the_next_tick(
+    short_recording: Callable[[str], Path],
+    monkeypatch: pytest.MonkeyPatch,
+    breaks: str,
+    between_ticks: Callable[[Compute], object],
 ) -> None:
     compute = compute_on(short_recording("translate"))
     n = compute.spec.layout.n_modules
-    tick(compute, _request(n, want_view=False))
     moving = TickRequest(
         Setpoint("move", np.array([0.02, 0.0, 0.0])), ModuleCommands.all_stop(n), reset=False, want_view=False
     )
-    assert compute.tick(moving).commands.speed_m_s.any()
+    tick(compute, moving)  # initialises
+    assert compute.tick(moving).commands.speed_m_s.any()  # its work after the reply is still to do
 
-    def broken() -> float:
-        raise RuntimeError("upkeep bug")
+    def broken(*_: Any) -> Any:
+        raise RuntimeError(f"{breaks} bug")
 
-    monkeypatch.setattr(compute.tracker, "upkeep", broken)
-    compute.after_reply()
+    monkeypatch.setattr(compute.tracker, breaks, broken)
+    between_ticks(compute)
     monkeypatch.undo()
     stopped = tick(compute, moving)
     assert stopped.state == "fault" and stopped.halt_reason is not None

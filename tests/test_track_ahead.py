@@ -69,27 +69,3 @@ def test_a_reset_tracks_the_frame_afresh_and_nothing_is_tracked_before_the_first
     reply = tick(compute, TickRequest(IDLE, stopped, reset=True, want_view=False))
     assert len(calls) == 3  # the reset threw the frame tracked ahead away with the tracker's state
     assert reply.new_frame and reply.estimate is not None
-
-
-def test_a_failure_tracking_ahead_stops_the_modules_at_the_next_tick(
-    short_recording: Callable[[str], Path], monkeypatch: pytest.MonkeyPatch
-) -> None:
-    compute = compute_on(short_recording("translate"))
-    n = compute.spec.layout.n_modules
-    moving = TickRequest(
-        Setpoint("move", np.array([0.02, 0.0, 0.0])), ModuleCommands.all_stop(n), reset=False, want_view=False
-    )
-    tick(compute, moving)  # initialises
-    assert tick(compute, moving).commands.speed_m_s.any()
-
-    def broken(*_: Any) -> Any:
-        raise RuntimeError("tracker bug")
-
-    monkeypatch.setattr(compute.tracker, "track", broken)
-    compute.track_ahead()
-    monkeypatch.undo()
-    stopped = tick(compute, moving)
-    assert stopped.state == "fault" and stopped.halt_reason is not None
-    assert not stopped.commands.speed_m_s.any()
-    again = tick(compute, moving)  # answered once; the tracker starts afresh
-    assert again.state == "tracking" and again.estimate is not None and again.estimate.tracking
