@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from clothd.core.segmentation import cloth_mask_from_outline, find_cloth, full_frame_region
+from clothd.core.segmentation import ClothColour, cloth_mask_from_outline, find_cloth, full_frame_region
 from hwsim.camera import Camera
 from hwsim.paths import frame_path
 from hwsim.truth import Truth
@@ -142,3 +142,30 @@ def test_cloth_mask_from_outline_fills_and_erodes() -> None:
     # The frame's border counts as outside: a polygon running off the frame is eroded from it too.
     off = cloth_mask_from_outline(np.array([[-50.0, -50.0], [50, -50], [50, 50], [-50, 50]]), 100, 80, 3)
     assert off[3, 3] == 255 and off[2, 3] == 0 and off[3, 2] == 0
+
+
+def test_is_cloth_judges_each_patch_by_its_mean_colour() -> None:
+    """Blue cloth on a grey table: a patch is cloth when its mean colour's chroma is far enough from the
+    table's; a patch half on each, or leaving the frame, goes by its mean, or is not cloth."""
+    image = np.full((60, 80, 3), 128, np.uint8)
+    image[:, 40:] = (160, 90, 60)  # BGR: blue denim from x = 40 on
+    rng = np.random.default_rng(3)
+    image = np.clip(image + rng.integers(-6, 7, image.shape), 0, 255).astype(np.uint8)
+    lab = cv2.cvtColor(image[:1, :1], cv2.COLOR_BGR2Lab).reshape(3).astype(float)
+    colour = ClothColour((lab[1], lab[2]), 12.0)
+    points = np.array([[10.0, 30.0], [60.0, 30.0], [40.4, 30.0], [37.6, 30.0], [78.0, 30.0], [60.0, 0.5]])
+    seen = colour.is_cloth(image, points)
+    # The 5 x 5 patch at x = 40 holds three cloth columns of five, the one at x = 38 only one.
+    assert seen.tolist() == [False, True, True, False, False, False]
+    # Against the definition, patch by patch, on noise whose patch means straddle the threshold.
+    noise = rng.integers(0, 256, (60, 80, 3)).astype(np.uint8)
+    points = rng.uniform(-2, 82, (300, 2))
+    seen = colour.is_cloth(noise, points)
+    for (x, y), s in zip(np.round(points).astype(int), seen, strict=True):
+        if not (2 <= x < 78 and 2 <= y < 58):
+            assert not s
+            continue
+        mean = noise[y - 2 : y + 3, x - 2 : x + 3].reshape(-1, 3).mean(axis=0).astype(np.uint8)
+        a, b = cv2.cvtColor(mean.reshape(1, 1, 3), cv2.COLOR_BGR2Lab).reshape(3)[1:].astype(float)
+        assert s == (np.hypot(a - colour.background_ab[0], b - colour.background_ab[1]) > 12.0)
+    assert 0.1 < seen.mean() < 0.9

@@ -217,7 +217,7 @@ def test_mesh_ekf_update_is_the_exact_information_form_update() -> None:
 
 def test_planar_update_is_the_full_update_when_heights_are_outside_the_filter() -> None:
     """With no height column in J and z, v_z uncorrelated with the rest (set_heights), the x, y solve of a
-    planar belief gives the 3-D solve's mean and covariance, heights untouched."""
+    planar belief gives the 3-D solve's mean and covariance, heights untouched, and the same gate."""
     cam = CameraModel.ideal(640, 480, 900.0, 1.0)
     mesh = QuadMesh.covering(np.array([[-0.05, -0.05], [0.05, -0.05], [0.05, 0.05], [-0.05, 0.05]]), 4, 3)
     rng = np.random.default_rng(6)
@@ -235,6 +235,13 @@ def test_planar_update_is_the_full_update_when_heights_are_outside_the_filter() 
             np.column_stack([pos, np.zeros_like(pos)]), P_blocks.copy(), mesh.quad_nodes(), planar
         )
         belief.set_heights(pos[:, 2], 0.002, 0.01)
+        # The gate's S: the planar filter's 2 x 2 blocks written out, the 3-D one's by matmul. (J with all
+        # entries non-zero: this camera looks straight down, so its du/dy and dv/dx are 0.)
+        J_any = rng.normal(0, 1e3, J.shape) * [1.0, 1.0, 0.0]
+        S = belief.innovation_covariances(binding.nodes, J_any[..., : 2 if planar else 3], 0.25)
+        Pc = belief.P[binding.nodes][:, :, :3, :3]
+        S_direct = np.einsum("kcia,kcab,kcjb->kij", J_any, Pc, J_any) + 0.25 * np.eye(2)
+        np.testing.assert_allclose(S, S_direct, rtol=1e-12, atol=0)
         belief.correct(binding.quad, binding.nodes, J, nu, 0.25, gate_chi2=1e9, smoothness_m=0.005)
         beliefs.append(belief)
     full, planar_belief = beliefs
