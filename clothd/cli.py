@@ -197,7 +197,7 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
     import os
 
     # The tracker timed as the daemon's compute process runs it (compute_process.py, compute.py): one BLAS
-    # and one OpenCV thread. BLAS reads this when numpy first loads, which is below.
+    # thread, and loop.compute_threads OpenCV threads. BLAS reads this when numpy first loads, below.
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     import cv2
@@ -214,8 +214,9 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
     )
     from clothd.tools.recordings import scenario_recording
 
-    cv2.setNumThreads(1)
-    start_taichi(load_config(args.config).taichi.arch)
+    cfg = load_config(args.config)
+    cv2.setNumThreads(cfg.loop.compute_threads)
+    start_taichi(cfg.taichi.arch)
     recording = scenario_recording(args.cache, args.scenario)
     budgets = tuple(args.features) if args.features else DEFAULT_BUDGETS
     meshes = tuple(args.mesh) if args.mesh else DEFAULT_MESHES
@@ -533,7 +534,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="the shipped scenario tracked: translate (250 x 200 mm, ~900 corners) or panel (500 x 360 mm, "
         "enough corners for a 2000-feature budget)",
     )
-    bs.add_argument("--config", type=Path, help="taichi.arch is taken from it")
+    bs.add_argument("--config", type=Path, help="taichi.arch and loop.compute_threads are taken from it")
     bs.add_argument("--json", type=Path)
     bs.add_argument("--plot", type=Path, metavar="PNG", help="the tick against the node count, drawn here")
     bs.add_argument(

@@ -105,6 +105,7 @@ class ComputeSpec:
     recording_format: str = "directory"  # recording.format
     foxglove: FoxgloveConfig | None = None  # the live server's section (None: off)
     track_ahead: bool = True  # loop.track_ahead: track a frame as it arrives, not when its tick asks
+    opencv_threads: int = 2  # loop.compute_threads
 
 
 @dataclass(frozen=True)
@@ -377,7 +378,7 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     configure_logging()
     start_taichi(spec.taichi_arch)
-    cv2.setNumThreads(1)
+    cv2.setNumThreads(spec.opencv_threads)
     compute = Compute(spec, spec.frame_source())
     try:
         compute.start()

@@ -185,6 +185,10 @@ class LoopConfig(_Strict):
     track_ahead: bool = Field(
         True, description="the compute tracks a frame as it arrives, not when the tick asks for commands"
     )
+    # OpenCV's threads in the compute process: LK's passes split their points among them (2000 features
+    # at 24 x 24 nodes tick in 13 ms with 2, 18 ms with 1). Even on a 2-core machine shared with hwsim, 2
+    # cut the frame-to-command latency p99 from 16 to 12-13 ms and missed no tick (docs/benchmarks.md).
+    compute_threads: int = Field(2, ge=1, le=16, description="OpenCV threads in the compute process")
 
     @model_validator(mode="after")
     def _frame_wait_leaves_time_to_compute(self) -> LoopConfig:

@@ -134,6 +134,7 @@ def build(cfg: Config) -> Parts:
         recording_format=cfg.recording.format,
         foxglove=cfg.foxglove,
         track_ahead=cfg.loop.track_ahead,
+        opencv_threads=cfg.loop.compute_threads,
     )
     settings = DaemonSettings(
         period_s=cfg.loop.period_s,

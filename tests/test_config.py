@@ -41,6 +41,7 @@ def test_defaults_are_valid() -> None:
         ("opcua: {security_policies: [Basic128Rsa15]}\n", ["opcua.security_policies"]),
         ("recording: {format: zip}\n", ["recording.format", "'directory' or 'mcap'"]),
         ("foxglove: {port: 0}\n", ["foxglove.port", "greater than or equal to 1"]),
+        ("loop: {compute_threads: 0}\n", ["loop.compute_threads", "greater than or equal to 1"]),
         ("foxglove: {enabled: true, host: 0.0.0.0}\n", ["foxglove.host", "foxglove.allow_remote"]),
         ("- a\n- list\n", ["a mapping"]),
         ("tracker: [unclosed\n", ["not valid YAML"]),
@@ -76,3 +77,11 @@ def test_shipped_config_yaml_is_the_complete_default() -> None:
     assert load_config(path) == Config()
     # Complete: every key is written out, not left to its default.
     assert yaml.safe_load(path.read_text()) == Config().model_dump(mode="json")
+
+
+def test_the_compute_process_gets_the_configured_opencv_threads() -> None:
+    from clothd.run import build
+
+    parts = build(parse_config({"loop": {"compute_threads": 1}}))
+    assert parts.daemon.compute.spec.opencv_threads == 1
+    assert build(Config()).daemon.compute.spec.opencv_threads == 2

@@ -6,9 +6,9 @@ correction run on real frames; the stage times are the tracker's own
 (time.perf_counter around each stage). Beside it, filterpy's dense EKF does the same correction
 (6 states per node, 2 measurements per feature, dense P, F, H) wherever it finishes within the budget.
 Figures are medians (p50) and 99th percentiles over the ticks after a warm-up. The tracker runs with one
-BLAS and one OpenCV thread, as in the daemon's compute process (the command sets them before numpy
-loads). `--plot` draws the tick against the node count, with a previous run's figures (`--baseline`)
-dashed beside this run's.
+BLAS thread and `loop.compute_threads` OpenCV threads, as in the daemon's compute process (the command
+sets them before numpy loads). `--plot` draws the tick against the node count, with a previous run's
+figures (`--baseline`) dashed beside this run's.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from clothd.config import FeatureConfig, MeshConfig, TrackerConfig
@@ -211,7 +212,7 @@ def plot(rows: list[Row], path: Path, baseline: list[Row] | None = None) -> None
     ax.set_ylim(top=max(26.0, ax.get_ylim()[1]))
     ax.axhline(15.0, color="k", linewidth=0.8, linestyle="-.", label="bar: p50 15 ms")
     ax.axhline(25.0, color="grey", linewidth=0.8, linestyle="-.", label="bar: p99 25 ms")
-    ax.set_title("tracker tick (one core: 1 BLAS, 1 OpenCV thread)")
+    ax.set_title(f"tracker tick (1 BLAS, {cv2.getNumThreads()} OpenCV threads)")
     ax2.set_title("stages, p50")
     ax.legend(fontsize=6, ncol=2)
     ax2.legend(fontsize=6, ncol=2)
