@@ -225,6 +225,7 @@ class Compute:
             self.tracker.reset()
             self.controller.reset()
             self.flatness_monitor.reset()
+            self.regulator.reset()
             self._estimate = None
             self._flatness = None
         self._record_requests(req)
@@ -366,7 +367,9 @@ class Compute:
         shaping = None
         flattens = sp.mode == "flatten" or self.spec.control.flatten
         if flattens and flatness is not None and est.nodes_m is not None and est.cloth_size_m is not None:
-            shaping = self.regulator.velocities(flatness, est.nodes_m, est.cloth_size_m, under, est.pose[:2])
+            shaping = self.regulator.velocities(
+                flatness, est.nodes_m, est.cloth_size_m, under, est.pose, est.frame_t_s
+            )
         return "tracking", self.controller.module_commands(est.pose, twist, under, shaping), None
 
 

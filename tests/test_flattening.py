@@ -52,7 +52,7 @@ def _field(nodes: np.ndarray, cfg: FlattenConfig | None = None) -> tuple[np.ndar
     under = np.abs(LAYOUT.centres_m[:, 0]) < 0.12
     under &= np.abs(LAYOUT.centres_m[:, 1]) < 0.10
     slack = flatness.ridges[0].slack_m if flatness.ridges else 0.0
-    return regulator.velocities(flatness, nodes, SIZE_M, under, np.zeros(2)), under, slack
+    return regulator.velocities(flatness, nodes, SIZE_M, under, np.zeros(3), 0.0), under, slack
 
 
 def test_the_two_sides_of_a_ridge_are_pulled_apart_across_it() -> None:
@@ -157,7 +157,7 @@ def test_the_modules_under_a_flap_are_left_alone() -> None:
     assert len(flatness.flaps) == 1
     regulator = FlatteningRegulator(FlattenConfig(), LAYOUT.centres_m, LAYOUT.module_size_m, STRAIN_LIMIT)
     under = (np.abs(LAYOUT.centres_m[:, 0]) < 0.12) & (np.abs(LAYOUT.centres_m[:, 1]) < 0.10)
-    v = regulator.velocities(flatness, nodes, SIZE_M, under, np.zeros(2))
+    v = regulator.velocities(flatness, nodes, SIZE_M, under, np.zeros(3), 0.0)
     flap_xy = flatness.flaps[0].quad_centres_m
     gap = np.linalg.norm(LAYOUT.centres_m[:, None] - flap_xy[None], axis=-1).min(axis=1)
     near = gap <= LAYOUT.module_size_m / 2 + FlattenConfig().ridge_margin_m
@@ -166,5 +166,40 @@ def test_the_modules_under_a_flap_are_left_alone() -> None:
     # The ridge is still pulled, by the modules away from the flap.
     assert np.abs(v[under & ~near]).max() > 0.0
     without_flap = FlatnessMonitor(FlatnessConfig()).update(nodes, SIZE_M)
-    v_all = regulator.velocities(without_flap, nodes, SIZE_M, under, np.zeros(2))
+    v_all = regulator.velocities(without_flap, nodes, SIZE_M, under, np.zeros(3), 0.0)
     assert np.abs(v_all[near & under]).max() > 0.0  # without the flap those modules would pull
+
+
+def test_a_ridge_lost_from_sight_is_pulled_on_for_finish_s_where_the_cloth_took_it() -> None:
+    """Below a few millimetres the estimate no longer sees a ridge that the yarns' friction still holds:
+    the regulator keeps pulling it at full speed for finish_s, in the cloth's frame, then stops."""
+    cfg = FlattenConfig()
+    regulator = FlatteningRegulator(cfg, LAYOUT.centres_m, LAYOUT.module_size_m, STRAIN_LIMIT)
+    under = (np.abs(LAYOUT.centres_m[:, 0]) < 0.20) & (np.abs(LAYOUT.centres_m[:, 1]) < 0.10)
+    wrinkled, flat = _mesh(0.0, ridge_col=7), _mesh(0.0, ridge_col=None)
+    monitor = FlatnessMonitor(FlatnessConfig())
+    seen, gone = monitor.update(wrinkled, SIZE_M), monitor.update(flat, SIZE_M)
+    assert seen.ridges and not gone.ridges
+    ridge_x = float(wrinkled[0, 7:9, 0].mean())
+    v_seen = regulator.velocities(seen, wrinkled, SIZE_M, under, np.zeros(3), 0.0)
+    assert v_seen.any()
+    # The cloth has moved 40 mm along x since: the remembered line moved with it.
+    shift_m = 0.04
+    v = regulator.velocities(gone, flat, SIZE_M, under, np.array([shift_m, 0.0, 0.0]), 0.1)
+    pulling = np.linalg.norm(v, axis=1) > 1e-9
+    assert pulling.sum() >= 4
+    side = np.sign(LAYOUT.centres_m[pulling, 0] - (ridge_x + shift_m))
+    assert np.all(v[pulling, 0] * side > 0)
+    # At full speed, not at the slack's pace (slack / 2 tau = 9 mm/s here, against 40).
+    assert np.abs(v).max() > 3 * np.abs(v_seen).max()
+    # Still within finish_s, then no more.
+    later = 0.1 + cfg.finish_s
+    assert regulator.velocities(gone, flat, SIZE_M, under, np.zeros(3), later - 0.01).any()
+    assert not regulator.velocities(gone, flat, SIZE_M, under, np.zeros(3), later + 0.01).any()
+    # A ridge last seen long before (the regulator idle in between) is forgotten, not finished.
+    regulator.velocities(seen, wrinkled, SIZE_M, under, np.zeros(3), 10.0)
+    assert not regulator.velocities(gone, flat, SIZE_M, under, np.zeros(3), 12.0).any()
+    # Reset forgets it too.
+    regulator.velocities(seen, wrinkled, SIZE_M, under, np.zeros(3), 20.0)
+    regulator.reset()
+    assert not regulator.velocities(gone, flat, SIZE_M, under, np.zeros(3), 20.1).any()

@@ -10,11 +10,17 @@ least-squares translation and rotation about the cloth's centre are taken out), 
 cloth's shape and leaves its pose to the pose controller. As the cloth as a whole (the median row or
 column of the mesh) is stretched towards `strain_limit`, the whole field is scaled down to nothing, so
 that the cloth is never torn and never pulled to slip.
+
+A ridge the estimate stops seeing is pulled on for `finish_s` more, at `max_speed_m_s`: below about
+5 mm a 12 x 12 mesh's edge is shortened by under 1 %, so the estimate calls the cloth flat while a ridge
+held by the yarns' friction stays wherever the pull stops (docs/flattening.md, "Finishing"). The ridge is
+remembered in the cloth's frame, so the finishing pull follows the cloth while it moves.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -22,6 +28,39 @@ from clothd.config import FlattenConfig
 from clothd.core.flatness import Flatness, Ridge
 
 STRAIN_GUARD_SPAN = 0.5  # the field fades out over the last half of the way to strain_limit
+# A ridge seen in this tick is the one remembered when the middles of their quads are this close (m): a
+# ridge moves by millimetres a tick while it is pulled, and two ridges lie a module apart at least.
+SAME_RIDGE_M = 0.03
+# Ridges seen longer ago than this (the regulator was not asked in between: idle, or tracking lost) are
+# forgotten rather than finished: the cloth may have been flattened or moved by hand since.
+SEEN_STALE_S = 0.5
+
+
+@dataclass(frozen=True)
+class _Finishing:
+    """A ridge no longer seen, in the cloth's frame, and when its finishing pull ends (s)."""
+
+    ridge: Ridge
+    until_s: float
+
+
+def _ridge_moved(ridge: Ridge, pose: np.ndarray, inverse: bool = False) -> Ridge:
+    """The ridge in the frame of pose (X, Y, θ) given in world (inverse) or back in world from it."""
+    angle = -pose[2] if inverse else pose[2]
+    c, s = math.cos(angle), math.sin(angle)
+    rot = np.array([[c, -s], [s, c]])
+    origin = np.asarray(pose[:2], float)
+
+    def moved(p: np.ndarray) -> np.ndarray:
+        return np.asarray((p - origin) @ rot.T if inverse else p @ rot.T + origin)
+
+    position = moved(np.asarray(ridge.position_m, float))
+    return replace(
+        ridge,
+        position_m=(float(position[0]), float(position[1])),
+        direction_rad=(ridge.direction_rad + angle) % math.pi,
+        quad_centres_m=moved(ridge.quad_centres_m),
+    )
 
 
 def rigid_part(velocities: np.ndarray, points_m: np.ndarray, centre_m: np.ndarray) -> np.ndarray:
@@ -66,6 +105,15 @@ class FlatteningRegulator:
         self.centres_m = centres_m
         self.half_belt_m = module_size_m / 2.0
         self.strain_limit = strain_limit
+        self._seen: tuple[Ridge, ...] = ()  # the last call's ridges, in the cloth's frame
+        self._seen_t_s = -math.inf
+        self._finishing: list[_Finishing] = []
+
+    def reset(self) -> None:
+        """Forget the ridges seen (a new cloth, or tracking began again)."""
+        self._seen = ()
+        self._seen_t_s = -math.inf
+        self._finishing = []
 
     def velocities(
         self,
@@ -73,10 +121,12 @@ class FlatteningRegulator:
         nodes_m: np.ndarray,
         cloth_size_m: tuple[float, float],
         under: np.ndarray,
-        centre_m: np.ndarray,
+        pose: np.ndarray,
+        t_s: float,
     ) -> np.ndarray:
-        """The flattening field for the modules `under` the cloth (bool, n_modules), less those under or
-        beside a flap; zero elsewhere."""
+        """The flattening field at time t_s for the modules `under` the cloth (bool, n_modules), less those
+        under or beside a flap; zero elsewhere. pose (X, Y, θ): the cloth's, whose centre the field leaves
+        where it is and in whose frame ridges are remembered."""
         # Belts cannot unfold a flap, and a belt under one would drag it about: the modules under a flap,
         # or at its edge, are left out.
         shaping = under.copy()
@@ -86,8 +136,11 @@ class FlatteningRegulator:
         v = np.zeros_like(self.centres_m)
         for ridge in flatness.ridges:
             v[shaping] += self._pull(ridge, self.centres_m[shaping])
+        for finishing in self._finish(flatness.ridges, pose, t_s):
+            v[shaping] += self._pull(_ridge_moved(finishing, pose), self.centres_m[shaping], finishing=True)
         if not v.any():
             return v
+        centre_m = np.asarray(pose[:2], float)
         v[shaping] -= rigid_part(v[shaping], self.centres_m[shaping], centre_m)
         ny, nx = nodes_m.shape[:2]
         spacing = (cloth_size_m[0] / (nx - 1), cloth_size_m[1] / (ny - 1))
@@ -95,14 +148,33 @@ class FlatteningRegulator:
         guard = np.clip((self.strain_limit - strain) / (STRAIN_GUARD_SPAN * self.strain_limit), 0.0, 1.0)
         return np.asarray(v * guard)
 
-    def _pull(self, ridge: Ridge, centres_m: np.ndarray) -> np.ndarray:
-        """The pull of one ridge on modules at centres_m (k, 2): ±v ĉ on either side of its line."""
+    def _finish(self, ridges: tuple[Ridge, ...], pose: np.ndarray, t_s: float) -> list[Ridge]:
+        """The ridges (in the cloth's frame) still to be pulled on after the estimate lost sight of them:
+        those seen last tick and not this one start their finishing pull; one seen again ends it."""
+        seen = tuple(_ridge_moved(r, pose, inverse=True) for r in ridges)
+
+        def still_seen(old: Ridge) -> bool:
+            middle = old.quad_centres_m.mean(axis=0)
+            return any(np.linalg.norm(r.quad_centres_m.mean(axis=0) - middle) < SAME_RIDGE_M for r in seen)
+
+        recent = t_s - self._seen_t_s <= SEEN_STALE_S
+        lost = [r for r in self._seen if recent and not still_seen(r)]
+        self._finishing = [f for f in self._finishing if f.until_s > t_s and not still_seen(f.ridge)]
+        self._finishing += [_Finishing(r, t_s + self.cfg.finish_s) for r in lost]
+        self._seen, self._seen_t_s = seen, t_s
+        return [f.ridge for f in self._finishing]
+
+    def _pull(self, ridge: Ridge, centres_m: np.ndarray, finishing: bool = False) -> np.ndarray:
+        """The pull of one ridge on modules at centres_m (k, 2): ±v ĉ on either side of its line; a ridge
+        being finished is pulled at full speed."""
         c = self.cfg
         across = np.array(
             [math.cos(ridge.compressed_direction_rad), math.sin(ridge.compressed_direction_rad)]
         )
         along = np.array([-across[1], across[0]])
-        speed = min(c.max_speed_m_s, ridge.slack_m / (2.0 * c.time_constant_s))
+        speed = (
+            c.max_speed_m_s if finishing else min(c.max_speed_m_s, ridge.slack_m / (2.0 * c.time_constant_s))
+        )
         # The line runs through the middle of the ridge's quads; it reaches as far as they do.
         middle = ridge.quad_centres_m.mean(axis=0)
         reach = (ridge.quad_centres_m - middle) @ along
