@@ -26,8 +26,9 @@ class ComputeProcess:
         self._receiver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="compute-reply")
 
     async def start(self) -> None:
-        # One thread for BLAS and OpenCV in the compute process: their pools, sized to every core, only
-        # contend with hwsim or the camera here, and the matrices are small (set before it imports them).
+        # One BLAS thread in the compute process: its pool, sized to every core, only contends with hwsim or
+        # the camera here, and the matrices are small (set before it imports numpy). OpenCV's threads are
+        # loop.compute_threads (serve_compute).
         for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
             os.environ.setdefault(var, "1")
         ctx = multiprocessing.get_context("spawn")  # a fresh interpreter: no inherited threads or Taichi

@@ -192,6 +192,19 @@ def test_a_ridge_lost_from_sight_is_pulled_on_for_finish_s_where_the_cloth_took_
     assert np.all(v[pulling, 0] * side > 0)
     # At full speed, not at the slack's pace (slack / 2 tau = 9 mm/s here, against 40).
     assert np.abs(v).max() > 3 * np.abs(v_seen).max()
+    # Seen on a cloth turned by 0.3 rad, lost after it moved and turned 60° more: the line went with it.
+    seen_at, lost_at = np.array([0.02, 0.01, 0.3]), np.array([0.03, -0.02, 0.3 + math.pi / 3])
+    turned = FlatteningRegulator(cfg, LAYOUT.centres_m, LAYOUT.module_size_m, STRAIN_LIMIT)
+    seen_turned = _mesh(0.3, ridge_col=7) + np.array([seen_at[0], seen_at[1], 0.0])
+    turned.velocities(monitor.update(seen_turned, SIZE_M), seen_turned, SIZE_M, under, seen_at, 0.0)
+    under_turned = np.linalg.norm(LAYOUT.centres_m - lost_at[:2], axis=1) < 0.12
+    v = turned.velocities(gone, flat, SIZE_M, under_turned, lost_at, 0.1)[under_turned]
+    c, s = math.cos(lost_at[2]), math.sin(lost_at[2])
+    across, along = np.array([c, s]), np.array([-s, c])
+    line_m = lost_at[:2] + ridge_x * across  # the cloth's point (ridge_x, 0), where the cloth is now
+    s_m = (LAYOUT.centres_m[under_turned] - line_m) @ across
+    assert (v @ across)[s_m > 0].mean() > 0.01 and (v @ across)[s_m < 0].mean() < -0.01
+    assert np.abs(v @ along).max() < 0.1 * np.abs(v @ across).max()
     # Still within finish_s, then no more.
     later = 0.1 + cfg.finish_s
     assert regulator.velocities(gone, flat, SIZE_M, under, np.zeros(3), later - 0.01).any()

@@ -26,6 +26,7 @@ import numpy as np
 
 from clothd.config import FlattenConfig
 from clothd.core.flatness import Flatness, Ridge
+from clothd.core.rigid import body_coordinates, rotation
 
 STRAIN_GUARD_SPAN = 0.5  # the field fades out over the last half of the way to strain_limit
 # A ridge seen in this tick is the one remembered when the middles of their quads are this close (m): a
@@ -44,22 +45,26 @@ class _Finishing:
     until_s: float
 
 
-def _ridge_moved(ridge: Ridge, pose: np.ndarray, inverse: bool = False) -> Ridge:
-    """The ridge in the frame of pose (X, Y, θ) given in world (inverse) or back in world from it."""
-    angle = -pose[2] if inverse else pose[2]
-    c, s = math.cos(angle), math.sin(angle)
-    rot = np.array([[c, -s], [s, c]])
-    origin = np.asarray(pose[:2], float)
-
-    def moved(p: np.ndarray) -> np.ndarray:
-        return np.asarray((p - origin) @ rot.T if inverse else p @ rot.T + origin)
-
-    position = moved(np.asarray(ridge.position_m, float))
+def _ridge_in_cloth(ridge: Ridge, pose: np.ndarray) -> Ridge:
+    """A ridge seen in the world, in the frame of the cloth at pose (X, Y, θ)."""
+    position = body_coordinates(np.asarray([ridge.position_m], float), pose)[0]
     return replace(
         ridge,
         position_m=(float(position[0]), float(position[1])),
-        direction_rad=(ridge.direction_rad + angle) % math.pi,
-        quad_centres_m=moved(ridge.quad_centres_m),
+        direction_rad=(ridge.direction_rad - float(pose[2])) % math.pi,
+        quad_centres_m=body_coordinates(ridge.quad_centres_m, pose),
+    )
+
+
+def _ridge_in_world(ridge: Ridge, pose: np.ndarray) -> Ridge:
+    """A ridge remembered in the cloth's frame, in the world for the cloth at pose (X, Y, θ)."""
+    turn = rotation(float(pose[2]))
+    position = np.asarray(ridge.position_m, float) @ turn.T + pose[:2]
+    return replace(
+        ridge,
+        position_m=(float(position[0]), float(position[1])),
+        direction_rad=(ridge.direction_rad + float(pose[2])) % math.pi,
+        quad_centres_m=ridge.quad_centres_m @ turn.T + pose[:2],
     )
 
 
@@ -136,8 +141,8 @@ class FlatteningRegulator:
         v = np.zeros_like(self.centres_m)
         for ridge in flatness.ridges:
             v[shaping] += self._pull(ridge, self.centres_m[shaping])
-        for finishing in self._finish(flatness.ridges, pose, t_s):
-            v[shaping] += self._pull(_ridge_moved(finishing, pose), self.centres_m[shaping], finishing=True)
+        for lost in self._finish(flatness.ridges, pose, t_s):
+            v[shaping] += self._pull(_ridge_in_world(lost, pose), self.centres_m[shaping], finishing=True)
         if not v.any():
             return v
         centre_m = np.asarray(pose[:2], float)
@@ -151,7 +156,7 @@ class FlatteningRegulator:
     def _finish(self, ridges: tuple[Ridge, ...], pose: np.ndarray, t_s: float) -> list[Ridge]:
         """The ridges (in the cloth's frame) still to be pulled on after the estimate lost sight of them:
         those seen last tick and not this one start their finishing pull; one seen again ends it."""
-        seen = tuple(_ridge_moved(r, pose, inverse=True) for r in ridges)
+        seen = tuple(_ridge_in_cloth(r, pose) for r in ridges)
 
         def still_seen(old: Ridge) -> bool:
             middle = old.quad_centres_m.mean(axis=0)
