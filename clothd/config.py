@@ -284,6 +284,9 @@ class FlattenConfig(_Strict):
 
     time_constant_s: float = Field(0.5, gt=0.01, le=60, description="a ridge's slack decays like exp(-t/τ)")
     max_speed_m_s: float = Field(0.04, gt=0, le=1, description="the most a module pulls a ridge's side")
+    min_speed_m_s: float = Field(
+        0.01, ge=0, le=1, description="the least a module pulls a ridge's side while the ridge is seen"
+    )
     reach_m: float = Field(0.12, gt=0, le=2, description="modules this far from a ridge, or nearer, pull")
     ridge_margin_m: float = Field(
         0.01, ge=0, le=0.5, description="a module pulls once its centre is this far off a ridge's line"
@@ -291,6 +294,12 @@ class FlattenConfig(_Strict):
     finish_s: float = Field(
         0.3, ge=0, le=10, description="a ridge the estimate stops seeing is pulled on this long, at max speed"
     )
+
+    @model_validator(mode="after")
+    def _min_below_max(self) -> FlattenConfig:
+        if self.min_speed_m_s > self.max_speed_m_s:
+            raise ValueError(f"min_speed_m_s ({self.min_speed_m_s}) must not exceed max_speed_m_s")
+        return self
 
 
 class ControlConfig(_Strict):

@@ -42,6 +42,10 @@ def test_defaults_are_valid() -> None:
         ("recording: {format: zip}\n", ["recording.format", "'directory' or 'mcap'"]),
         ("foxglove: {port: 0}\n", ["foxglove.port", "greater than or equal to 1"]),
         ("loop: {compute_threads: 0}\n", ["loop.compute_threads", "greater than or equal to 1"]),
+        (
+            "control: {flattening: {min_speed_m_s: 0.05}}\n",
+            ["control.flattening", "min_speed_m_s (0.05) must not exceed max_speed_m_s"],
+        ),
         ("foxglove: {enabled: true, host: 0.0.0.0}\n", ["foxglove.host", "foxglove.allow_remote"]),
         ("- a\n- list\n", ["a mapping"]),
         ("tracker: [unclosed\n", ["not valid YAML"]),

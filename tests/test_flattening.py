@@ -69,7 +69,8 @@ def test_the_two_sides_of_a_ridge_are_pulled_apart_across_it() -> None:
         v[pulling & (LAYOUT.centres_m[:, 0] < ridge_x), 0],
         v[pulling & (LAYOUT.centres_m[:, 0] > ridge_x), 0],
     )
-    speed = min(FlattenConfig().max_speed_m_s, slack / (2 * FlattenConfig().time_constant_s))
+    cfg = FlattenConfig()
+    speed = float(np.clip(slack / (2 * cfg.time_constant_s), cfg.min_speed_m_s, cfg.max_speed_m_s))
     assert right.mean() - left.mean() == pytest.approx(2 * speed, rel=1e-6)
 
 
@@ -100,13 +101,18 @@ def test_no_ridge_no_pull_and_a_stretched_cloth_is_not_pulled() -> None:
     assert np.abs(half).max() == pytest.approx(0.5 * np.abs(full).max(), rel=0.1)
 
 
-def test_the_pull_is_limited_and_fades_with_the_slack() -> None:
-    cfg = FlattenConfig(max_speed_m_s=0.01, time_constant_s=0.1)
+def test_the_pull_is_limited_and_fades_with_the_slack_down_to_its_floor() -> None:
+    cfg = FlattenConfig(max_speed_m_s=0.01, min_speed_m_s=0.0, time_constant_s=0.1)
     v, _, _ = _field(_mesh(0.0, ridge_col=7), cfg)
     assert np.linalg.norm(v, axis=1).max() <= 2 * cfg.max_speed_m_s  # each side's pull, less the rigid part
-    big = np.abs(_field(_mesh(0.0, ridge_col=7, shortening=0.4))[0]).max()
-    small = np.abs(_field(_mesh(0.0, ridge_col=7, shortening=0.2))[0]).max()
+    proportional = FlattenConfig(min_speed_m_s=0.0)
+    big = np.abs(_field(_mesh(0.0, ridge_col=7, shortening=0.4), proportional)[0]).max()
+    small = np.abs(_field(_mesh(0.0, ridge_col=7, shortening=0.2), proportional)[0]).max()
     assert small == pytest.approx(big / 2, rel=0.1)
+    # A ridge held by the yarns' friction comes down only under enough tension: while it is seen, it is
+    # pulled at min_speed_m_s at least (4.5 mm of slack would ask for 4.5 mm/s).
+    floored = np.abs(_field(_mesh(0.0, ridge_col=7, shortening=0.2))[0]).max()
+    assert floored == pytest.approx(small * FlattenConfig().min_speed_m_s / 0.0045, rel=0.15)
 
 
 def test_the_live_view_draws_each_ridge_along_its_line() -> None:
@@ -216,3 +222,40 @@ def test_a_ridge_lost_from_sight_is_pulled_on_for_finish_s_where_the_cloth_took_
     regulator.velocities(seen, wrinkled, SIZE_M, under, np.zeros(3), 20.0)
     regulator.reset()
     assert not regulator.velocities(gone, flat, SIZE_M, under, np.zeros(3), 20.1).any()
+
+
+def _partly(wrinkled: np.ndarray, flat: np.ndarray, rows: int) -> np.ndarray:
+    """The ridge of `wrinkled` along its first `rows` rows only: the estimate of a ridge coming down."""
+    nodes = flat.copy()
+    nodes[:rows] = wrinkled[:rows]
+    return nodes
+
+
+def test_a_ridge_is_pulled_along_the_widest_it_was_seen() -> None:
+    """An estimate stops seeing a ridge held by friction from its ends inwards, long before the cloth
+    there is flat: the modules beside the whole line it was seen along keep pulling, and its finishing pull
+    covers that line too."""
+    wrinkled, flat = _mesh(0.0, ridge_col=7), _mesh(0.0, ridge_col=None)
+    shrunk = _partly(wrinkled, flat, rows=4)
+    under = (np.abs(LAYOUT.centres_m[:, 0]) < 0.20) & (np.abs(LAYOUT.centres_m[:, 1]) < 0.10)
+
+    def regulator() -> FlatteningRegulator:
+        return FlatteningRegulator(FlattenConfig(), LAYOUT.centres_m, LAYOUT.module_size_m, STRAIN_LIMIT)
+
+    monitor = FlatnessMonitor(FlatnessConfig())
+    first, later, gone = (monitor.update(n, SIZE_M) for n in (wrinkled, shrunk, flat))
+    # The modules that the whole ridge pulls, beside the half of its line the shrunk one no longer holds.
+    whole = regulator().velocities(first, wrinkled, SIZE_M, under, np.zeros(3), 0.0)
+    far_end = (np.abs(whole[:, 0]) > 1e-3) & (LAYOUT.centres_m[:, 1] > 0.0)
+    assert far_end.sum() >= 2
+    assert len(later.ridges) == 1
+    assert len(later.ridges[0].quad_centres_m) < len(first.ridges[0].quad_centres_m)
+    only_shrunk = regulator().velocities(later, shrunk, SIZE_M, under, np.zeros(3), 0.0)
+    assert np.abs(only_shrunk[far_end]).max() <= 1e-9  # seen alone, the shrunk ridge ends short of there
+
+    watched = regulator()
+    watched.velocities(first, wrinkled, SIZE_M, under, np.zeros(3), 0.0)
+    v = watched.velocities(later, shrunk, SIZE_M, under, np.zeros(3), 0.05)
+    assert np.abs(v[far_end, 0]).min() > 1e-3
+    v = watched.velocities(gone, flat, SIZE_M, under, np.zeros(3), 0.1)
+    assert np.abs(v[far_end, 0]).min() > 1e-3

@@ -29,20 +29,31 @@ from clothd.core.flatness import Flatness, Ridge
 from clothd.core.rigid import body_coordinates, rotation
 
 STRAIN_GUARD_SPAN = 0.5  # the field fades out over the last half of the way to strain_limit
-# A ridge seen in this tick is the one remembered when the middles of their quads are this close (m): a
-# ridge moves by millimetres a tick while it is pulled, and two ridges lie a module apart at least.
-SAME_RIDGE_M = 0.03
+# A ridge seen in this tick is one seen before when one of its quads lies this near one of the other's, in
+# the cloth's frame (m): the mesh's quads are fixed in the material, so the same quad's centre moves by the
+# filter's noise, while the nearest quads of two ridges a belt apart are a quad apart (20 mm or more).
+SAME_QUAD_M = 0.008
 # Ridges seen longer ago than this (the regulator was not asked in between: idle, or tracking lost) are
 # forgotten rather than finished: the cloth may have been flattened or moved by hand since.
 SEEN_STALE_S = 0.5
 
 
 @dataclass(frozen=True)
-class _Finishing:
-    """A ridge no longer seen, in the cloth's frame, and when its finishing pull ends (s)."""
+class _Remembered:
+    """A ridge in the cloth's frame: as seen last, and at its widest (the most quads) since it was first
+    seen; when it is being finished, when that ends (s)."""
 
-    ridge: Ridge
-    until_s: float
+    last: Ridge
+    widest: Ridge
+    until_s: float = math.inf
+
+    def is_seen_in(self, ridge: Ridge) -> bool:
+        gap = np.linalg.norm(ridge.quad_centres_m[:, None] - self.widest.quad_centres_m[None], axis=-1)
+        return bool(gap.min() < SAME_QUAD_M)
+
+    def seen_as(self, ridge: Ridge) -> _Remembered:
+        wider = len(ridge.quad_centres_m) >= len(self.widest.quad_centres_m)
+        return _Remembered(ridge, ridge if wider else self.widest)
 
 
 def _ridge_in_cloth(ridge: Ridge, pose: np.ndarray) -> Ridge:
@@ -110,13 +121,13 @@ class FlatteningRegulator:
         self.centres_m = centres_m
         self.half_belt_m = module_size_m / 2.0
         self.strain_limit = strain_limit
-        self._seen: tuple[Ridge, ...] = ()  # the last call's ridges, in the cloth's frame
+        self._seen: list[_Remembered] = []  # the last call's ridges
         self._seen_t_s = -math.inf
-        self._finishing: list[_Finishing] = []
+        self._finishing: list[_Remembered] = []
 
     def reset(self) -> None:
         """Forget the ridges seen (a new cloth, or tracking began again)."""
-        self._seen = ()
+        self._seen = []
         self._seen_t_s = -math.inf
         self._finishing = []
 
@@ -139,10 +150,17 @@ class FlatteningRegulator:
             gap = np.linalg.norm(self.centres_m[:, None, :] - flap.quad_centres_m[None], axis=-1).min(axis=1)
             shaping &= gap > self.half_belt_m + self.cfg.ridge_margin_m
         v = np.zeros_like(self.centres_m)
-        for ridge in flatness.ridges:
-            v[shaping] += self._pull(ridge, self.centres_m[shaping])
-        for lost in self._finish(flatness.ridges, pose, t_s):
-            v[shaping] += self._pull(_ridge_in_world(lost, pose), self.centres_m[shaping], finishing=True)
+        seen, finishing = self._remember(flatness.ridges, pose, t_s)
+        c = self.cfg
+        for ridge in seen:
+            speed = float(
+                np.clip(ridge.last.slack_m / (2.0 * c.time_constant_s), c.min_speed_m_s, c.max_speed_m_s)
+            )
+            v[shaping] += self._pull(_ridge_in_world(ridge.widest, pose), self.centres_m[shaping], speed)
+        for lost in finishing:
+            v[shaping] += self._pull(
+                _ridge_in_world(lost.widest, pose), self.centres_m[shaping], c.max_speed_m_s
+            )
         if not v.any():
             return v
         centre_m = np.asarray(pose[:2], float)
@@ -153,33 +171,39 @@ class FlatteningRegulator:
         guard = np.clip((self.strain_limit - strain) / (STRAIN_GUARD_SPAN * self.strain_limit), 0.0, 1.0)
         return np.asarray(v * guard)
 
-    def _finish(self, ridges: tuple[Ridge, ...], pose: np.ndarray, t_s: float) -> list[Ridge]:
-        """The ridges (in the cloth's frame) still to be pulled on after the estimate lost sight of them:
-        those seen last tick and not this one start their finishing pull; one seen again ends it."""
-        seen = tuple(_ridge_in_cloth(r, pose) for r in ridges)
-
-        def still_seen(old: Ridge) -> bool:
-            middle = old.quad_centres_m.mean(axis=0)
-            return any(np.linalg.norm(r.quad_centres_m.mean(axis=0) - middle) < SAME_RIDGE_M for r in seen)
-
+    def _remember(
+        self, ridges: tuple[Ridge, ...], pose: np.ndarray, t_s: float
+    ) -> tuple[list[_Remembered], list[_Remembered]]:
+        """The ridges seen now, each with its widest extent since first seen, and those still to be pulled
+        on after the estimate lost sight of them: ridges seen last call and not in this one start their
+        finishing pull; one seen again ends it. All in the cloth's frame."""
         recent = t_s - self._seen_t_s <= SEEN_STALE_S
-        lost = [r for r in self._seen if recent and not still_seen(r)]
-        self._finishing = [f for f in self._finishing if f.until_s > t_s and not still_seen(f.ridge)]
-        self._finishing += [_Finishing(r, t_s + self.cfg.finish_s) for r in lost]
+        known = (self._seen if recent else []) + self._finishing
+        matched: set[int] = set()  # ids of the known ridges seen again
+        seen = []
+        for ridge in ridges:
+            local = _ridge_in_cloth(ridge, pose)
+            # One ridge seen as two parts: the first (the highest) carries its extent on.
+            before = next((m for m in known if id(m) not in matched and m.is_seen_in(local)), None)
+            if before is None:
+                seen.append(_Remembered(local, local))
+            else:
+                matched.add(id(before))
+                seen.append(before.seen_as(local))
+        unseen = [m for m in known if id(m) not in matched]
+        lost = [replace(m, until_s=t_s + self.cfg.finish_s) for m in unseen if m.until_s == math.inf]
+        self._finishing = [m for m in unseen if m.until_s < math.inf] + lost
+        self._finishing = [m for m in self._finishing if m.until_s > t_s]
         self._seen, self._seen_t_s = seen, t_s
-        return [f.ridge for f in self._finishing]
+        return seen, self._finishing
 
-    def _pull(self, ridge: Ridge, centres_m: np.ndarray, finishing: bool = False) -> np.ndarray:
-        """The pull of one ridge on modules at centres_m (k, 2): ±v ĉ on either side of its line; a ridge
-        being finished is pulled at full speed."""
+    def _pull(self, ridge: Ridge, centres_m: np.ndarray, speed_m_s: float) -> np.ndarray:
+        """The pull of one ridge on modules at centres_m (k, 2): ±speed ĉ on either side of its line."""
         c = self.cfg
         across = np.array(
             [math.cos(ridge.compressed_direction_rad), math.sin(ridge.compressed_direction_rad)]
         )
         along = np.array([-across[1], across[0]])
-        speed = (
-            c.max_speed_m_s if finishing else min(c.max_speed_m_s, ridge.slack_m / (2.0 * c.time_constant_s))
-        )
         # The line runs through the middle of the ridge's quads; it reaches as far as they do.
         middle = ridge.quad_centres_m.mean(axis=0)
         reach = (ridge.quad_centres_m - middle) @ along
@@ -192,4 +216,4 @@ class FlatteningRegulator:
         # A module pulls its material away from the line: the ridge itself is off the table, so a belt
         # under its flank carries only the cloth on its own side. Not one right under the line, nor too far.
         pulls = beside & (np.abs(s) > c.ridge_margin_m) & (np.abs(s) <= c.reach_m)
-        return np.asarray(np.where(pulls[:, None], np.sign(s)[:, None] * speed * across, 0.0))
+        return np.asarray(np.where(pulls[:, None], np.sign(s)[:, None] * speed_m_s * across, 0.0))
