@@ -269,7 +269,7 @@ class FlatnessConfig(_Strict):
     release_strain: float = Field(
         0.025, gt=0, lt=1, description="... and keeps holding it, once it did, until less short than this"
     )
-    flat_height_m: float = Field(0.001, gt=0, le=0.1, description="estimated height of the highest node")
+    flat_height_m: float = Field(0.001, gt=0, le=0.1, description="estimated height of the highest point")
     flat_compressed_pct: float = Field(1.0, ge=0, le=100, description="share of the quads holding slack")
 
     @model_validator(mode="after")

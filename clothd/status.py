@@ -144,7 +144,7 @@ class Recording(BaseModel):
 
 
 class RidgeState(BaseModel):
-    x_m: float = Field(description="world position of its highest node")
+    x_m: float = Field(description="world position of its highest point")
     y_m: float
     direction_rad: float = Field(description="the direction its line runs in, world, [0, π)")
     height_mm: float
@@ -159,7 +159,9 @@ class FlapState(BaseModel):
 
 
 class FlatnessState(BaseModel):
-    max_height_mm: float = Field(description="the highest node of the estimate")
+    max_height_mm: float = Field(
+        description="the highest point of the estimate: a node, or the cloth over a folded edge between two"
+    )
     compressed_area_pct: float = Field(description="share of the mesh quads that hold slack")
     flat: bool = Field(
         description="with hysteresis: on below control.flatness's bars, off past twice them; off with a flap"

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from clothd.config import FlatnessConfig
-from clothd.core.flatness import FlatnessMonitor, Ridge, find_ridges, quad_shortening
+from clothd.core.flatness import FlatnessMonitor, Ridge, edge_apexes, find_ridges, quad_shortening
 from hwsim.ridges import lay_ridges
 from hwsim.scenario import Ridge as HwsimRidge
 
@@ -34,7 +34,7 @@ def _mesh(theta_rad: float = 0.0, ridge_cols: tuple[int, ...] = (), height_m: fl
 
 def _ridges(nodes: np.ndarray) -> tuple[Ridge, ...]:
     shortening = quad_shortening(nodes[..., :2], SPACING_M)
-    return find_ridges(nodes, SPACING_M, shortening, shortening > 0.05)
+    return find_ridges(nodes, SPACING_M, shortening, shortening > 0.05, edge_apexes(nodes, SPACING_M, 0.05))
 
 
 def test_a_flat_mesh_has_no_ridge_and_is_flat() -> None:
@@ -46,28 +46,42 @@ def test_a_flat_mesh_has_no_ridge_and_is_flat() -> None:
 
 @pytest.mark.parametrize("theta_rad", [0.0, 0.5, -1.2])
 def test_a_ridge_is_found_with_its_position_direction_and_height(theta_rad: float) -> None:
-    nodes = _mesh(theta_rad, ridge_cols=(7,), height_m=0.008)
+    """A fold narrower than the mesh: all its slack in one column of edges, their nodes on the table. Its
+    cloth rises between them, as high as the slack lets it: half of sqrt(L² - d²) for d = 0.6 L."""
+    nodes = _mesh(theta_rad, ridge_cols=(7,))
     (ridge,) = _ridges(nodes)
     # The ridge runs along the cloth's t axis, turned by theta; the cloth is short across it.
     assert math.remainder(ridge.direction_rad - (math.pi / 2 + theta_rad), math.pi) == pytest.approx(
         0, abs=1e-6
     )
     assert math.remainder(ridge.compressed_direction_rad - theta_rad, math.pi) == pytest.approx(0, abs=1e-6)
-    assert ridge.height_m == pytest.approx(0.008)
-    top = np.array(ridge.position_m)
-    assert np.linalg.norm(nodes[:, 8, :2] - top, axis=1).min() < 1e-9  # on the lifted column
+    assert ridge.height_m == pytest.approx(0.4 * SPACING_M[0])
+    middles = (nodes[:, 7, :2] + nodes[:, 8, :2]) / 2.0
+    assert np.linalg.norm(middles - np.array(ridge.position_m), axis=1).min() < 1e-9
     assert ridge.area_m2 == pytest.approx((NY - 1) * SPACING_M[0] * SPACING_M[1])
 
 
+def test_a_fold_the_lift_has_raised_peaks_at_its_highest_node() -> None:
+    """Two columns 40 % short with the node between them lifted by sqrt(L² - d²): each edge is its rest
+    length in 3-D, so the cloth rises no higher than that node."""
+    nodes = _mesh(0.0, ridge_cols=(6, 7))
+    nodes[:, 7, 2] = 0.8 * SPACING_M[0]
+    (ridge,) = _ridges(nodes)
+    assert ridge.height_m == pytest.approx(0.8 * SPACING_M[0])
+    assert np.linalg.norm(nodes[:, 7, :2] - np.array(ridge.position_m), axis=1).min() < 1e-9
+
+
 def test_two_ridges_are_two_and_the_higher_comes_first() -> None:
-    nodes = _mesh(0.0, ridge_cols=(2, 8), height_m=0.005)
-    nodes[:, 9, 2] = 0.012
+    nodes = _mesh(0.0, ridge_cols=(2, 8))
+    nodes[:, 9:, 0] -= 0.2 * SPACING_M[0]  # the second 60 % short: half of sqrt(1 - 0.4²) L high
     ridges = _ridges(nodes)
-    assert len(ridges) == 2 and ridges[0].height_m == pytest.approx(0.012) and ridges[0].position_m[0] > 0
+    assert len(ridges) == 2 and ridges[0].position_m[0] > 0 > ridges[1].position_m[0]
+    assert ridges[0].height_m == pytest.approx(0.5 * math.sqrt(1 - 0.4**2) * SPACING_M[0])
+    assert ridges[1].height_m == pytest.approx(0.4 * SPACING_M[0])
     monitor = FlatnessMonitor(FlatnessConfig())
     f = monitor.update(nodes, SIZE_M)
     assert f.compressed_area_pct == pytest.approx(100.0 * 2 / (NX - 1))
-    assert not f.flat and f.max_height_m == pytest.approx(0.012)
+    assert not f.flat and f.max_height_m == pytest.approx(ridges[0].height_m)
 
 
 def _laid(

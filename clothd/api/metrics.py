@@ -65,7 +65,7 @@ class StatusCollector(Collector):
             f = s.flatness
             yield GaugeMetricFamily(
                 "clothd_flatness_max_height_meters",
-                "Estimated height of the highest node",
+                "Estimated height of the highest point of the cloth",
                 value=f.max_height_mm / 1e3,
             )
             yield GaugeMetricFamily(

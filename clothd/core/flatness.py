@@ -1,12 +1,13 @@
-"""How flat the cloth is, from the mesh estimate: its highest node, how much of it lies compressed, and
+"""How flat the cloth is, from the mesh estimate: its highest point, how much of it lies compressed, and
 the ridges it has.
 
 An overhead camera sees a wrinkle as cloth that is shorter on the table than at rest (docs/flattening.md):
 a quad of the mesh whose edges along some direction are shorter on the table than at rest by more than a
 tolerance holds slack, which has risen out of the plane (a quad only sheared has lost area, not length).
-The node heights come from the same shortening (core/folds.py). A ridge is a connected set of compressed
-quads (find_ridges: one ridge's two feet joined, parallel ridges parted); it runs across its compressed
-direction, the principal axis of the sum of its quads' shortening tensors.
+The node heights come from the same shortening (core/folds.py); a fold narrower than an edge rises
+between two nodes left on the table, as high as the edge's slack lets it (edge_apexes). A ridge is a
+connected set of compressed quads (find_ridges: one ridge's two feet joined, parallel ridges parted); it
+runs across its compressed direction, the principal axis of the sum of its quads' shortening tensors.
 
 A flap, a corner folded over onto the cloth, shows no slack: it shows as cloth missing where the estimate
 puts some. The tracker reports, per quad, whether the cloth is seen at its centre (Estimate.quad_seen); a
@@ -29,7 +30,7 @@ from clothd.config import FlatnessConfig
 
 @dataclass(frozen=True)
 class Ridge:
-    """A wrinkle: where it is (world x, y of its highest node), the direction its line runs in (world,
+    """A wrinkle: where it is (world x, y of its highest point), the direction its line runs in (world,
     [0, π)), its estimated height, the rest area of its compressed quads, the slack it holds (the length
     the cloth is short by across it, on average along it), and the centres of its quads (k, 2)."""
 
@@ -135,16 +136,63 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return np.asarray(v / np.maximum(np.linalg.norm(v, axis=-1, keepdims=True), 1e-12))
 
 
+@dataclass(frozen=True)
+class EdgeApexes:
+    """The highest point of the cloth over each x edge (ny, nx-1) and y edge (ny-1, nx) of a mesh: its
+    height (m) and where it lies (world x, y; (..., 2))."""
+
+    x_height_m: np.ndarray
+    y_height_m: np.ndarray
+    x_at_m: np.ndarray
+    y_at_m: np.ndarray
+
+
+def edge_apexes(
+    nodes_m: np.ndarray, rest_spacing_m: tuple[float, float], min_shortening: float
+) -> EdgeApexes:
+    """How high the cloth rises over each edge of the mesh nodes_m (ny, nx, 3): over an edge shorter on the
+    table than (1 - min_shortening) of its rest length, as high as its slack lets it (at its middle); over
+    any other, to its higher node (there).
+
+    A fold narrower than the mesh puts its slack into one edge, whose nodes stay on the table (the fold
+    lift needs a climb and a descent over two edges: core/folds.py). The edge's cloth, of rest length L,
+    still joins its two nodes, so its highest point lies on the ellipse with the nodes as foci and major
+    axis L: for nodes at one height, d apart on the table, half of √(L² − d²) above them; for an edge
+    whose slack the lift has already raised into its nodes (its 3-D chord L), its higher node."""
+    found = []
+    for axis, rest in ((1, rest_spacing_m[0]), (0, rest_spacing_m[1])):
+        a = nodes_m[:, :-1] if axis == 1 else nodes_m[:-1]
+        b = nodes_m[:, 1:] if axis == 1 else nodes_m[1:]
+        d = np.linalg.norm(b[..., :2] - a[..., :2], axis=-1)
+        rise = b[..., 2] - a[..., 2]
+        chord = np.maximum(np.hypot(d, rise), 1e-12)
+        semi_minor_sq = np.clip((rest / 2.0) ** 2 - (chord / 2.0) ** 2, 0.0, None)
+        sin_sq = (rise / chord) ** 2
+        top = (a[..., 2] + b[..., 2]) / 2.0 + np.sqrt(
+            (rest / 2.0) ** 2 * sin_sq + semi_minor_sq * (1.0 - sin_sq)
+        )
+        higher = np.where((rise > 0.0)[..., None], b, a)
+        rises = (d < (1.0 - min_shortening) * rest) & (top > higher[..., 2])
+        found.append(np.where(rises, top, higher[..., 2]))
+        found.append(np.where(rises[..., None], (a[..., :2] + b[..., :2]) / 2.0, higher[..., :2]))
+    return EdgeApexes(found[0], found[2], found[1], found[3])
+
+
 VALLEY_RATIO = 0.5  # a dip across a component below this share of the peaks on both its sides parts it
 PARALLEL_GAP_M = 0.06  # parallel ridges nearer than this are one: no belt (65 mm) fits between them
 PARALLEL_DEG = 20.0  # bands of a ridge compressed within this of one direction are one ridge's
 
 
 def find_ridges(
-    nodes_m: np.ndarray, rest_spacing_m: tuple[float, float], shortening: np.ndarray, compressed: np.ndarray
+    nodes_m: np.ndarray,
+    rest_spacing_m: tuple[float, float],
+    shortening: np.ndarray,
+    compressed: np.ndarray,
+    apexes: EdgeApexes,
 ) -> tuple[Ridge, ...]:
     """The ridges of the mesh nodes_m (ny, nx, 3) among its `compressed` quads (bool, (ny-1, nx-1)),
-    highest first; `shortening` is quad_shortening's of the same nodes.
+    highest first; `shortening` is quad_shortening's of the same nodes, `apexes` edge_apexes'. A ridge is
+    as high as the highest point over the edges of its quads.
 
     A ridge's two feet are compressed and its crest hardly (the cloth lies level there), so on a fine
     mesh one ridge is two bands of quads with a row between. Bands of connected quads a quad apart or
@@ -164,7 +212,7 @@ def find_ridges(
         parallel = np.abs(directions @ directions.T).min() >= math.cos(math.radians(PARALLEL_DEG))
         for quads in [np.logical_or.reduce(members)] if parallel else members:
             parts.extend(_part_parallel(quads, tensor, quad_centres, shortening, min(rest_spacing_m)))
-    ridges = [_ridge(quads, nodes_m, tensor, quad_centres, shortening, rest_spacing_m) for quads in parts]
+    ridges = [_ridge(quads, apexes, tensor, quad_centres, shortening, rest_spacing_m) for quads in parts]
     return tuple(sorted(ridges, key=lambda r: (-r.height_m, -r.area_m2)))
 
 
@@ -209,28 +257,31 @@ def _part_parallel(
 
 def _ridge(
     quads: np.ndarray,
-    nodes_m: np.ndarray,
+    apexes: EdgeApexes,
     tensor: np.ndarray,
     quad_centres: np.ndarray,
     shortening: np.ndarray,
     rest_spacing_m: tuple[float, float],
 ) -> Ridge:
-    quad_height = np.maximum.reduce(
-        [nodes_m[:-1, :-1, 2], nodes_m[:-1, 1:, 2], nodes_m[1:, 1:, 2], nodes_m[1:, :-1, 2]]
-    )
     rest_area = rest_spacing_m[0] * rest_spacing_m[1]
-    top = np.unravel_index(np.argmax(np.where(quads, quad_height, -np.inf)), quads.shape)
-    corners = nodes_m[top[0] : top[0] + 2, top[1] : top[1] + 2].reshape(-1, 3)
-    peak = corners[np.argmax(corners[:, 2])]
+    x_edges = np.zeros(apexes.x_height_m.shape, bool)  # the x and y edges of the quads
+    x_edges[:-1] |= quads
+    x_edges[1:] |= quads
+    y_edges = np.zeros(apexes.y_height_m.shape, bool)
+    y_edges[:, :-1] |= quads
+    y_edges[:, 1:] |= quads
+    heights = np.concatenate([apexes.x_height_m[x_edges], apexes.y_height_m[y_edges]])
+    places = np.concatenate([apexes.x_at_m[x_edges], apexes.y_at_m[y_edges]])
+    top = int(np.argmax(heights))
     across = _across(quads, tensor)
     along = np.array([-across[1], across[0]])  # the line runs perpendicular to `across`
     centres = quad_centres[quads]
     reach = centres @ along
     length = float(reach.max() - reach.min()) + math.sqrt(rest_area)
     return Ridge(
-        position_m=(float(peak[0]), float(peak[1])),
+        position_m=(float(places[top, 0]), float(places[top, 1])),
         direction_rad=math.atan2(along[1], along[0]) % math.pi,
-        height_m=float(peak[2]),
+        height_m=float(heights[top]),
         area_m2=float(quads.sum() * rest_area),
         slack_m=float((shortening[quads] * rest_area).sum()) / length,
         quad_centres_m=centres,
@@ -271,13 +322,15 @@ class FlatnessMonitor:
             compressed |= near & (shortening > self.cfg.release_strain)
         self._compressed = compressed
         compressed_pct = float(100.0 * np.mean(compressed))
-        max_height = float(max(nodes_m[..., 2].max(), 0.0))
-        flaps = () if quad_seen is None else find_flaps(nodes_m, spacing, quad_seen)
         c = self.cfg
+        ridges = find_ridges(
+            nodes_m, spacing, shortening, compressed, edge_apexes(nodes_m, spacing, c.compressed_strain)
+        )
+        max_height = float(max(nodes_m[..., 2].max(), 0.0, *(r.height_m for r in ridges)))
+        flaps = () if quad_seen is None else find_flaps(nodes_m, spacing, quad_seen)
         if self.flat:
             self.flat = max_height <= 2 * c.flat_height_m and starting_pct <= 2 * c.flat_compressed_pct
         else:
             self.flat = max_height <= c.flat_height_m and starting_pct <= c.flat_compressed_pct
         self.flat = self.flat and not flaps  # a folded corner is not flat, and stays until a hand lifts it
-        ridges = find_ridges(nodes_m, spacing, shortening, compressed)
         return Flatness(max_height, compressed_pct, self.flat, ridges, flaps)
