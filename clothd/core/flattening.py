@@ -31,7 +31,8 @@ from clothd.core.rigid import body_coordinates, rotation
 STRAIN_GUARD_SPAN = 0.5  # the field fades out over the last half of the way to strain_limit
 # A ridge seen in this tick is one seen before when one of its quads lies this near one of the other's, in
 # the cloth's frame (m): the mesh's quads are fixed in the material, so the same quad's centre moves by the
-# filter's noise, while the nearest quads of two ridges a belt apart are a quad apart (20 mm or more).
+# filter's noise and, as the slack comes out, by millimetres (against the ridge as seen last tick, too),
+# while the nearest quads of two ridges a belt apart are a quad apart (20 mm or more).
 SAME_QUAD_M = 0.008
 # Ridges seen longer ago than this (the regulator was not asked in between: idle, or tracking lost) are
 # forgotten rather than finished: the cloth may have been flattened or moved by hand since.
@@ -48,7 +49,9 @@ class _Remembered:
     until_s: float = math.inf
 
     def is_seen_in(self, ridge: Ridge) -> bool:
-        gap = np.linalg.norm(ridge.quad_centres_m[:, None] - self.widest.quad_centres_m[None], axis=-1)
+        """Whether `ridge` (cloth frame) shares a quad with this one as seen last or at its widest."""
+        known = np.concatenate([self.last.quad_centres_m, self.widest.quad_centres_m])
+        gap = np.linalg.norm(ridge.quad_centres_m[:, None] - known[None], axis=-1)
         return bool(gap.min() < SAME_QUAD_M)
 
     def seen_as(self, ridge: Ridge) -> _Remembered:
