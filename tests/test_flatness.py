@@ -209,3 +209,23 @@ def test_a_sheared_mesh_holds_no_slack() -> None:
     assert np.all(quad_shortening(nodes[..., :2], SPACING_M) < 1e-9)
     flatness = FlatnessMonitor(FlatnessConfig()).update(nodes, SIZE_M)
     assert flatness.compressed_area_pct == 0.0 and flatness.flat and not flatness.ridges
+
+
+@pytest.mark.parametrize(("rise_m", "table_m"), [(0.0, 0.012), (0.006, 0.010), (-0.009, 0.004)])
+def test_an_edge_rises_as_high_as_its_cloth_can_reach(rise_m: float, table_m: float) -> None:
+    """The highest point of a 20 mm length of cloth joining two nodes: the top of the ellipse with the
+    nodes as foci, found here by sampling every point whose distances to them add up to 20 mm."""
+    rest_m = 0.020
+    nodes = np.array([[[0.0, 0.0, 0.01], [table_m, 0.0, 0.01 + rise_m]]])
+    apexes = edge_apexes(nodes, (rest_m, rest_m), 0.05)
+    a, b = nodes[0, 0, [0, 2]], nodes[0, 1, [0, 2]]
+    angles = np.linspace(0.0, math.pi, 200_001)
+    u = (b - a) / np.linalg.norm(b - a)
+    semi_minor = math.sqrt((rest_m / 2) ** 2 - (np.linalg.norm(b - a) / 2) ** 2)
+    points = (
+        (a + b) / 2
+        + np.outer(np.cos(angles), u) * rest_m / 2
+        + np.outer(np.sin(angles), [-u[1], u[0]]) * semi_minor
+    )
+    assert apexes.x_height_m[0, 0] == pytest.approx(points[:, 1].max(), abs=1e-7)
+    assert apexes.x_at_m[0, 0] == pytest.approx([table_m / 2, 0.0])

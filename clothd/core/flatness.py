@@ -159,23 +159,30 @@ def edge_apexes(
     still joins its two nodes, so its highest point lies on the ellipse with the nodes as foci and major
     axis L: for nodes at one height, d apart on the table, half of √(L² − d²) above them; for an edge
     whose slack the lift has already raised into its nodes (its 3-D chord L), its higher node."""
-    found = []
-    for axis, rest in ((1, rest_spacing_m[0]), (0, rest_spacing_m[1])):
-        a = nodes_m[:, :-1] if axis == 1 else nodes_m[:-1]
-        b = nodes_m[:, 1:] if axis == 1 else nodes_m[1:]
-        d = np.linalg.norm(b[..., :2] - a[..., :2], axis=-1)
-        rise = b[..., 2] - a[..., 2]
-        chord = np.maximum(np.hypot(d, rise), 1e-12)
-        semi_minor_sq = np.clip((rest / 2.0) ** 2 - (chord / 2.0) ** 2, 0.0, None)
-        sin_sq = (rise / chord) ** 2
-        top = (a[..., 2] + b[..., 2]) / 2.0 + np.sqrt(
-            (rest / 2.0) ** 2 * sin_sq + semi_minor_sq * (1.0 - sin_sq)
-        )
-        higher = np.where((rise > 0.0)[..., None], b, a)
-        rises = (d < (1.0 - min_shortening) * rest) & (top > higher[..., 2])
-        found.append(np.where(rises, top, higher[..., 2]))
-        found.append(np.where(rises[..., None], (a[..., :2] + b[..., :2]) / 2.0, higher[..., :2]))
-    return EdgeApexes(found[0], found[2], found[1], found[3])
+    x_height, x_at = _apexes(nodes_m[:, :-1], nodes_m[:, 1:], rest_spacing_m[0], min_shortening)
+    y_height, y_at = _apexes(nodes_m[:-1], nodes_m[1:], rest_spacing_m[1], min_shortening)
+    return EdgeApexes(x_height, y_height, x_at, y_at)
+
+
+def _apexes(
+    a: np.ndarray, b: np.ndarray, rest_m: float, min_shortening: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The highest points (height, world x y) over edges from nodes a to nodes b (..., 3) of rest length
+    rest_m: the top of the ellipse with foci a and b and major axis rest_m, whose major axis makes the
+    angle φ with the table, lies sqrt((L/2)² sin²φ + b² cos²φ) above its centre (b its semi-minor axis)."""
+    d = np.linalg.norm(b[..., :2] - a[..., :2], axis=-1)
+    rise = b[..., 2] - a[..., 2]
+    chord = np.maximum(np.hypot(d, rise), 1e-12)
+    semi_minor_sq = np.clip((rest_m / 2.0) ** 2 - (chord / 2.0) ** 2, 0.0, None)
+    sin_sq = (rise / chord) ** 2
+    top = (a[..., 2] + b[..., 2]) / 2.0 + np.sqrt(
+        (rest_m / 2.0) ** 2 * sin_sq + semi_minor_sq * (1.0 - sin_sq)
+    )
+    higher = np.where((rise > 0.0)[..., None], b, a)
+    rises = (d < (1.0 - min_shortening) * rest_m) & (top > higher[..., 2])
+    height = np.where(rises, top, higher[..., 2])
+    at = np.where(rises[..., None], (a[..., :2] + b[..., :2]) / 2.0, higher[..., :2])
+    return np.asarray(height), np.asarray(at)
 
 
 VALLEY_RATIO = 0.5  # a dip across a component below this share of the peaks on both its sides parts it
