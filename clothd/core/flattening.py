@@ -5,16 +5,19 @@ short across it, along its compressed direction ĉ. A module under the cloth bes
 side of its line (more than `ridge_margin_m` off it and within `reach_m`), drives its material at +v ĉ,
 one on the - side at -v ĉ; friction carries the material, so the slack closes at 2v. With v = s / (2τ)
 the slack decays like exp(-t/τ) (a first-order loop), limited to `max_speed_m_s`; the pull fades as the
-ridge comes down and stops when it is gone. The field is then made free of rigid motion (its
-least-squares translation and rotation about the cloth's centre are taken out), so that it changes the
-cloth's shape and leaves its pose to the pose controller. As the cloth as a whole (the median row or
-column of the mesh) is stretched towards `strain_limit`, the whole field is scaled down to nothing, so
-that the cloth is never torn and never pulled to slip.
+ridge comes down and stops when it is gone, but not below `min_speed_m_s` while the ridge is seen: a ridge
+held by the yarns' friction is a dead zone, which a pull fading with the slack stalls in. The field is
+then made free of rigid motion (its least-squares translation and rotation about the cloth's centre are
+taken out), so that it changes the cloth's shape and leaves its pose to the pose controller. As the
+cloth as a whole (the median row or column of the mesh) is stretched towards `strain_limit`, the whole
+field is scaled down to nothing, so that the cloth is never torn and never pulled to slip.
 
 A ridge the estimate stops seeing is pulled on for `finish_s` more, at `max_speed_m_s`: below about
 5 mm a 12 x 12 mesh's edge is shortened by under 1 %, so the estimate calls the cloth flat while a ridge
-held by the yarns' friction stays wherever the pull stops (docs/flattening.md, "Finishing"). The ridge is
-remembered in the cloth's frame, so the finishing pull follows the cloth while it moves.
+held by the yarns' friction stays wherever the pull stops (docs/flattening.md, "Finishing"). Each ridge is
+remembered in the cloth's frame, so the finishing pull follows the cloth while it moves, and at its widest:
+the estimate loses a ridge from its ends inwards, so every pull, seen or finishing, runs along the longest
+line the ridge was seen on.
 """
 
 from __future__ import annotations
@@ -194,9 +197,9 @@ class FlatteningRegulator:
                 matched.add(id(before))
                 seen.append(before.seen_as(local))
         unseen = [m for m in known if id(m) not in matched]
+        finishing = [m for m in unseen if m.until_s < math.inf]
         lost = [replace(m, until_s=t_s + self.cfg.finish_s) for m in unseen if m.until_s == math.inf]
-        self._finishing = [m for m in unseen if m.until_s < math.inf] + lost
-        self._finishing = [m for m in self._finishing if m.until_s > t_s]
+        self._finishing = [m for m in finishing + lost if m.until_s > t_s]
         self._seen, self._seen_t_s = seen, t_s
         return seen, self._finishing
 
