@@ -138,6 +138,26 @@ def test_woven_springs_are_slack_up_to_the_crimp_and_soft_in_compression() -> No
     assert moved_mm["hookean", 1.03] > 2.0 and moved_mm["hookean", 0.97] > 2.0
 
 
+def test_cloth_up_in_a_fold_bends_rather_than_push_but_still_pulls() -> None:
+    """Between two nodes up in a fold the cloth arches over the straight line, so a spring short between
+    them pushes nothing; one stretched between them still pulls. Pushing, it drove the compress fold's top
+    nodes apart and past their neighbours on the table."""
+    mesh = _mesh()
+    still = np.zeros((mesh.n_nodes, 2)), np.ones(mesh.n_nodes, bool)
+    moved_mm = {}
+    for scale in (0.9, 1.1):
+        for height_m in (0.0, 0.01):
+            sim = _sim(PhysicsConfig(), mesh)
+            start = _rest_state(mesh) * np.array([scale, 1.0, 1.0])
+            start[:, 2] = height_m
+            sim.set_state(start, np.zeros_like(start))
+            sim.step(1 / 30, *still)
+            moved_mm[scale, height_m] = np.abs(sim.state()[0] - start).max() * 1e3
+    assert moved_mm[0.9, 0.01] == 0.0  # a short mesh all up in a fold: no push, and nothing else
+    assert moved_mm[0.9, 0.0] > 0.01  # on the table the same mesh pushes (and friction holds it)
+    assert moved_mm[1.1, 0.01] > 1.0  # stretched, up in a fold, with no belt to hold it: pulled in
+
+
 def test_height_is_kinematic_and_cloth_up_in_a_fold_feels_no_belt() -> None:
     mesh = _mesh()
     belts = np.tile([0.03, 0.0], (mesh.n_nodes, 1)), np.ones(mesh.n_nodes, bool)
@@ -286,6 +306,30 @@ def test_smoothness_prior_carries_corrections_to_nodes_without_features() -> Non
     info = np.kron(np.eye(n), np.linalg.inv(P_blocks[0, :3, :3])) + np.kron(L, np.eye(3)) / 0.005**2
     dp = np.linalg.solve(info + Hp.T @ Hp / 0.25, Hp.T @ nu.ravel() / 0.25)
     np.testing.assert_allclose(moved[0.005], dp.reshape(n, 3)[:, 0], rtol=1e-9, atol=1e-15)
+
+
+def test_a_quad_in_a_fold_is_not_taken_for_an_occluder() -> None:
+    """A quad whose features all move unlike its neighbours' is rejected as a patch an occluder carries,
+    unless a node of it is up in a fold: a fold's sides climb while the cloth around them slides."""
+    cam = CameraModel.ideal(640, 480, 900.0, 1.0)
+    mesh = QuadMesh.covering(np.array([[-0.06, -0.06], [0.06, -0.06], [0.06, 0.06], [-0.06, 0.06]]), 4, 4)
+    n = mesh.n_nodes
+    pos = np.column_stack([mesh.rest_nodes_m().reshape(-1, 2), np.zeros(n)])
+    rng = np.random.default_rng(6)
+    binding = mesh.bind(rng.uniform(-0.058, 0.058, (400, 2)))
+    _, J = measurement_jacobian(cam, pos, binding)
+    middle = binding.quad == 4  # the quad of nodes 5, 6, 9, 10
+    nu = rng.normal(0.0, 0.1, (len(binding.quad), 2))
+    nu[middle] += [3.0, 0.0]  # the middle quad's features moved 3 px more than the rest
+    accepted = {}
+    for lifted_m in (0.0, 0.01):
+        x = np.column_stack([pos, np.zeros_like(pos)])
+        x[5, 2] = lifted_m
+        belief = NodeBelief(x, np.tile(np.diag([1e-6] * 3 + [1e-5] * 3), (n, 1, 1)), mesh.quad_nodes(), True)
+        _, accepted[lifted_m] = belief.correct(binding.quad, binding.nodes, J, nu, 0.25, gate_chi2=9.21)
+    assert middle.sum() > 10
+    assert not accepted[0.0][middle].any() and accepted[0.0][~middle].mean() > 0.95
+    assert accepted[0.01][middle].mean() > 0.95
 
 
 def test_rebinding_through_a_moved_mesh() -> None:

@@ -121,6 +121,7 @@ class NodeBelief:
         pairs = np.unique(np.stack([adjacent.row, adjacent.col], axis=1), axis=0)  # sorted by quad
         pairs = pairs[pairs[:, 0] != pairs[:, 1]]
         rank = np.arange(len(pairs)) - np.searchsorted(pairs[:, 0], pairs[:, 0])  # place among its row's
+        self.quad_nodes = quad_nodes
         self.quad_neighbours = np.full((n_quads, 8), -1)
         self.quad_neighbours[pairs[:, 0], rank] = pairs[:, 1]
         # The graph Laplacian of the mesh's edges on node positions, as entries of the pattern.
@@ -175,7 +176,10 @@ class NodeBelief:
         self, quads: np.ndarray, quad_mean: np.ndarray, S: np.ndarray, gate_chi2: float
     ) -> np.ndarray:
         """(k,) bool: the feature's quad moves unlike the quads around it (the median of their mean
-        innovations), as a patch carried by an occluder does, while a model error is smooth."""
+        innovations), as a patch carried by an occluder does, while a model error is smooth. A quad with
+        a node up in a fold is never odd: a fold's sides climb while the cloth around them slides, so its
+        quads move unlike their neighbours by nature (the test threw out the compress fold's whole side
+        in one frame, and its top went unseen)."""
         n_quads = len(self.quad_neighbours)
         mean = np.full((n_quads + 1, 2), np.nan)  # the last row stands for "no neighbour"
         mean[quads] = quad_mean
@@ -188,6 +192,7 @@ class NodeBelief:
             2 * np.bincount(quads, minlength=n_quads), 1
         )
         odd = (d**2).sum(axis=1) > gate_chi2 * np.maximum(s, 1e-12)  # NaN (a quad without features) is False
+        odd &= ~np.any(self.x[self.quad_nodes, 2] > 0.0, axis=1)
         return np.asarray(odd[quads])
 
     def correct(

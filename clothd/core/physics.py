@@ -18,6 +18,11 @@ folded edge, back at its rest length, pushes on nothing. A spring whose ends dif
 its rest length (the folds give a node its row's or its column's climb, whichever is higher, so a
 neighbour across can lie far below) cannot be made whole by any move in the plane; it is left out, where
 its strain limit had dragged its ends together and past each other, and folded the mesh over itself.
+A spring with both ends up in a fold does not push in compression: the fold's top is narrower in the
+plane than the cloth between its nodes, which arches up over the straight line (a tall fold's crest
+stands well above its nodes), and that arch is bending, not compression. Pushing, it drove a fold's two
+top nodes apart by ~4 mm a tick, and once no feature saw them, back past their neighbours on the table
+(docs/benchmarks.md, "The yarns' friction on every recorded scenario").
 
 A node on the table rests on it (normal force m·g) and feels friction against the belt under it: Coulomb
 with a regularised stick zone, applied implicitly on the velocity so it is stable at any step; the belt's
@@ -217,6 +222,10 @@ class MassSpring:
                 # Cloth pulls only once its crimp is taken up, and buckles rather than push.
                 extension = ti.max(length - (1.0 + m.slack) * self.rest[s], 0.0)
                 compression = ti.min(length - self.rest[s], 0.0)
+                if self.x[a][2] > CONTACT_HEIGHT_M and self.x[b][2] > CONTACT_HEIGHT_M:
+                    # Both ends up in a fold: the cloth between them arches over the straight line the
+                    # nodes give, and bends rather than push them apart.
+                    compression = 0.0
                 f = self.k[s] * (extension + m.compression_ratio * compression) * d / length
                 self.force[a] += f
                 self.force[b] -= f
