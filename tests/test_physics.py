@@ -47,7 +47,9 @@ def test_energy_does_not_blow_up_after_a_drop() -> None:
         energies.append(_energy_j(world))
     assert max(energies) <= e0 * 1.01
     assert energies[-1] < 0.05 * e0  # it landed and came to rest
-    assert world.cloth.positions_m()[..., 2].max() < 1e-4
+    # The yarns' friction keeps what the landing bent, as a real cloth does: a ripple a tenth of a
+    # millimetre high (0.11 mm; the elastic cloth lay within 0.1 mm).
+    assert world.cloth.positions_m()[..., 2].max() < 5e-4
 
 
 @pytest.mark.parametrize("heading_rad", [0.0, 1.5707963, 2.5])

@@ -14,6 +14,7 @@ from hwsim.stretch import stretch_under_turn
 from hwsim.world import World
 
 CELL_CLOTH = scenarios.load("cell").cloth.model_dump()  # the live cell's cloth, as `hwsim serve` runs it
+RECORDED_CLOTH = scenarios.ClothSpec().model_dump()  # the finer cloth `hwsim record`'s scenarios default to
 ELASTIC_CLOTH = CELL_CLOTH | {"bending_hysteresis_n": 0.0}  # ... without the yarns' friction in bending
 DENIM_BENDING_HYSTERESIS_N = scenarios.load("cell-yarn-friction").cloth.bending_hysteresis_n
 
@@ -76,6 +77,23 @@ def test_a_small_ridge_across_the_threads_is_held_by_the_yarns_friction(directio
     elastic = _world([ridge], cloth=ELASTIC_CLOTH)
     elastic_laid_m = _height_m(elastic)
     assert _lowest_over_m(elastic, 20.0) < 0.5 * elastic_laid_m
+
+
+@pytest.mark.slow
+def test_the_recorded_scenarios_cloth_holds_an_oblique_ridge_too() -> None:
+    """`hwsim record`'s finer cloth (5 mm, 1 ms substeps) has the yarns' friction by default as well: it
+    holds a 10 mm ridge at 30° off centre, which without it slides flat within 10 s."""
+    ridge = {"height_m": 0.010, "sigma_m": 0.012, "direction_rad": math.radians(30.0), "at_m": [0.04, -0.03]}
+    assert RECORDED_CLOTH["bending_hysteresis_n"] > 0.0
+    assert RECORDED_CLOTH["spacing_m"] < CELL_CLOTH["spacing_m"]
+    world = _world([ridge], cloth=RECORDED_CLOTH)
+    laid_m = _height_m(world)
+    assert laid_m > 0.005
+    assert _lowest_over_m(world, 10.0) >= 0.9 * laid_m
+    elastic = _world([ridge], cloth=RECORDED_CLOTH | {"bending_hysteresis_n": 0.0})
+    elastic_laid_m = _height_m(elastic)
+    assert elastic_laid_m > 0.005
+    assert _lowest_over_m(elastic, 10.0) < 0.5 * elastic_laid_m
 
 
 @pytest.mark.slow
