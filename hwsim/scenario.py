@@ -71,7 +71,8 @@ class ClothSpec(_Strict):
     shear_stiffness_n_m: float = Field(2.0e3, gt=0, le=1e7)
     bending_stiffness_n_m: float = Field(1.0e-5, gt=0, le=1.0, description="flexural rigidity B, N·m")
     # The yarns' friction holds a laid or pushed ridge on still belts, and is weak enough for belts to pull
-    # one below 1 mm: HB/B 25 m^-1, inside denims' measured 23-54 (docs/hwsim.md, "The yarns' friction").
+    # one below 1 mm: HB/B 25 m^-1, inside denims' measured 23-54 (docs/hwsim.md, "The yarns' friction in
+    # bending").
     bending_hysteresis_n: float = Field(
         2.5e-4,
         ge=0,

@@ -22,7 +22,7 @@ A spring with both ends up in a fold does not push in compression: the fold's to
 plane than the cloth between its nodes, which arches up over the straight line (a tall fold's crest
 stands well above its nodes), and that arch is bending, not compression. Pushing, it drove a fold's two
 top nodes apart by ~4 mm a tick, and once no feature saw them, back past their neighbours on the table
-(docs/benchmarks.md, "The yarns' friction on every recorded scenario").
+(docs/benchmarks.md, "A fold's top, seen and predicted").
 
 A node on the table rests on it (normal force m·g) and feels friction against the belt under it: Coulomb
 with a regularised stick zone, applied implicitly on the velocity so it is stable at any step; the belt's
