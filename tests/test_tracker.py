@@ -135,11 +135,15 @@ def test_lost_cloth_is_reported_and_tracking_reinitialises(short_recording: Reco
     footage = open_footage(rec)
     frames = list(footage.frames())
     tracker = Tracker(TrackerConfig(model="rigid"), read_camera(rec / "camera.json"), None)
-    assert tracker.step(frames[0][1], 0.0, None).status == "tracking"
+    first = tracker.step(frames[0][1], 0.0, None)
+    assert first.status == "tracking"
     blank = np.full_like(frames[1][1], 70)
     assert tracker.step(blank, frames[1][0], None).status == "lost"
     assert tracker.step(blank, frames[2][0], None).status == "lost"
-    assert tracker.step(frames[3][1], frames[3][0], None).status == "tracking"
+    again = tracker.step(frames[3][1], frames[3][0], None)
+    assert again.status == "tracking"
+    # The cloth found again gets new identities: an id names one patch for the whole run.
+    assert len(again.feature_id) and again.feature_id.min() > first.feature_id.max()
 
 
 def test_tracking_then_upkeep_gives_what_a_step_gives(short_recording: Recorder) -> None:

@@ -10,8 +10,9 @@ from clothd.config import TrackerConfig, load_config, with_overrides
 from clothd.core.tracker import Tracker
 from clothd.formats import read_camera
 from clothd.taichi_runtime import start_taichi
-from clothd.tools.bench_accuracy import grade
+from clothd.tools.bench_accuracy import grade, track_with_births
 from clothd.tools.bench_robustness import recorded_exposure_s
+from clothd.tools.offline import OfflineTracking
 from hwsim.paths import frame_path
 
 Recorder = Callable[[str], Path]
@@ -56,3 +57,20 @@ def test_fast_belts_meet_the_bar_when_the_tracker_knows_the_exposure(short_recor
     # Told nothing, it places the features where the smear's middle was, 6 ms late: about a pixel behind.
     blind = grade(rec, "fast-200", "mesh", TrackerConfig()).row
     assert blind.feat_mean_px > 2 * row.feat_mean_px
+
+
+@pytest.mark.slow
+def test_a_feature_is_graded_from_the_frame_and_pixel_it_was_detected_at(short_recording: Recorder) -> None:
+    """A feature found in a frame's upkeep is first measured by LK in a later frame. On the twill that
+    measurement can slip along the stripes by pixels, so grading from it would charge the slip to the
+    estimate; the grading takes the detection instead."""
+    rec = short_recording("twill-turn-left")
+    ests, births = track_with_births(OfflineTracking(rec, TrackerConfig(), read_ahead=False))
+    first_seen: dict[int, int] = {}
+    for k, est in enumerate(ests):
+        for fid in est.feature_id.tolist():
+            first_seen.setdefault(fid, k)
+    assert all(births[fid][0] == 0 for fid in ests[0].feature_id.tolist())
+    resampled = [fid for fid, k in first_seen.items() if k > 0]
+    assert resampled, "the twill's features die and are replaced within a second"
+    assert all(births[fid][0] < first_seen[fid] for fid in resampled)

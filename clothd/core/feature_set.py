@@ -3,7 +3,8 @@ material point: cloth-space (s, t) and where that sits on the rest mesh (its bin
 frame and pixel it is held to against drift (clothd/core/anchors.py), or none yet.
 
 Identities are never reused: a feature keeps its id from detection until it is dropped (forward–backward
-check, the filter's gate, or leaving the cloth).
+check, the filter's gate, or leaving the cloth), and a set made after a loss numbers on from the last
+(`first_id`), so an id names one patch for the whole run.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ NO_ANCHOR = -1  # anchor_frame of a feature not (yet, or no longer) anchored
 
 
 class FeatureSet:
-    def __init__(self, mesh: QuadMesh) -> None:
+    def __init__(self, mesh: QuadMesh, first_id: int = 0) -> None:
         self.mesh = mesh
         self.ids = np.zeros(0, np.int64)
         self.px = np.zeros((0, 2), np.float32)
@@ -24,7 +25,7 @@ class FeatureSet:
         self.binding: Binding = mesh.bind(self.cloth_st)
         self.anchor_frame = np.zeros(0, np.int64)
         self.anchor_px = np.zeros((0, 2), np.float32)
-        self._next_id = 0
+        self.next_id = first_id
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -34,8 +35,8 @@ class FeatureSet:
         the mesh are left out."""
         on = on_cloth & self.mesh.bind(np.nan_to_num(cloth_st)).inside
         px, cloth_st = px[on], cloth_st[on]
-        self.ids = np.concatenate([self.ids, self._next_id + np.arange(len(px))])
-        self._next_id += len(px)
+        self.ids = np.concatenate([self.ids, self.next_id + np.arange(len(px))])
+        self.next_id += len(px)
         self.px = np.concatenate([self.px, px.astype(np.float32)])
         self.cloth_st = np.concatenate([self.cloth_st, cloth_st])
         self.binding = self.mesh.bind(self.cloth_st)

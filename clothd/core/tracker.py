@@ -88,14 +88,18 @@ class Tracker:
             else ModuleModel(layout.n_modules, limits.accel_limit_m_s2, limits.steer_rate_limit_rad_s)
         )
         self._modules_t_s: float | None = None
+        self.features: FeatureSet | None = None
+        self._next_feature_id = 0
         self.reset()
 
     def reset(self) -> None:
         """Forget the cloth; the next frame initialises again."""
+        if self.features is not None:  # the next cloth's features number on: an id names one patch
+            self._next_feature_id = self.features.next_id
         self.prev: GrayFrame | None = None
         self.prev_t_s = 0.0
         self.mesh: QuadMesh | None = None
-        self.features: FeatureSet | None = None
+        self.features = None
         self.colour: ClothColour | None = None  # the cloth's colour against the background, from the start
         self.initial_features = 0  # what the first frame's detection found on the whole cloth
         self.outline: OutlineEdges | None = None  # the outline's edge points (clothd/core/outline_edges.py)
@@ -197,7 +201,7 @@ class Tracker:
         corners_world = self.camera_model.backproject_to_plane(region.corners_px.astype(np.float64))[:, :2]
         self.mesh = QuadMesh.covering(corners_world, self.cfg.mesh.nodes_x, self.cfg.mesh.nodes_y)
         self.estimator.start(self.mesh, np.array([*corners_world.mean(axis=0), self.mesh.theta_rad]))
-        self.features = FeatureSet(self.mesh)
+        self.features = FeatureSet(self.mesh, self._next_feature_id)
         self.prev, self.prev_t_s = frame, t_s
         f = self.cfg.features
         self.colour = region.colour

@@ -65,16 +65,29 @@ def _truth_mesh(truth: Truth) -> QuadMesh:
     return QuadMesh(nx, ny, np.zeros(2), 0.0, w, h)
 
 
-def _feature_truth_pixels(truth: Truth, camera: CameraModel, ests: list[Estimate]) -> dict[int, np.ndarray]:
+Births = dict[int, tuple[int, np.ndarray]]  # feature id -> (frame, detection pixel (2,))
+
+
+def track_with_births(run: OfflineTracking) -> tuple[list[Estimate], Births]:
+    """Every frame's estimate, and where each feature was detected: the frame and pixel of its detection.
+    A feature found in a frame's upkeep is first measured by LK in the next frame; that measurement may
+    already have slipped (along a periodic weave's stripes, by whole pixels), so it is not its birth."""
+    ests: list[Estimate] = []
+    births: Births = {}
+    for k, (_, _, est) in enumerate(run):
+        ests.append(est)
+        features = run.tracker.features
+        if features is not None:
+            for fid, px in zip(features.ids.tolist(), features.px.astype(np.float64), strict=True):
+                births.setdefault(fid, (k, px))
+    return ests, births
+
+
+def _feature_truth_pixels(truth: Truth, camera: CameraModel, births: Births) -> dict[int, np.ndarray]:
     """True pixel (F, 2) of every feature id, from the material point under its detection pixel."""
     mesh = _truth_mesh(truth)
-    born: dict[int, tuple[int, np.ndarray]] = {}
-    for k, e in enumerate(ests):
-        for fid, px in zip(e.feature_id.tolist(), e.meas_px, strict=True):
-            if fid not in born and not np.isnan(px[0]):
-                born[fid] = (k, px)
     by_frame: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for fid, (k, px) in born.items():
+    for fid, (k, px) in births.items():
         by_frame.setdefault(k, []).append((fid, px))
     out: dict[int, np.ndarray] = {}
     for k, items in by_frame.items():
@@ -117,9 +130,9 @@ def grade(
     truth = Truth.load(recording)
     run = OfflineTracking(recording, cfg, camera_json, read_ahead=False, progress=f"{scenario}: {mode}")
     start = time.perf_counter()
-    ests = [est for _, _, est in run]
+    ests, births = track_with_births(run)
     wall = time.perf_counter() - start
-    true_px = _feature_truth_pixels(truth, read_camera(recording / "camera.json"), ests)
+    true_px = _feature_truth_pixels(truth, read_camera(recording / "camera.json"), births)
     means, worsts = np.full(len(ests), np.nan), np.full(len(ests), np.nan)
     for k, e in enumerate(ests):
         errs = [
