@@ -58,19 +58,23 @@ class FeatureConfig(_Strict):
     # LK's covariance is sigma² G⁻¹: along a wale (an edge in the patch) a measurement says little. Above 1,
     # the estimator takes each feature's R from its structure tensor, its weak side at most this many times
     # the variance of its strong side, and the forward-backward check looks across the edge only
-    # (clothd/core/features.py). Off by default: on hwsim's plain twill it made the feature error worse
-    # (docs/benchmarks.md, "Weaves and fast belts").
+    # (clothd/core/features.py). 1 (off) on a cloth with corners, where it changes nothing for the better.
     aperture_max_ratio: float = Field(
         1.0, ge=1, le=1e6, description="largest variance ratio of a measurement's weak to strong axis"
     )
     # A periodic weave (a plain twill: stripes, no corners) tells itself at the start: the median λ1/λ2 of
     # the structure tensors of the first features is ~70-90 on hwsim's twill and ~4 on its denim. On such
-    # a cloth LK takes periodic_lk_window_px, and the outline becomes a measurement (clothd/core/
-    # outline_edges.py): the edge searched for across the mesh's border at outline_per_side points a side
-    # (0: never), within outline_search_px of the estimate. docs/architecture.md, "Periodic weaves".
+    # a cloth LK takes periodic_lk_window_px, each measurement counts across the stripes only (its
+    # aperture ratio capped at periodic_aperture_max_ratio), the mesh holds its shape (EkfConfig.
+    # periodic_shape_sigma_m), and the outline becomes a measurement (clothd/core/outline_edges.py): the
+    # edge searched for across the mesh's border at outline_per_side points a side (0: never), within
+    # outline_search_px of the estimate. docs/architecture.md, "Periodic weaves".
     periodic_ratio: float = Field(20.0, ge=1, le=1e9, description="median λ1/λ2 that marks a periodic weave")
-    periodic_lk_window_px: int = Field(21, ge=5, le=63, description="LK window on a periodic weave")
-    outline_per_side: int = Field(24, ge=0, le=200, description="edge points on each side of the mesh")
+    periodic_lk_window_px: int = Field(15, ge=5, le=63, description="LK window on a periodic weave")
+    periodic_aperture_max_ratio: float = Field(
+        1000.0, ge=1, le=1e6, description="aperture_max_ratio on a periodic weave"
+    )
+    outline_per_side: int = Field(160, ge=0, le=200, description="edge points on each side of the mesh")
     outline_search_px: float = Field(4.0, gt=0, le=50, description="how far across the outline to search")
     resample_below_fraction: float = Field(0.7, gt=0, le=1, description="of max_features")
     resample_cell_px: int = Field(48, ge=8, le=640, description="a cell of the cloth with no feature")
@@ -136,6 +140,12 @@ class EkfConfig(_Strict):
     gate_chi2: float = Field(13.8, gt=0, le=1000, description="Mahalanobis gate, 2 dof (13.8 = 99.9 %)")
     smoothness_sigma_m: float = Field(
         0.005, gt=0, le=1, description="how far the corrections of neighbouring mesh nodes may differ"
+    )
+    # On a periodic weave the features measure across the stripes only, and nothing inside the cloth says
+    # where along them it lies: every mesh edge (sides and diagonals) is held to its rest length within
+    # this while stretched, 10x more loosely while compressed (cloth buckles into folds). 0: never.
+    periodic_shape_sigma_m: float = Field(
+        0.0002, ge=0, le=0.1, description="how closely a periodic weave's mesh edges keep their rest length"
     )
     divergence_nis: float = Field(50.0, gt=0, le=1e6, description="mean NIS per measurement that means lost")
 

@@ -308,6 +308,73 @@ def test_smoothness_prior_carries_corrections_to_nodes_without_features() -> Non
     np.testing.assert_allclose(moved[0.005], dp.reshape(n, 3)[:, 0], rtol=1e-9, atol=1e-15)
 
 
+def _shape_prior_step(
+    scale: float, sigma_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A 3 x 3 mesh at rest, then scaled along x about its centre; 40 features that measure y only (a
+    stripe's aperture) and agree with it. Rest positions (n, 2), the scaled ones, the corrected ones, and
+    the features' corner nodes (40, 4) and Jacobian blocks (40, 4, 2, 3)."""
+    cam = CameraModel.ideal(640, 480, 900.0, 1.0)
+    mesh = QuadMesh.covering(np.array([[-0.05, -0.05], [0.05, -0.05], [0.05, 0.05], [-0.05, 0.05]]), 3, 3)
+    n = mesh.n_nodes
+    rest = np.column_stack([mesh.rest_nodes_m().reshape(-1, 2), np.zeros(n)])
+    belief = NodeBelief(
+        np.column_stack([rest, np.zeros_like(rest)]),
+        np.tile(np.diag([1e-6] * 6), (n, 1, 1)),
+        mesh.quad_nodes(),
+        True,
+    )
+    scaled = rest * [scale, 1.0, 1.0]
+    belief.x[:, :3] = scaled
+    binding = mesh.bind(np.random.default_rng(5).uniform(-0.045, 0.045, (40, 2)))
+    _, J = measurement_jacobian(cam, scaled, binding)
+    J[..., 2] = 0.0
+    J[:, :, 0, :] = 0.0  # across the stripes only: no say along x
+    belief.correct(binding.quad, binding.nodes, J, np.zeros((40, 2)), 0.25, 1e9, shape_sigma_m=sigma_m)
+    return rest[:, :2], scaled[:, :2], belief.x[:, :2], binding.nodes, J
+
+
+def test_the_shape_prior_pulls_a_stretched_mesh_back_and_lets_a_compressed_one_buckle() -> None:
+    """Where the features cannot tell (here: along x), the shape prior holds the mesh's edges to their
+    rest lengths: tightly when stretched, ten times more loosely when compressed."""
+    width = {}
+    for scale in (1.01, 0.99):
+        rest, scaled, held, _, _ = _shape_prior_step(scale, 0.0)
+        np.testing.assert_array_equal(held, scaled)  # without the prior nothing says where x lies
+        rest, scaled, held, _, _ = _shape_prior_step(scale, 0.0002)
+        width[scale] = (np.ptp(held[:, 0]) - np.ptp(rest[:, 0])) / (np.ptp(scaled[:, 0]) - np.ptp(rest[:, 0]))
+        np.testing.assert_allclose(held[:, 1], scaled[:, 1], atol=5e-5)  # y was measured where it is
+    assert width[1.01] < 0.3  # most of a 1 % stretch is taken back
+    assert width[0.99] > 0.6  # most of a 1 % compression stays: the cloth may be buckling
+
+
+def test_the_shape_prior_is_the_exact_information_form_step() -> None:
+    """One correction with the shape prior is the Gauss–Newton step of the prior, the features and every
+    edge's length (sides and diagonals) as pseudo-measurements, solved densely."""
+    sigma = 0.0002
+    rest, scaled, held, nodes, J = _shape_prior_step(1.01, sigma)
+    edges = [(0, 1), (1, 2), (3, 4), (4, 5), (6, 7), (7, 8), (0, 3), (3, 6), (1, 4), (4, 7), (2, 5), (5, 8)]
+    edges += [(0, 4), (1, 3), (1, 5), (2, 4), (3, 7), (4, 6), (4, 8), (5, 7)]
+    n = len(rest)
+    H = np.zeros((2 * len(J), 2 * n))  # the features: agreeing with the prior, they add information only
+    for i in range(len(J)):
+        for c in range(4):
+            H[2 * i : 2 * i + 2, 2 * nodes[i, c] : 2 * nodes[i, c] + 2] = J[i, c, :, :2]
+    info = np.eye(2 * n) / 1e-6 + H.T @ H / 0.25
+    vec = np.zeros(2 * n)
+    for a, b in edges:
+        d = scaled[a] - scaled[b]
+        u = d / np.linalg.norm(d)
+        h = np.zeros(2 * n)
+        h[2 * a : 2 * a + 2], h[2 * b : 2 * b + 2] = u, -u
+        stretched = np.linalg.norm(d) > np.linalg.norm(rest[a] - rest[b]) + 1e-12
+        s2 = (sigma if stretched else 10 * sigma) ** 2
+        info += np.outer(h, h) / s2
+        vec += h * (np.linalg.norm(rest[a] - rest[b]) - np.linalg.norm(d)) / s2
+    dp = np.linalg.solve(info, vec).reshape(n, 2)
+    np.testing.assert_allclose(held - scaled, dp, atol=1e-12)
+
+
 def test_a_quad_in_a_fold_is_not_taken_for_an_occluder() -> None:
     """A quad whose features all move unlike its neighbours' is rejected as a patch an occluder carries,
     unless a node of it is up in a fold: a fold's sides climb while the cloth around them slides."""

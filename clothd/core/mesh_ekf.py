@@ -19,8 +19,10 @@ Why this structure (the measured costs are in docs/architecture.md and docs/benc
   positive definite. The cost grows about linearly with the node count.
 - Optionally a smoothness prior on the correction (the mesh's edge Laplacian added to the information
   matrix) puts back some of the spatial correlation the localisation dropped; it has the quads'
-  sparsity, so the solve is unchanged. The camera corrects in the table plane only: the tracker zeroes
-  the height column of H, and heights come from folds.py.
+  sparsity, so the solve is unchanged. So has the optional shape prior: every quad's sides and
+  diagonals held near their rest lengths, for a cloth whose features cannot hold its shape alone.
+  The camera corrects in the table plane only: the tracker zeroes the height column of H, and heights
+  come from folds.py.
 """
 
 from __future__ import annotations
@@ -30,6 +32,10 @@ import scipy.linalg as sla
 import scipy.sparse as sps
 
 from clothd.core.ekf import UpdateStats, gate
+
+# A compressed edge is held this many times more loosely than a stretched one: yarns do not stretch, but
+# cloth pushed together buckles into folds, which the estimate must be free to follow (folds.py).
+COMPRESSED_SHAPE_SIGMA_FACTOR = 10.0
 
 
 class InformationPattern:
@@ -96,7 +102,8 @@ def _nanmedian_rows(a: np.ndarray) -> np.ndarray:
 
 
 class NodeBelief:
-    """Mean x (n, 6) and covariance blocks P (n, 6, 6) of the nodes of a mesh with quads (q, 4).
+    """Mean x (n, 6) and covariance blocks P (n, 6, 6) of the nodes of a mesh with quads (q, 4). The
+    nodes as first given are the mesh at rest (the shape prior's rest lengths).
 
     planar: the correction moves x and y only. For a filter whose heights are set from outside
     (`set_heights` after every correction, as the mesh estimator does) and whose camera Jacobian has no
@@ -132,6 +139,19 @@ class NodeBelief:
         slot = self.pattern.slots
         self._laplacian_slots = np.concatenate([slot(a, a), slot(b, b), slot(a, b), slot(b, a)])
         self._laplacian_values = np.concatenate([np.ones(2 * len(a)), -np.ones(2 * len(a))])
+        # The shape prior's edges: every quad's sides and diagonals, with their rest lengths; the 2d
+        # position components of each edge's two nodes, and where its 2d x 2d block lands in the pattern.
+        diagonals = np.concatenate([quad_nodes[:, [0, 2]], quad_nodes[:, [1, 3]]])
+        self._shape_edges = np.concatenate([edges, np.unique(np.sort(diagonals, axis=1), axis=0)])
+        ends = self.x[self._shape_edges, :d]
+        self._rest_lengths_m = np.linalg.norm(ends[:, 0] - ends[:, 1], axis=1)
+        self._shape_dofs = np.concatenate(
+            [d * self._shape_edges[:, :1] + np.arange(d), d * self._shape_edges[:, 1:] + np.arange(d)], axis=1
+        )
+        w = 2 * d
+        self._shape_slots = slot(
+            np.repeat(self._shape_dofs, w, axis=1).ravel(), np.tile(self._shape_dofs, (1, w)).ravel()
+        ).reshape(len(self._shape_edges), w * w)
 
     @property
     def positions_m(self) -> np.ndarray:
@@ -195,6 +215,25 @@ class NodeBelief:
         odd &= ~np.any(self.x[self.quad_nodes, 2] > 0.0, axis=1)
         return np.asarray(odd[quads])
 
+    def _shape_information(self, sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
+        """The shape prior in information form: each edge's length |p_a − p_b| a pseudo-measurement of its
+        rest length, linearised at the prior mean, σ sigma_m while stretched and
+        COMPRESSED_SHAPE_SIGMA_FACTOR times that while compressed. Its entries on the pattern, and its
+        information vector."""
+        d, e = self.pattern.d, self._shape_edges
+        diff = self.x[e[:, 0], :d] - self.x[e[:, 1], :d]
+        length = np.linalg.norm(diff, axis=1)
+        u = diff / np.maximum(length, 1e-12)[:, None]
+        sigma = np.where(length > self._rest_lengths_m, sigma_m, COMPRESSED_SHAPE_SIGMA_FACTOR * sigma_m)
+        h = np.concatenate([u, -u], axis=1) / sigma[:, None]  # whitened ∂|p_a − p_b| / ∂(p_a, p_b)
+        info = np.einsum("ea,eb->eab", h, h).reshape(len(e), -1)
+        vector = h * ((self._rest_lengths_m - length) / sigma)[:, None]
+        pat = self.pattern
+        return (
+            np.bincount(self._shape_slots.ravel(), info.ravel(), minlength=pat.nnz),
+            np.bincount(self._shape_dofs.ravel(), vector.ravel(), minlength=pat.size),
+        )
+
     def correct(
         self,
         quads: np.ndarray,
@@ -204,6 +243,7 @@ class NodeBelief:
         R_px2: float,
         gate_chi2: float,
         smoothness_m: float | None = None,
+        shape_sigma_m: float = 0.0,
     ) -> tuple[UpdateStats, np.ndarray]:
         """Gate, then correct with the accepted features. quads (k,) each feature's quad, nodes (k, 4) its
         corner nodes, J (k, 4, 2, 3) ∂h/∂p blocks, residual ν = z − h(x⁻) (k, 2). Returns the statistics
@@ -214,6 +254,12 @@ class NodeBelief:
         the spatial correlation a cloth has; this puts a sparse part of it back, in information form,
         so that a node no feature reaches (at the cloth's edge, in a fold, under an arm) is corrected
         with its neighbours instead of not at all.
+
+        shape_sigma_m: how closely each edge keeps its rest length (_shape_information; 0: not held). On a
+        periodic weave the features measure across its stripes only: along them, nothing but this and the
+        outline keeps the nodes from wandering apart (docs/architecture.md, "Periodic weaves"). Like the
+        smoothness prior it shapes the correction and leaves the covariance as the measurements make it:
+        a prior restated every frame is not new information.
 
         The gate (and the NIS it reports) judges each feature against its quad's mean innovation: an
         outlier (an arm, a glint) disagrees with its neighbours, while a model error (the cloth slipping
@@ -248,6 +294,10 @@ class NodeBelief:
             np.einsum("kia,ki->ka", Ja, residual_px[accepted]).ravel() / R_px2,
             minlength=d * n,
         )
+        if shape_sigma_m > 0.0:
+            shape_data, shape_vector = self._shape_information(shape_sigma_m)
+            data += shape_data
+            g += shape_vector
         dp = pat.solve(data, g).reshape(n, d)
         dv = np.einsum("nij,njk,nk->ni", self.P[:, 3:, :d], Ppp_inv, dp)
         self.x = self.x + np.concatenate([dp, np.zeros((n, 3 - d)), dv], axis=1)

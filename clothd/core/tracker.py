@@ -73,9 +73,16 @@ class Tracker:
         self.roi = roi
         self.clock = clock or (lambda: 0.0)
         self._engine_default = FeatureEngine(cfg.features)
-        # A periodic weave's stripes need a wider LK window to hold some texture across them.
+        # A periodic weave's stripes need a wider LK window to hold some texture across them, and its
+        # measurements count across the stripes only.
+        f = cfg.features
         self._engine_periodic = FeatureEngine(
-            cfg.features.model_copy(update={"lk_window_px": cfg.features.periodic_lk_window_px})
+            f.model_copy(
+                update={
+                    "lk_window_px": f.periodic_lk_window_px,
+                    "aperture_max_ratio": max(f.aperture_max_ratio, f.periodic_aperture_max_ratio),
+                }
+            )
         )
         self.engine = self._engine_default
         self.anchors = AnchorFrames(cfg.features, self.engine)
@@ -156,15 +163,17 @@ class Tracker:
         stats = UpdateStats(int(keep.sum()), 0, 0.0)
         if keep.any():
             whiten = None
-            if self.cfg.features.aperture_max_ratio > 1.0:
-                whiten = aperture_whitening(
-                    frame.gray, measured, self.cfg.features.lk_window_px, self.cfg.features.aperture_max_ratio
-                )
+            f = self.engine.cfg
+            if f.aperture_max_ratio > 1.0:
+                whiten = aperture_whitening(frame.gray, measured, f.lk_window_px, f.aperture_max_ratio)
             edges = None
             if self.outline is not None:
                 outline = self.outline
                 edges = lambda nodes_m: outline.measure(image, nodes_m)  # noqa: E731
-            stats, accepted = self.estimator.correct(Measurements(features, measured, keep, whiten, edges))
+            shape_sigma_m = self.cfg.ekf.periodic_shape_sigma_m if self.periodic else 0.0
+            stats, accepted = self.estimator.correct(
+                Measurements(features, measured, keep, whiten, edges, shape_sigma_m)
+            )
             keep = keep & accepted
         t4 = self.clock()
         meas = measured[keep]

@@ -32,6 +32,9 @@ class Measurements:
     whiten: np.ndarray | None = None
     # The cloth's outline measured against node positions (n, 3) (clothd/core/outline_edges.py), or None.
     edges: Callable[[np.ndarray], EdgeMeasurements] | None = None
+    # How closely the mesh's edges keep their rest length (NodeBelief.correct), where the features alone
+    # cannot hold the shape (a periodic weave); 0: not held.
+    shape_sigma_m: float = 0.0
 
 
 @dataclass(frozen=True)

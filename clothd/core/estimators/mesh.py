@@ -119,7 +119,7 @@ class MeshEstimator:
             residual = np.einsum("kab,kb->ka", whiten, residual)
             J = np.einsum("kab,kcbd->kcad", whiten, J)
         stats, inside = belief.correct(
-            quads, nodes, J, residual, e.meas_sigma_px**2, e.gate_chi2, e.smoothness_sigma_m
+            quads, nodes, J, residual, e.meas_sigma_px**2, e.gate_chi2, e.smoothness_sigma_m, m.shape_sigma_m
         )
         inside = inside[: len(idx)]
         accepted[idx[~inside]] = False
