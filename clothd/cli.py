@@ -162,10 +162,9 @@ def _cmd_bench_robustness(args: argparse.Namespace) -> int:
         format_speed_table,
         format_table,
         plot_speed,
-        recorded_exposure_s,
         rows_json,
     )
-    from clothd.tools.recordings import scenario_recording
+    from clothd.tools.recordings import recorded_exposure_s, scenario_recording
 
     cfg = load_config(args.config)
     start_taichi(cfg.taichi.arch)

@@ -3,7 +3,7 @@
 DIR/frames/NNNNNN.png   lossless frames, BGR
 DIR/camera.json         K, dist, width, height, T_cam_world
 DIR/table.json          the module layout (ids, centres), for replaying commands
-DIR/commands.csv        t_s, module, speed_m_s, heading_rad: what the stepper controller was told
+DIR/commands.csv        t_s, module, speed_m_s, heading_rad: the commands in force while each frame was taken
 DIR/truth.npz           ground truth, for grading only
 DIR/scenario.yaml       the scenario as run
 """
@@ -139,8 +139,13 @@ def write_table(world: World, path: Path) -> None:
 
 
 def _write_commands(world: World, path: Path) -> None:
+    """Each command stamped with the first frame it moved: the world renders frame k at t_k, then tells
+    the controller what is due at t_k and advances, so a command told at t_k acts while frame k + 1 is
+    taken. That is what a clothd recording's commands.csv holds too (the commands in force while each
+    frame was captured); stamped with t_k, a replay's model ran every command a frame early."""
     with path.open("w", newline="") as f:
         w = csv.writer(f)
         w.writerow(["t_s", "module", "speed_m_s", "heading_rad"])
         for row in world.command_log:
-            w.writerow([f"{row.t_s:.6f}", row.module, f"{row.speed_m_s:.6f}", f"{row.heading_rad:.6f}"])
+            acts_s = row.t_s + world.dt_s
+            w.writerow([f"{acts_s:.6f}", row.module, f"{row.speed_m_s:.6f}", f"{row.heading_rad:.6f}"])

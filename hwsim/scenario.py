@@ -89,7 +89,7 @@ class ClothSpec(_Strict):
 
 
 class TextureSpec(_Strict):
-    kind: Literal["denim", "plain_twill", "image"] = "denim"
+    kind: Literal["denim", "plain_twill", "gingham", "image"] = "denim"
     seed: int = Field(7, ge=0)
     path: str | None = Field(None, description="image file, for kind: image")
     texels_per_m: float = Field(4000.0, ge=500.0, le=20000.0)
@@ -102,7 +102,7 @@ class TextureSpec(_Strict):
         if (self.kind == "image") != (self.path is not None):
             raise ValueError("path is required for kind 'image' and only allowed there")
         if self.kind == "image" and self.relief_m > 0:
-            raise ValueError("relief_m is for the woven kinds (denim, plain_twill), not an image")
+            raise ValueError("relief_m is for the woven kinds (denim, plain_twill, gingham), not an image")
         return self
 
 

@@ -16,7 +16,7 @@ from typing import Literal
 import cv2
 import numpy as np
 
-TextureKind = Literal["denim", "plain_twill"]
+TextureKind = Literal["denim", "plain_twill", "gingham"]
 
 # Wale spacing across the wales. Real denim's ~1 mm wales blur away at ~1 px/mm; at 5 mm the twill stays
 # visible without sitting near the camera's Nyquist limit, where a patch's correlation would collapse
@@ -27,6 +27,11 @@ WARP_BGR = (0.46, 0.30, 0.19)  # indigo warp
 WEFT_BGR = (0.80, 0.83, 0.85)  # undyed ecru weft
 LIGHT_BGR = (0.86, 0.84, 0.82)  # worn spots, light flecks and loose white threads
 DARK_BGR = (0.24, 0.12, 0.06)  # dark flecks and stitch-like marks
+# Gingham: a check of dyed and undyed bands in warp and weft, CHECK_PERIOD_M apart (half of each dyed),
+# woven as the plain twill. At ~0.9 px/mm a period is ~5.4 px: a belt at 90 mm/s moves the cloth half a
+# period a frame at 30 fps, where LK started from the last position is as near the next check as its own.
+CHECK_PERIOD_M = 6.0e-3
+CHECK_BGR = (0.22, 0.18, 0.62)  # red-dyed yarn
 MIN_MIP_SIDE = 8  # mip_pyramid stops before a side would drop below this many texels
 
 
@@ -128,7 +133,8 @@ def _denim_marks(rng: np.random.Generator, shape_px: tuple[int, int], px_per_mm:
 def _twill_phase(
     kind: TextureKind, rng: np.random.Generator, shape_px: tuple[int, int], texels_per_m: float
 ) -> tuple[np.ndarray, list[np.ndarray]]:
-    """Phase across the wales (H, W), in twill periods, and denim's noise fields (none for plain_twill).
+    """Phase across the wales (H, W), in twill periods, and denim's noise fields (none for the strictly
+    periodic kinds, plain_twill and gingham).
 
     The first draws from rng are always these fields, so cloth_texture and weave_height get the same
     wales from the same seed."""
@@ -173,9 +179,11 @@ def cloth_texture(
 
     W = round(size_m[0]*texels_per_m), H = round(size_m[1]*texels_per_m). Texel (r, c) has its centre at
     material coordinates s = (c + 0.5)/texels_per_m, t = (r + 0.5)/texels_per_m. "denim" is an indigo 3/1
-    twill with slubs, fading and non-repeating marks; "plain_twill" is the bare, strictly periodic twill.
+    twill with slubs, fading and non-repeating marks; "plain_twill" is the bare, strictly periodic twill;
+    "gingham" is a strictly periodic red and white check, corners everywhere and every one like the next
+    (its relief, if any, is the twill's wales).
     """
-    if kind not in ("denim", "plain_twill"):
+    if kind not in ("denim", "plain_twill", "gingham"):
         raise ValueError(f"unknown cloth texture kind {kind!r}")
     shape_px = _shape_px(size_m, texels_per_m)
     px_per_mm = texels_per_m / 1000.0
@@ -191,6 +199,8 @@ def cloth_texture(
         # Slub yarns: per-thread brightness along the warp, heavy-tailed so that some threads stand out.
         slub_gain = 1.0 + 0.22 * np.tanh(0.8 * (slub + 0.6 * slub2)) + 0.10 * mottle
         warp = warp * slub_gain[..., None]
+    if kind == "gingham":
+        return _finish(_gingham(shape_px, texels_per_m))
     img = _blend(warp, weft_w, WEFT_BGR)
     if not denim:
         return _finish(img)
@@ -200,6 +210,22 @@ def cloth_texture(
     img = _blend(img, marks, LIGHT_BGR)
     img = _blend(img, -marks, DARK_BGR)
     return _finish(img)
+
+
+def _gingham(shape_px: tuple[int, int], texels_per_m: float) -> np.ndarray:
+    """The check: where warp and weft are both dyed the cloth is the dye, where one is, half of it, where
+    neither, undyed. The bands' edges are smoothed over ~0.4 mm (band-limited, as a camera sees yarns).
+    Nothing else: strictly periodic."""
+    s_m = (np.arange(shape_px[1], dtype=np.float32) + 0.5) / texels_per_m
+    t_m = (np.arange(shape_px[0], dtype=np.float32) + 0.5) / texels_per_m
+    sharpness = CHECK_PERIOD_M / 0.4e-3
+
+    def dyed(x_m: np.ndarray) -> np.ndarray:
+        return np.asarray(0.5 + 0.5 * np.tanh(sharpness * np.sin(2.0 * np.pi * x_m / CHECK_PERIOD_M) / np.pi))
+
+    cover = 0.5 * (dyed(s_m)[None, :] + dyed(t_m)[:, None])  # 0, 1/2 or 1 dyed yarns in each direction
+    undyed = np.broadcast_to(np.asarray(WEFT_BGR, np.float32), (*shape_px, 3))
+    return np.asarray(_blend(undyed, cover, CHECK_BGR), np.float32)
 
 
 def image_texture(path: str | Path, size_m: tuple[float, float], texels_per_m: float) -> np.ndarray:

@@ -43,9 +43,9 @@ def test_recording_format(short_recording: Recorder) -> None:
     with (rec / "commands.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert list(rows[0]) == ["t_s", "module", "speed_m_s", "heading_rad"]
-    # translate drives every module +y from 0.2 s.
+    # translate drives every module +y from 0.2 s: told after the frame at 0.2 s, in force from the next.
     drive = [r for r in rows if float(r["speed_m_s"]) > 0]
-    assert len(drive) == 48 and all(abs(float(r["t_s"]) - 0.2) < 1e-6 for r in drive)
+    assert len(drive) == 48 and all(abs(float(r["t_s"]) - (0.2 + 1 / 30)) < 1e-6 for r in drive)
     assert all(abs(float(r["heading_rad"]) - np.pi / 2) < 1e-6 for r in drive)
     with np.load(rec / "truth.npz") as z:
         ny, nx = z["st_m"].shape[:2]

@@ -4,16 +4,19 @@ from collections.abc import Callable
 from pathlib import Path
 
 import cv2
+import numpy as np
 import pytest
 
 from clothd.config import TrackerConfig, load_config, with_overrides
+from clothd.core.camera_model import CameraModel
 from clothd.core.tracker import Tracker
 from clothd.formats import read_camera
 from clothd.taichi_runtime import start_taichi
-from clothd.tools.bench_accuracy import grade, track_with_births
-from clothd.tools.bench_robustness import recorded_exposure_s
+from clothd.tools.bench_accuracy import _feature_truth_pixels, grade, track_with_births
 from clothd.tools.offline import OfflineTracking
+from clothd.tools.recordings import recorded_exposure_s
 from hwsim.paths import frame_path
+from hwsim.truth import Truth
 
 Recorder = Callable[[str], Path]
 
@@ -76,3 +79,25 @@ def test_a_feature_is_graded_from_the_frame_and_pixel_it_was_detected_at(short_r
     resampled = [fid for fid, k in first_seen.items() if k > 0]
     assert resampled, "the twill's features die and are replaced within a second"
     assert all(births[fid][0] < first_seen[fid] for fid in resampled)
+
+
+def test_a_feature_found_in_a_smeared_frame_is_the_cloth_in_the_middle_of_its_exposure() -> None:
+    """hwsim smears a frame over its exposure up to the frame's time: a corner found in it is where its
+    cloth was exposure/2 earlier. Graded at the frame's time, every feature born in motion would be
+    charged speed x exposure / 2 (0.8 px at 150 mm/s and 12 ms)."""
+    fps, speed_m_s, exposure_s = 30.0, 0.15, 0.012
+    t = np.arange(6) / fps
+    grid = np.stack(np.meshgrid(np.linspace(-0.1, 0.1, 5), np.linspace(-0.08, 0.08, 5)), axis=-1)
+    moved = [grid + np.array([speed_m_s * ti, 0.0]) for ti in t]
+    nodes = np.stack([np.concatenate([g, np.zeros((5, 5, 1))], axis=-1) for g in moved])
+    st = np.stack(np.meshgrid(np.linspace(0, 0.2, 5), np.linspace(0, 0.16, 5)), axis=-1)
+    truth = Truth(t, nodes, st, np.ones((6, 5, 5), bool))
+    camera = CameraModel.ideal(640, 480, 900.0, 1.0)
+    seen_px = camera.project(np.array([[0.0 + speed_m_s * (t[3] - exposure_s / 2), 0.0, 0.0]]))[0]
+    births = {7: (3, seen_px)}  # detected in frame 3 where the smear's middle of the centre point was
+    graded = _feature_truth_pixels(truth, camera, births, exposure_s)[7]
+    centre_px = camera.project(nodes[:, 2, 2])
+    np.testing.assert_allclose(graded, centre_px, atol=1e-6)
+    instant = _feature_truth_pixels(truth, camera, births, 0.0)[7]  # as if the frame were an instant
+    shift_px = speed_m_s * exposure_s / 2 * 900.0
+    np.testing.assert_allclose(np.abs(instant - centre_px)[:, 0], shift_px, rtol=1e-6)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -11,7 +12,7 @@ import yaml
 from hwsim import scenario as scenarios
 from hwsim.camera import Camera
 from hwsim.renderer import Renderer
-from hwsim.texture import TWILL_ANGLE_DEG, TWILL_PERIOD_M, cloth_texture, weave_slopes
+from hwsim.texture import CHECK_PERIOD_M, TWILL_ANGLE_DEG, TWILL_PERIOD_M, cloth_texture, weave_slopes
 from hwsim.world import World
 
 WEAVES = ("twill-turn-left", "twill-turn-right", "twill-push", "twill-spin")
@@ -54,6 +55,29 @@ def test_weave_scenarios_are_a_relieved_twill_under_low_side_light(name: str) ->
     assert sc.texture.kind == "plain_twill" and sc.texture.relief_m > 0
     light = np.asarray(sc.light.direction) / np.linalg.norm(sc.light.direction)
     assert math.degrees(math.asin(light[2])) <= 36.0  # low: at most 35 degrees above the table
+
+
+def test_the_gingham_repeats_every_check_and_has_corners_everywhere() -> None:
+    size, texels = (0.048, 0.036), 4000.0  # whole checks: 8 x 6
+    tex = cloth_texture("gingham", 7, size, texels).mean(axis=2)
+    period = round(CHECK_PERIOD_M * texels)
+    # Strictly periodic: each check is the next, to float precision, with a strong contrast.
+    assert np.abs(tex[:, period:] - tex[:, :-period]).max() < 1e-4
+    assert np.abs(tex[period:, :] - tex[:-period, :]).max() < 1e-4 and np.ptp(tex) > 0.4
+    # Corners everywhere: Shi-Tomasi, as a camera at 0.9 px/mm sees it, finds at least two a check.
+    seen = cv2.resize(tex, None, fx=0.9 / 4.0, fy=0.9 / 4.0, interpolation=cv2.INTER_AREA)
+    corners = cv2.goodFeaturesToTrack((seen * 255).astype(np.uint8), 500, 0.05, 2)
+    assert corners is not None and len(corners) >= 2 * 8 * 6
+
+
+@pytest.mark.parametrize("name", ["gingham-fast", "gingham-push"])
+def test_gingham_scenarios_move_it_more_than_half_a_check_a_frame(name: str) -> None:
+    sc = scenarios.load(name)
+    assert sc.texture.kind == "gingham"
+    px_per_m = sc.camera.f_px / sc.camera.position_m[2]
+    speed = max(c.speed_m_s for c in sc.timeline)
+    assert speed <= sc.table.max_speed_m_s
+    assert speed / sc.fps > CHECK_PERIOD_M / 2 and CHECK_PERIOD_M * px_per_m < 6.0
 
 
 @pytest.mark.parametrize("name", list(FAST))

@@ -1,7 +1,8 @@
 """`clothd bench accuracy`: every tracker mode on every shipped scenario, graded against hwsim's truth.
 
 - Feature error (px): a feature is the cloth patch it was detected on. Its material point is found
-  from the truth at its first frame (the truth surface point seen at its detection pixel); its true
+  from the truth at its first frame (the truth surface point seen at its detection pixel; in a frame
+  smeared over an exposure, where the cloth was in the exposure's middle); its true
   pixel in every later frame is that point's projection. Error = |where the estimate places the
   feature − its true pixel|, over the features alive in a frame; per frame the mean and the worst.
   Over the sequence: the mean of the per-frame means and the largest per-frame worst; the original
@@ -26,6 +27,7 @@ from clothd.core.messages import Estimate
 from clothd.formats import read_camera
 from clothd.tools.grading import material_coordinates, true_positions
 from clothd.tools.offline import OfflineTracking
+from clothd.tools.recordings import recorded_exposure_s
 from hwsim.truth import Truth
 
 MODES: tuple[tuple[str, str, bool], ...] = (
@@ -83,15 +85,30 @@ def track_with_births(run: OfflineTracking) -> tuple[list[Estimate], Births]:
     return ests, births
 
 
-def _feature_truth_pixels(truth: Truth, camera: CameraModel, births: Births) -> dict[int, np.ndarray]:
-    """True pixel (F, 2) of every feature id, from the material point under its detection pixel."""
+def _seen_nodes_m(truth: Truth, k: int, exposure_s: float) -> np.ndarray:
+    """The truth's nodes (ny, nx, 3) as frame k shows them. hwsim smears a frame over its exposure up to
+    the frame's time, so a moving cloth is seen where it was exposure_s / 2 earlier (the smear's middle),
+    p − v·exposure_s/2; v from the neighbouring frames (central differences, one-sided at the ends)."""
+    nodes = truth.nodes_m[k].astype(np.float64)
+    if exposure_s <= 0.0 or len(truth.t_s) < 2:
+        return nodes
+    lo, hi = max(k - 1, 0), min(k + 1, len(truth.t_s) - 1)
+    velocity = (truth.nodes_m[hi] - truth.nodes_m[lo]) / (truth.t_s[hi] - truth.t_s[lo])
+    return np.asarray(nodes - 0.5 * exposure_s * velocity)
+
+
+def _feature_truth_pixels(
+    truth: Truth, camera: CameraModel, births: Births, exposure_s: float = 0.0
+) -> dict[int, np.ndarray]:
+    """True pixel (F, 2) of every feature id, from the material point under its detection pixel: under it
+    as the frame showed the cloth, in the middle of its exposure_s (the recording's camera)."""
     mesh = _truth_mesh(truth)
     by_frame: dict[int, list[tuple[int, np.ndarray]]] = {}
     for fid, (k, px) in births.items():
         by_frame.setdefault(k, []).append((fid, px))
     out: dict[int, np.ndarray] = {}
     for k, items in by_frame.items():
-        nodes_px = camera.project(truth.nodes_m[k].reshape(-1, 3))
+        nodes_px = camera.project(_seen_nodes_m(truth, k, exposure_s).reshape(-1, 3))
         st, found = cloth_coordinates(mesh, nodes_px, np.array([px for _, px in items], dtype=np.float64))
         ids = [fid for fid, _ in items]
         pix = camera.project(true_positions(truth, np.nan_to_num(st)).reshape(-1, 3)).reshape(
@@ -132,7 +149,8 @@ def grade(
     start = time.perf_counter()
     ests, births = track_with_births(run)
     wall = time.perf_counter() - start
-    true_px = _feature_truth_pixels(truth, read_camera(recording / "camera.json"), births)
+    camera = read_camera(recording / "camera.json")
+    true_px = _feature_truth_pixels(truth, camera, births, recorded_exposure_s(recording))
     means, worsts = np.full(len(ests), np.nan), np.full(len(ests), np.nan)
     for k, e in enumerate(ests):
         errs = [

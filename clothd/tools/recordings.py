@@ -1,8 +1,11 @@
-"""hwsim recordings of the shipped scenarios for the benchmarks, recorded into a cache once and reused."""
+"""hwsim recordings of the shipped scenarios for the benchmarks, recorded into a cache once and reused, and
+what a recording's camera did."""
 
 from __future__ import annotations
 
 from pathlib import Path
+
+import yaml
 
 from hwsim import scenario as scenarios
 from hwsim.recording import record
@@ -14,3 +17,10 @@ def scenario_recording(cache: Path, scenario: str, duration_s: float | None = No
         print(f"recording {scenario} into {out} ...", flush=True)
         record(scenarios.load(scenario, duration_s=duration_s), out)
     return out
+
+
+def recorded_exposure_s(recording: Path) -> float:
+    """The exposure a recording's frames were smeared over (its scenario.yaml's noise.exposure_s), 0 when
+    each frame was rendered at one instant (motion_blur_samples 1)."""
+    noise = (yaml.safe_load((recording / "scenario.yaml").read_text()) or {}).get("noise", {})
+    return float(noise.get("exposure_s", 0.0)) if int(noise.get("motion_blur_samples", 1)) > 1 else 0.0
