@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from clothd.config import FeatureConfig
-from clothd.core.features import FeatureEngine, coverage_holes
+from clothd.core.features import FeatureEngine, coverage_holes, self_similarity
 from clothd.core.segmentation import cloth_mask_from_outline
 from hwsim.camera import Camera
 from hwsim.paths import frame_path
@@ -183,3 +183,15 @@ def test_coverage_holes_finds_the_empty_cells() -> None:
     assert not coverage_holes(half, pts, 48)[:, 96:].any()
     grid = np.array([[x, y] for x in range(0, 150, 40) for y in range(0, 100, 40)], np.float32)
     assert not coverage_holes(mask, grid, 48)[:96].any()  # every cell of the top two rows holds one
+
+
+def test_self_similarity_tells_a_repeating_check_from_a_texture_that_does_not_repeat() -> None:
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:120, 0:160]
+    check = (((xx // 3) + (yy // 3)) % 2 * 200 + 30).astype(np.uint8)  # a 6 px check
+    check = cv2.GaussianBlur(check, (0, 0), 0.7)
+    noise = cv2.GaussianBlur(rng.uniform(0, 255, (120, 160)).astype(np.float32), (0, 0), 1.5).astype(np.uint8)
+    px = np.array([[60.0, 50.0], [80.0, 70.0], [100.0, 40.0], [5.0, 5.0]])
+    on_check, on_noise = self_similarity(check, px, 11), self_similarity(noise, px, 11)
+    assert np.all(on_check[:3] > 0.95) and np.all(on_noise[:3] < 0.7)
+    assert np.isnan(on_check[3])  # the search would leave the image

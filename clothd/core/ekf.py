@@ -24,6 +24,12 @@ class UpdateStats:
     def nis_per_measurement(self) -> float:
         return self.nis / max(self.accepted, 1)
 
+    def __add__(self, other: UpdateStats) -> UpdateStats:
+        """Two corrections of one frame with disjoint measurements, as one."""
+        return UpdateStats(
+            self.accepted + other.accepted, self.rejected + other.rejected, self.nis + other.nis
+        )
+
 
 def predict(
     x: np.ndarray, P: np.ndarray, x_pred: np.ndarray, F: np.ndarray, Q: np.ndarray

@@ -187,6 +187,19 @@ class FeatureEngine:
             agrees[agrees] = ncc >= self.cfg.lk_min_ncc
         return p1, agrees
 
+    def track_from_rest(
+        self, prev: GrayFrame, cur: GrayFrame, px: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """One LK pass prev -> cur from px (n, 2), started where each point was (no motion assumed):
+        positions (n, 2) float32 and converged (n,) bool. On a repeating pattern the prediction's start
+        and this one land on different look-alikes when the prediction was off by half a period or
+        more (clothd/core/tracker.py)."""
+        p0 = np.ascontiguousarray(px, dtype=np.float32).reshape(-1, 2)
+        if len(p0) == 0:
+            return np.zeros((0, 2), np.float32), np.zeros(0, bool)
+        p1, ok = self._lk(prev.gray, cur.gray, p0, None)
+        return p1, ok & np.isfinite(p1).all(axis=1)
+
     def _lk(
         self, a: np.ndarray, b: np.ndarray, pts: np.ndarray, start: np.ndarray | None
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -287,6 +300,31 @@ def structure_ratios(gray: np.ndarray, px: np.ndarray, window_px: int) -> tuple[
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(l1 > 1e-9, l1 / np.maximum(l2, 0.0), np.nan)
     return ratio, e2
+
+
+def self_similarity(gray: np.ndarray, px: np.ndarray, window_px: int, reach_px: int = 8) -> np.ndarray:
+    """(n,) the best normalised correlation of the window around each rounded pixel px (n, 2) with the
+    same window shifted 3 to reach_px pixels away, within LK's reach: near 1 where a pattern repeats (a
+    check: every corner like its neighbours; hwsim's gingham 0.94-0.96), ~0.65 on denim and where a
+    twill meets the table (the first features of the shipped recordings); nan where the search would
+    leave the image."""
+    half = window_px // 2
+    r = half + reach_px
+    h, w = gray.shape
+    dy, dx = np.mgrid[-reach_px : reach_px + 1, -reach_px : reach_px + 1]
+    near = np.hypot(dx, dy) < 3.0
+    out = np.full(len(px), np.nan)
+    image = np.asarray(gray, np.float32)
+    for k, (x, y) in enumerate(np.round(np.asarray(px, np.float64).reshape(-1, 2)).astype(np.int64)):
+        if x - r < 0 or y - r < 0 or x + r >= w or y + r >= h:
+            continue
+        search = image[y - r : y + r + 1, x - r : x + r + 1]
+        ncc = cv2.matchTemplate(
+            search, image[y - half : y + half + 1, x - half : x + half + 1], cv2.TM_CCOEFF_NORMED
+        )
+        ncc[near] = -1.0
+        out[k] = float(ncc.max())
+    return out
 
 
 def aperture_whitening(gray: np.ndarray, px: np.ndarray, window_px: int, max_ratio: float) -> np.ndarray:

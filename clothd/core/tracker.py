@@ -31,6 +31,7 @@ from clothd.core.features import (
     GrayFrame,
     aperture_whitening,
     coverage_holes,
+    self_similarity,
     structure_ratios,
 )
 from clothd.core.mesh import QuadMesh
@@ -48,6 +49,10 @@ Clock = Callable[[], float]
 MIN_DT_S = 1e-3  # two frames with the same time stamp still advance the model a little
 MIN_FEATURES_ALIVE = 6  # fewer than this (or 2 % of the budget) and the cloth is lost
 MIN_FEATURES_TO_RESAMPLE = 3  # an outline through fewer features means nothing
+# On a repeating pattern, a feature whose two LK starts land this far apart landed on two look-alikes.
+AMBIGUOUS_PX = 1.0
+AMBIGUOUS_NEAR_PX = 2.0  # ... and is kept if one of them lies this near where the others put the cloth
+SELF_SIMILARITY_SAMPLE = 200  # the first features whose windows tell a repeating pattern
 
 
 class Tracker:
@@ -111,6 +116,9 @@ class Tracker:
         self.initial_features = 0  # what the first frame's detection found on the whole cloth
         self.outline: OutlineEdges | None = None  # the outline's edge points (clothd/core/outline_edges.py)
         self.periodic = False  # the cloth is a periodic weave (FeatureConfig.periodic_ratio)
+        self.repetitive = (
+            False  # the cloth is a repeating pattern with corners (FeatureConfig.repetitive_ncc)
+        )
         self.engine = self._engine_default
         self.anchors.engine = self.engine
         self.anchors.reset()
@@ -160,6 +168,10 @@ class Tracker:
             measured, _ = self.anchors.refine(frame, features, result.px, result.ok)
         t3 = self.clock()
         keep = result.ok
+        ambiguous = np.zeros(len(keep), bool)
+        if self.repetitive:
+            from_rest_px, from_rest_ok = self.engine.track_from_rest(self.prev, frame, features.px)
+            ambiguous = keep & from_rest_ok & (np.linalg.norm(from_rest_px - measured, axis=1) > AMBIGUOUS_PX)
         stats = UpdateStats(int(keep.sum()), 0, 0.0)
         if keep.any():
             whiten = None
@@ -172,8 +184,22 @@ class Tracker:
                 edges = lambda nodes_m: outline.measure(image, nodes_m)  # noqa: E731
             shape_sigma_m = self.cfg.ekf.periodic_shape_sigma_m if self.periodic else 0.0
             stats, accepted = self.estimator.correct(
-                Measurements(features, measured, keep, whiten, edges, shape_sigma_m)
+                Measurements(features, measured, keep & ~ambiguous, whiten, edges, shape_sigma_m)
             )
+            placed = self.estimator.feature_pixels(features) if ambiguous.any() else None
+            if placed is not None:
+                # A repeating pattern, and the two starts landed on different look-alikes: the prediction
+                # was off by half a period or more somewhere. Of the two, take the one nearer where the
+                # unambiguous features have just put the cloth; if even that is not near, neither is
+                # trusted (the feature is dropped and found afresh). Then correct with those too.
+                to_rest = np.linalg.norm(from_rest_px - placed, axis=1)
+                to_predicted = np.linalg.norm(measured - placed, axis=1)
+                measured = np.where((ambiguous & (to_rest < to_predicted))[:, None], from_rest_px, measured)
+                near = np.minimum(to_rest, to_predicted) < AMBIGUOUS_NEAR_PX
+                more, also = self.estimator.correct(
+                    Measurements(features, measured, ambiguous & near, whiten)
+                )
+                stats, accepted = stats + more, accepted & also & (near | ~ambiguous)
             keep = keep & accepted
         t4 = self.clock()
         meas = measured[keep]
@@ -229,6 +255,11 @@ class Tracker:
         if self.periodic:
             self.engine = self._engine_periodic
             self.anchors.engine = self.engine
+        else:
+            similar = self_similarity(frame.gray, px[:SELF_SIMILARITY_SAMPLE], f.lk_window_px)
+            self.repetitive = (
+                bool(np.isfinite(similar).any()) and float(np.nanmedian(similar)) >= f.repetitive_ncc
+            )
         state = self.estimator.estimate()
         if (
             self.periodic
