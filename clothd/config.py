@@ -77,12 +77,15 @@ class FeatureConfig(_Strict):
     outline_per_side: int = Field(160, ge=0, le=200, description="edge points on each side of the mesh")
     # A repeating pattern with corners (a check) tells itself at the start too: the median best match of
     # the first features' windows with the same windows moved 3-8 px (features.self_similarity) reaches
-    # repetitive_ncc (hwsim's gingham 0.94-0.96, denim ~0.65). There every feature is also tracked from
-    # where it was, and where that and the prediction's start land on different look-alikes the cloth
-    # the other features place decides (clothd/core/tracker.py). Above 1: never.
+    # repetitive_ncc (hwsim's gingham 0.94-0.96, denim ~0.62). There LK takes repetitive_lk_levels (a
+    # coarser level halves a 5.4 px check to the Nyquist limit, where LK lands on look-alikes even from
+    # a start 0.8 px off), the mesh holds its shape as on a periodic weave, every feature is also tracked
+    # from where it was, and where that and the prediction's start land on different look-alikes the
+    # cloth the other features place decides (clothd/core/tracker.py). Above 1: never.
     repetitive_ncc: float = Field(
         0.85, gt=0, le=2, description="self-similarity that marks a repeating pattern"
     )
+    repetitive_lk_levels: int = Field(0, ge=0, le=6, description="LK pyramid levels on a repeating pattern")
     outline_search_px: float = Field(4.0, gt=0, le=50, description="how far across the outline to search")
     resample_below_fraction: float = Field(0.7, gt=0, le=1, description="of max_features")
     resample_cell_px: int = Field(48, ge=8, le=640, description="a cell of the cloth with no feature")

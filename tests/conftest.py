@@ -22,7 +22,7 @@ SHORT_DURATION_S = {
     # Issue 15's hard footage: a second of a plain twill turning under side light; the 200 mm/s run whole.
     "twill-turn-left": 1.0,
     "fast-200": 1.35,
-    "gingham-push": 1.0,  # the push's first 0.8 s: where the prediction runs a check ahead
+    "gingham-fast": 1.0,  # the onset and 0.5 s at 4.5 px a frame
 }
 
 

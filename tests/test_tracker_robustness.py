@@ -104,17 +104,20 @@ def test_a_feature_found_in_a_smeared_frame_is_the_cloth_in_the_middle_of_its_ex
 
 
 @pytest.mark.slow
-def test_a_repeating_check_is_told_and_a_prediction_a_check_off_does_not_drag_the_mesh(
-    short_recording: Recorder,
-) -> None:
-    """On the gingham the push's belts run ahead of the cloth they drag: from the prediction LK lands on
-    the next check. Tracked also from where each feature was, the look-alikes are told apart."""
-    push = short_recording("gingham-push")
-    tracker = Tracker(TrackerConfig(), read_camera(push / "camera.json"), None)
-    tracker.step(cv2.imread(str(frame_path(push, 0))), 0.0, None)
+def test_a_repeating_check_is_told_and_tracked_within_the_bars(short_recording: Recorder) -> None:
+    """On the gingham every corner has look-alikes a check (5.4 px) away: on LK's coarser level they
+    blur together and the tracker lands on them; told, it tracks at full resolution, holds the mesh's
+    shape and settles look-alikes between its two starts."""
+    fast = short_recording("gingham-fast")
+    tracker = Tracker(TrackerConfig(), read_camera(fast / "camera.json"), None)
+    tracker.step(cv2.imread(str(frame_path(fast, 0))), 0.0, None)
     assert tracker.repetitive and not tracker.periodic
-    row = grade(push, "gingham-push", "mesh", TrackerConfig()).row
-    blind = with_overrides(load_config(None), {"tracker": {"features": {"repetitive_ncc": 2.0}}}).tracker
-    old = grade(push, "gingham-push", "mesh", blind).row
-    assert row.node_max_mm is not None and old.node_max_mm is not None
-    assert row.feat_worst_px < 0.6 * old.feat_worst_px and row.node_max_mm < 0.6 * old.node_max_mm
+    told = {"tracker": {"ekf": {"exposure_s": recorded_exposure_s(fast)}}}
+    row = grade(fast, "gingham-fast", "mesh", with_overrides(load_config(None), told).tracker).row
+    assert row.feat_mean_px <= 0.3 and row.feat_worst_px <= 1.5
+    assert row.node_rmse_mm is not None and row.node_rmse_mm <= 2.0
+    blind = with_overrides(
+        load_config(None), {**told, "tracker": {**told["tracker"], "features": {"repetitive_ncc": 2.0}}}
+    )
+    old = grade(fast, "gingham-fast", "mesh", blind.tracker).row
+    assert old.feat_worst_px > 1.5 and old.feat_worst_px > 3 * row.feat_worst_px

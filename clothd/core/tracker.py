@@ -89,6 +89,8 @@ class Tracker:
                 }
             )
         )
+        # A repeating pattern's look-alikes blur together on a coarser level.
+        self._engine_repetitive = FeatureEngine(f.model_copy(update={"lk_levels": f.repetitive_lk_levels}))
         self.engine = self._engine_default
         self.anchors = AnchorFrames(cfg.features, self.engine)
         self.estimator = make_estimator(cfg, camera_model)
@@ -182,7 +184,7 @@ class Tracker:
             if self.outline is not None:
                 outline = self.outline
                 edges = lambda nodes_m: outline.measure(image, nodes_m)  # noqa: E731
-            shape_sigma_m = self.cfg.ekf.periodic_shape_sigma_m if self.periodic else 0.0
+            shape_sigma_m = self.cfg.ekf.periodic_shape_sigma_m if self.periodic or self.repetitive else 0.0
             stats, accepted = self.estimator.correct(
                 Measurements(features, measured, keep & ~ambiguous, whiten, edges, shape_sigma_m)
             )
@@ -197,7 +199,7 @@ class Tracker:
                 measured = np.where((ambiguous & (to_rest < to_predicted))[:, None], from_rest_px, measured)
                 near = np.minimum(to_rest, to_predicted) < AMBIGUOUS_NEAR_PX
                 more, also = self.estimator.correct(
-                    Measurements(features, measured, ambiguous & near, whiten)
+                    Measurements(features, measured, ambiguous & near, whiten, shape_sigma_m=shape_sigma_m)
                 )
                 stats, accepted = stats + more, accepted & also & (near | ~ambiguous)
             keep = keep & accepted
@@ -260,6 +262,9 @@ class Tracker:
             self.repetitive = (
                 bool(np.isfinite(similar).any()) and float(np.nanmedian(similar)) >= f.repetitive_ncc
             )
+            if self.repetitive:
+                self.engine = self._engine_repetitive
+                self.anchors.engine = self.engine
         state = self.estimator.estimate()
         if (
             self.periodic
