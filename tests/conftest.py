@@ -23,6 +23,7 @@ SHORT_DURATION_S = {
     "twill-turn-left": 1.0,
     "fast-200": 1.35,
     "gingham-fast": 1.0,  # the onset and 0.5 s at 4.5 px a frame
+    "gingham-push": 1.0,  # the push's first 0.8 s: where the prediction runs a check ahead of the cloth
 }
 
 

@@ -336,7 +336,7 @@ def _shape_prior_step(
 
 def test_the_shape_prior_pulls_a_stretched_mesh_back_and_lets_a_compressed_one_buckle() -> None:
     """Where the features cannot tell (here: along x), the shape prior holds the mesh's edges to their
-    rest lengths: tightly when stretched, ten times more loosely when compressed."""
+    rest lengths: tightly when stretched, three times more loosely when compressed."""
     width = {}
     for scale in (1.01, 0.99):
         rest, scaled, held, _, _ = _shape_prior_step(scale, 0.0)
@@ -344,8 +344,8 @@ def test_the_shape_prior_pulls_a_stretched_mesh_back_and_lets_a_compressed_one_b
         rest, scaled, held, _, _ = _shape_prior_step(scale, 0.0002)
         width[scale] = (np.ptp(held[:, 0]) - np.ptp(rest[:, 0])) / (np.ptp(scaled[:, 0]) - np.ptp(rest[:, 0]))
         np.testing.assert_allclose(held[:, 1], scaled[:, 1], atol=5e-5)  # y was measured where it is
-    assert width[1.01] < 0.3  # most of a 1 % stretch is taken back
-    assert width[0.99] > 0.6  # most of a 1 % compression stays: the cloth may be buckling
+    assert width[1.01] < 0.1  # a 1 % stretch is taken back
+    assert width[0.99] > 3 * width[1.01]  # more of a 1 % compression stays: the cloth may be buckling
 
 
 def test_the_shape_prior_is_the_exact_information_form_step() -> None:
@@ -368,7 +368,7 @@ def test_the_shape_prior_is_the_exact_information_form_step() -> None:
         h = np.zeros(2 * n)
         h[2 * a : 2 * a + 2], h[2 * b : 2 * b + 2] = u, -u
         stretched = np.linalg.norm(d) > np.linalg.norm(rest[a] - rest[b]) + 1e-12
-        s2 = (sigma if stretched else 10 * sigma) ** 2
+        s2 = (sigma if stretched else 3 * sigma) ** 2
         info += np.outer(h, h) / s2
         vec += h * (np.linalg.norm(rest[a] - rest[b]) - np.linalg.norm(d)) / s2
     dp = np.linalg.solve(info, vec).reshape(n, 2)

@@ -34,8 +34,10 @@ import scipy.sparse as sps
 from clothd.core.ekf import UpdateStats, gate
 
 # A compressed edge is held this many times more loosely than a stretched one: yarns do not stretch, but
-# cloth pushed together buckles into folds, which the estimate must be free to follow (folds.py).
-COMPRESSED_SHAPE_SIGMA_FACTOR = 10.0
+# cloth pushed together buckles into folds (folds.py). Looser lets a prediction that pushes part of the
+# mesh into the rest pass as a fold to be: at 10, belts dragging the gingham's corner a check ahead of
+# the cloth put it 4 px off; at 3 every weave met its bar (docs/benchmarks.md, "Repeating checks").
+COMPRESSED_SHAPE_SIGMA_FACTOR = 3.0
 
 
 class InformationPattern:
