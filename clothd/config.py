@@ -75,6 +75,7 @@ class FeatureConfig(_Strict):
         1000.0, ge=1, le=1e6, description="aperture_max_ratio on a periodic weave"
     )
     outline_per_side: int = Field(160, ge=0, le=200, description="edge points on each side of the mesh")
+    outline_search_px: float = Field(4.0, gt=0, le=50, description="how far across the outline to search")
     # A repeating pattern with corners (a check) tells itself at the start too: the median best match of
     # the first features' windows with the same windows moved 3-8 px (features.self_similarity) reaches
     # repetitive_ncc (hwsim's gingham 0.94-0.96, denim ~0.62). There LK takes repetitive_lk_levels (a
@@ -86,7 +87,6 @@ class FeatureConfig(_Strict):
         0.85, gt=0, le=2, description="self-similarity that marks a repeating pattern"
     )
     repetitive_lk_levels: int = Field(0, ge=0, le=6, description="LK pyramid levels on a repeating pattern")
-    outline_search_px: float = Field(4.0, gt=0, le=50, description="how far across the outline to search")
     resample_below_fraction: float = Field(0.7, gt=0, le=1, description="of max_features")
     resample_cell_px: int = Field(48, ge=8, le=640, description="a cell of the cloth with no feature")
     edge_margin_px: float = Field(6.0, ge=0, le=100, description="keep new features this far inside")
