@@ -154,7 +154,8 @@ class EkfConfig(_Strict):
     )
     # On a periodic weave the features measure across the stripes only, and nothing inside the cloth says
     # where along them it lies: every mesh edge (sides and diagonals) is held to its rest length within
-    # this while stretched, 3x more loosely while compressed (cloth buckles into folds). 0: never.
+    # this while stretched, 3x more loosely while compressed (cloth buckles into folds). A repeating
+    # pattern (FeatureConfig.repetitive_ncc) is held the same way. 0: never.
     periodic_shape_sigma_m: float = Field(
         0.0002, ge=0, le=0.1, description="how closely a periodic weave's mesh edges keep their rest length"
     )

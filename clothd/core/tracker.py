@@ -118,9 +118,8 @@ class Tracker:
         self.initial_features = 0  # what the first frame's detection found on the whole cloth
         self.outline: OutlineEdges | None = None  # the outline's edge points (clothd/core/outline_edges.py)
         self.periodic = False  # the cloth is a periodic weave (FeatureConfig.periodic_ratio)
-        self.repetitive = (
-            False  # the cloth is a repeating pattern with corners (FeatureConfig.repetitive_ncc)
-        )
+        # The cloth is a repeating pattern with corners, a check (FeatureConfig.repetitive_ncc).
+        self.repetitive = False
         self.engine = self._engine_default
         self.anchors.engine = self.engine
         self.anchors.reset()
@@ -188,20 +187,11 @@ class Tracker:
             stats, accepted = self.estimator.correct(
                 Measurements(features, measured, keep & ~ambiguous, whiten, edges, shape_sigma_m)
             )
-            placed = self.estimator.feature_pixels(features) if ambiguous.any() else None
-            if placed is not None:
-                # A repeating pattern, and the two starts landed on different look-alikes: the prediction
-                # was off by half a period or more somewhere. Of the two, take the one nearer where the
-                # unambiguous features have just put the cloth; if even that is not near, neither is
-                # trusted (the feature is dropped and found afresh). Then correct with those too.
-                to_rest = np.linalg.norm(from_rest_px - placed, axis=1)
-                to_predicted = np.linalg.norm(measured - placed, axis=1)
-                measured = np.where((ambiguous & (to_rest < to_predicted))[:, None], from_rest_px, measured)
-                near = np.minimum(to_rest, to_predicted) < AMBIGUOUS_NEAR_PX
-                more, also = self.estimator.correct(
-                    Measurements(features, measured, ambiguous & near, whiten, shape_sigma_m=shape_sigma_m)
+            if ambiguous.any():
+                more, also, measured = self._settle_look_alikes(
+                    features, measured, from_rest_px, ambiguous, whiten, shape_sigma_m
                 )
-                stats, accepted = stats + more, accepted & also & (near | ~ambiguous)
+                stats, accepted = stats + more, accepted & also
             keep = keep & accepted
         t4 = self.clock()
         meas = measured[keep]
@@ -218,6 +208,32 @@ class Tracker:
             prepare=t1 - t0, predict=t2 - t1, klt=t3 - t2, update=t4 - t3, estimate=t5 - t4, tick=t5 - t0
         )
         return estimate
+
+    def _settle_look_alikes(
+        self,
+        features: FeatureSet,
+        measured: np.ndarray,
+        from_rest_px: np.ndarray,
+        ambiguous: np.ndarray,
+        whiten: np.ndarray | None,
+        shape_sigma_m: float,
+    ) -> tuple[UpdateStats, np.ndarray, np.ndarray]:
+        """A repeating pattern, and the two LK starts of the `ambiguous` features landed on different
+        look-alikes: the prediction was off by half a period or more somewhere. Of the two, take the one
+        nearer where the unambiguous features (already corrected with) have put the cloth; if even that is
+        not near, neither is trusted (the feature is dropped and found afresh). Correct with those too.
+        The statistics, which features stay (n,), and the measurements as chosen (n, 2)."""
+        placed = self.estimator.feature_pixels(features)
+        if placed is None:  # no model to settle it: the prediction's answer stands
+            return UpdateStats(0, 0, 0.0), np.ones(len(measured), bool), measured
+        to_rest = np.linalg.norm(from_rest_px - placed, axis=1)
+        to_predicted = np.linalg.norm(measured - placed, axis=1)
+        chosen = np.where((ambiguous & (to_rest < to_predicted))[:, None], from_rest_px, measured)
+        near = np.minimum(to_rest, to_predicted) < AMBIGUOUS_NEAR_PX
+        stats, accepted = self.estimator.correct(
+            Measurements(features, chosen, ambiguous & near, whiten, shape_sigma_m=shape_sigma_m)
+        )
+        return stats, accepted & (near | ~ambiguous), chosen
 
     def _advance_modules(self, t_s: float, commands: ModuleCommands | None) -> BeltField | None:
         """What the modules did over the tick ending at t_s, from their commands: the input u."""
