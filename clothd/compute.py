@@ -359,13 +359,16 @@ class Compute:
             return "tracking_lost", self.controller.stop(), "the cloth is not tracked"
         if sp.mode == "idle" or sp.pose is None or est.outline_m is None:
             return "tracking", self.controller.stop(), None
-        off_limits = self.spec.workspace.leaves(est.outline_m)
-        if off_limits is not None:
-            return "tracking", self.controller.stop(), f"at the workspace's edge: {off_limits}"
         twist = self.controller.plan_twist(est.pose, sp.pose, self.spec.period_s)
+        space = self.spec.workspace
+        off_limits = space.leaves(est.outline_m)
+        period_s = self.spec.period_s
+        if off_limits is not None and not space.comes_back(est.outline_m, est.pose, twist, period_s):
+            return "tracking", self.controller.stop(), f"at the workspace's edge: {off_limits}"
         under = self.controller.modules_under(est.outline_m)
         shaping = None
-        flattens = sp.mode == "flatten" or self.spec.control.flatten
+        # Past the edge only the rigid motion that brings the cloth back runs: shaping pulls outwards too.
+        flattens = off_limits is None and (sp.mode == "flatten" or self.spec.control.flatten)
         if flattens and flatness is not None and est.nodes_m is not None and est.cloth_size_m is not None:
             shaping = self.regulator.velocities(
                 flatness, est.nodes_m, est.cloth_size_m, under, est.pose, est.frame_t_s

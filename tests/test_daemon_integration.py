@@ -100,6 +100,20 @@ def test_estop_stops_every_module_at_once(cell: Cell, daemon: Daemon) -> None:
     wait(lambda: not cell.truth()["estopped"], 2, "e-stop cleared")
 
 
+def test_a_cloth_halted_past_the_edge_is_moved_back_to_the_centre(cell: Cell, daemon: Daemon) -> None:
+    # The cloth's top edge 3 mm past the workspace (y 0.200 m): every tick sees it past the edge.
+    daemon.put_setpoint({"mode": "idle"})
+    wait(lambda: not any(cell.truth()["module_speed_m_s"]), 5, "belts still")
+    httpx.post(f"{cell.http}/cloth", json={"x_m": 0.0, "y_m": 0.103, "theta_rad": 0.0}, timeout=5)
+    daemon.post("/reset")
+    wait(lambda: daemon.status()["state"] == "tracking", 30, "tracking the re-laid cloth", every_s=0.2)
+    daemon.put_setpoint({"mode": "move", "x_m": 0.0, "y_m": 0.0, "theta_rad": 0.0})
+    took = wait(lambda: _pose_error(cell.truth()["pose"], [0, 0, 0])[0] < 0.005, 15, "back at the centre")
+    s = daemon.status()
+    print(f"back within 5 mm of the centre {took:.2f} s after the move; halt: {s['halt_reason']}")
+    assert s["mode"] == "move" and s["halt_reason"] is None
+
+
 def test_a_stalled_websocket_client_does_not_slow_the_loop(daemon: Daemon) -> None:
     url = daemon.base.replace("http://", "ws://") + "/api/v1/stream"
 
