@@ -397,6 +397,20 @@ class OpcUaConfig(_Strict):
         Path("opcua"), description="server key and certificate; relative: to the state directory (systemd)"
     )
     publish_hz: float = Field(10.0, gt=0, le=10, description="how often the variables follow the status")
+    max_message_bytes: int = Field(
+        262_144,
+        ge=8192,
+        le=16_777_216,
+        description="a larger request, or a chunk over 64 KiB, closes its peer",
+    )
+    max_anonymous_sessions: int = Field(32, ge=0, le=1000, description="activated anonymous sessions at once")
+    max_user_sessions: int = Field(8, ge=1, le=100, description="activated sessions of user clothd, apart")
+    max_pending_connections: int = Field(
+        32, ge=1, le=1000, description="connections with no session yet; one more closes the oldest"
+    )
+    activation_timeout_s: float = Field(
+        5.0, gt=0, le=60, description="a connection with no activated session after this is closed"
+    )
 
     @field_validator("endpoint")
     @classmethod

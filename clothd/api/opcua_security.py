@@ -23,6 +23,8 @@ from asyncua.crypto.security_policies import SecurityPolicyFactory, SecurityPoli
 from asyncua.server.user_managers import UserManager
 from cryptography.x509.oid import ExtendedKeyUsageOID
 
+from clothd.api.opcua_limits import SessionSlots
+
 USER_NAME = "clothd"
 CALL = ua.NodeId(ua.Int32(ua.ObjectIds.CallRequest_Encoding_DefaultBinary))
 KEY_FILE = "server-key.pem"
@@ -30,15 +32,23 @@ CERT_FILE = "server-cert.der"
 
 
 class TokenUsers(UserManager):
-    """asyncua's user manager: `clothd` with the token is a user; no name is anonymous, where allowed."""
+    """asyncua's user manager: `clothd` with the token is a user; no name is anonymous, where allowed.
+    Each class of session is admitted only while it has a free slot (SessionSlots)."""
 
-    def __init__(self, token: str | None, anonymous: bool) -> None:
+    def __init__(self, token: str | None, anonymous: bool, slots: SessionSlots) -> None:
         self.token = token
         self.anonymous = anonymous
+        self.slots = slots
 
     def get_user(
         self, iserver: Any, username: str | None = None, password: str | None = None, certificate: Any = None
     ) -> User | None:
+        user = self._identify(username, password)
+        if user is not None:
+            self.slots.admit(user.role)
+        return user
+
+    def _identify(self, username: str | None, password: str | None) -> User | None:
         if username is None and password is None:
             return User(role=UserRole.Anonymous) if self.anonymous else None
         if self.token is None or username != USER_NAME or password is None:

@@ -15,12 +15,15 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import socket
 from collections.abc import Awaitable, Callable
 from typing import Any
 
 from asyncua import Server, ua
+from asyncua.crypto import uacrypto
 
 from clothd.api.commands import Commands
+from clothd.api.opcua_limits import GuardedBinaryServer, SessionSlots, transport_limits
 from clothd.api.opcua_nodes import NAMESPACE_URI, CellNodes, node_id
 from clothd.api.opcua_security import CellRules, DiscoveryOnly, TokenUsers, server_certificate
 from clothd.api.schemas import FlattenSetpoint, HoldSetpoint, IdleSetpoint
@@ -76,10 +79,30 @@ MOVE_ARGS = [
 
 
 class _Server(Server):
+    def __init__(self, slots: SessionSlots, user_manager: TokenUsers) -> None:
+        super().__init__(user_manager=user_manager)
+        self.slots = slots
+        self.limits = transport_limits(slots.cfg)
+
     async def _setup_server_nodes(self) -> None:
         """asyncua's policies for the offered endpoints, then None for discovery only (DiscoveryOnly)."""
         await super()._setup_server_nodes()
         self._policies.append(DiscoveryOnly())  # after ours: a None that we offer matches first
+
+    async def start(self) -> None:
+        """asyncua's Server.start with connections that keep to the limits (opcua_limits.py)."""
+        if self.iserver.certificate is not None:  # asyncua's warnings about it, as its start gives them
+            uacrypto.check_certificate(self.iserver.certificate, self._application_uri, socket.gethostname())
+        await self._setup_server_nodes()
+        await self.iserver.start()
+        host, port = self._get_bind_socket_info()
+        self.bserver = GuardedBinaryServer(self.iserver, host, port, self.limits, self.slots)
+        self.bserver.set_policies(self._policies)
+        try:
+            await self.bserver.start()
+        except Exception:
+            await self.iserver.stop()
+            raise
 
 
 class OpcUaServer:
@@ -89,7 +112,8 @@ class OpcUaServer:
         self.commands = commands
         host, _ = opcua_host_port(cfg.endpoint)
         loopback = is_loopback(host)
-        self.server = _Server(user_manager=TokenUsers(token, anonymous=loopback))
+        slots = SessionSlots(cfg)
+        self.server = _Server(slots, TokenUsers(token, anonymous=loopback, slots=slots))
         self.token_set = token is not None
         self.loopback = loopback
         self.nodes: CellNodes | None = None
