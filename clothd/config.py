@@ -363,6 +363,12 @@ class ApiConfig(_Strict):
     request_timeout_s: float = Field(
         5.0, gt=0, le=120, description="a request must arrive whole this soon after its connection opens"
     )
+    max_streams: int = Field(
+        32, ge=1, le=512, description="WebSockets and MJPEG views open at once, apart from max_connections"
+    )
+    stall_timeout_s: float = Field(
+        5.0, gt=0, le=120, description="a client that reads nothing this long while data waits is dropped"
+    )
 
     @model_validator(mode="after")
     def _token_off_loopback(self) -> ApiConfig:

@@ -27,11 +27,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import uvicorn
+from fastapi import FastAPI
 
 from clothd.api.app import create_app
 from clothd.api.bridge import DaemonBridge
 from clothd.api.commands import Commands
-from clothd.api.connections import BoundedH11Protocol
+from clothd.api.connections import BoundedH11Protocol, BoundedWebSocketProtocol
 from clothd.api.opcua_server import OpcUaServer
 from clothd.api.stream import StreamHub
 from clothd.compute import ComputeSpec
@@ -240,6 +241,14 @@ def check_foxglove_port(fox: FoxgloveConfig) -> None:
             ) from None
 
 
+def api_server_config(app: FastAPI, api: ApiConfig) -> uvicorn.Config:
+    """uvicorn's configuration for the API, with connections bounded in number, time and reading
+    (api/connections.py)."""
+    http = BoundedH11Protocol.bounded(api.max_connections, api.request_timeout_s, api.stall_timeout_s)
+    ws = BoundedWebSocketProtocol.bounded(api.stall_timeout_s)
+    return uvicorn.Config(app, host=api.host, port=api.port, log_level="warning", http=http, ws=ws)
+
+
 class _Server(uvicorn.Server):
     """uvicorn without its own signal handling: clothd's handler stops the modules first."""
 
@@ -261,12 +270,10 @@ async def serve(
         daemon.start_recording(record_dir)
     bridge = DaemonBridge()
     app = create_app(daemon, parts.hub, parts.camera_model, cfg.api, sim_truth_url, bridge)
-    a = cfg.api
-    protocol = BoundedH11Protocol.bounded(a.max_connections, a.request_timeout_s)
-    server = _Server(uvicorn.Config(app, host=a.host, port=a.port, log_level="warning", http=protocol))
+    server = _Server(api_server_config(app, cfg.api))
     opcua = None
     if cfg.opcua.enabled:
-        opcua = OpcUaServer(cfg.opcua, a.token, parts.hub, Commands(daemon, bridge))
+        opcua = OpcUaServer(cfg.opcua, cfg.api.token, parts.hub, Commands(daemon, bridge))
     loop = asyncio.get_running_loop()
     bridge.loop = loop
 

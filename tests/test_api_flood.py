@@ -1,6 +1,7 @@
 """Connections that never finish their request (a slow-header flood) are bounded in number and in time,
-and the operator's e-stop is still served while they are open: uvicorn with clothd's bounded protocol,
-in this process, on a free loopback port."""
+WebSockets that never read have a cap of their own and are dropped, and the operator's e-stop is still
+served while they are open: uvicorn with clothd's bounded protocols, in this process, on a free loopback
+port."""
 
 from __future__ import annotations
 
@@ -9,32 +10,52 @@ import socket
 import threading
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 
 import httpx
 import pytest
 import uvicorn
 
 from clothd.api.app import create_app
-from clothd.api.connections import BoundedH11Protocol
+from clothd.api.connections import BoundedWebSocketProtocol
+from clothd.api.stream import StreamHub
 from clothd.config import ApiConfig, Config
-from clothd.run import bind_api, build
+from clothd.run import api_server_config, bind_api, build
 
 MAX_CONNECTIONS = 16
 REQUEST_TIMEOUT_S = 1.0
 FLOOD = 60  # bounded: a few dozen sockets on loopback, closed by the test
+MAX_STREAMS = 8
+STALL_TIMEOUT_S = 1.0
+
+
+@dataclass
+class Served:
+    srv: uvicorn.Server
+    base: str
+    hub: StreamHub
+
+    @property
+    def port(self) -> int:
+        return int(self.base.rsplit(":", 1)[1])
 
 
 @pytest.fixture
-def server() -> Iterator[tuple[uvicorn.Server, str]]:
+def server() -> Iterator[Served]:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
         port = probe.getsockname()[1]
-    api = ApiConfig(port=port)
+    api = ApiConfig(
+        port=port,
+        max_connections=MAX_CONNECTIONS,
+        request_timeout_s=REQUEST_TIMEOUT_S,
+        max_streams=MAX_STREAMS,
+        stall_timeout_s=STALL_TIMEOUT_S,
+    )
     parts = build(Config(api=api))
     listener = bind_api(api)
     app = create_app(parts.daemon, parts.hub, parts.camera_model, api)
-    protocol = BoundedH11Protocol.bounded(MAX_CONNECTIONS, REQUEST_TIMEOUT_S)
-    srv = uvicorn.Server(uvicorn.Config(app, log_level="warning", http=protocol))
+    srv = uvicorn.Server(api_server_config(app, api))
     thread = threading.Thread(target=srv.run, kwargs={"sockets": [listener]}, daemon=True)
     thread.start()
     deadline = time.monotonic() + 20
@@ -42,7 +63,7 @@ def server() -> Iterator[tuple[uvicorn.Server, str]]:
         assert time.monotonic() < deadline, "the server did not start"
         time.sleep(0.02)
     try:
-        yield srv, f"http://127.0.0.1:{port}"
+        yield Served(srv, f"http://127.0.0.1:{port}", parts.hub)
     finally:
         srv.should_exit = True
         thread.join(timeout=10)
@@ -55,11 +76,8 @@ def _slow_header(port: int) -> socket.socket:
     return s
 
 
-def test_a_slow_header_flood_is_bounded_and_the_estop_still_answers(
-    server: tuple[uvicorn.Server, str],
-) -> None:
-    srv, base = server
-    port = int(base.rsplit(":", 1)[1])
+def test_a_slow_header_flood_is_bounded_and_the_estop_still_answers(server: Served) -> None:
+    srv, base, port = server.srv, server.base, server.port
     with contextlib.ExitStack() as stack:
         flood = [stack.enter_context(_slow_header(port)) for _ in range(FLOOD)]
         time.sleep(0.2)
@@ -78,19 +96,63 @@ def test_a_slow_header_flood_is_bounded_and_the_estop_still_answers(
         assert len(srv.server_state.connections) == 0
 
 
-def test_whole_requests_are_not_cut_by_the_timeout(server: tuple[uvicorn.Server, str]) -> None:
-    _, base = server
+def test_whole_requests_are_not_cut_by_the_timeout(server: Served) -> None:
+    base = server.base
     with httpx.Client(base_url=base, timeout=5) as client:  # one kept-alive connection
         for _ in range(3):
             assert client.get("/api/v1/status").status_code == 200
             time.sleep(REQUEST_TIMEOUT_S / 2)
 
 
-def test_answers_are_not_held_back_by_nagle(server: tuple[uvicorn.Server, str]) -> None:
+def test_answers_are_not_held_back_by_nagle(server: Served) -> None:
     """The connections accepted on clothd's own listening socket get TCP_NODELAY, as uvicorn's would:
     without it every kept-alive response's body waited ~40 ms for the client's delayed ACK."""
-    srv, base = server
+    srv, base = server.srv, server.base
     with httpx.Client(base_url=base, timeout=5) as client:
         assert client.get("/api/v1/status").status_code == 200
         sockets = [c.transport.get_extra_info("socket") for c in srv.server_state.connections]
         assert sockets and all(s.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY) for s in sockets)
+
+
+def _websocket_that_never_reads(port: int) -> socket.socket:
+    """A WebSocket handshake sent, and nothing read, ever; a small receive buffer fills soon."""
+    s = socket.socket()
+    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    s.connect(("127.0.0.1", port))
+    s.sendall(
+        b"GET /api/v1/stream HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        b"Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\r\n"
+    )
+    return s
+
+
+def test_websockets_that_never_read_neither_block_the_estop_nor_outlive_their_stall(server: Served) -> None:
+    srv, base = server.srv, server.base
+    with contextlib.ExitStack() as stack:
+        readers = [
+            stack.enter_context(_websocket_that_never_reads(server.port)) for _ in range(3 * MAX_STREAMS)
+        ]
+        time.sleep(0.5)
+        streams = [c for c in srv.server_state.connections if isinstance(c, BoundedWebSocketProtocol)]
+        assert len(streams) <= MAX_STREAMS, "streams past the cap are refused"
+        for _ in range(5):
+            r = httpx.post(f"{base}/api/v1/estop", timeout=5)
+            assert r.status_code == 200 and r.json()["ok"]
+        # Statuses flow; the readers' buffers fill; after the stall timeout they are dropped.
+        status = server.hub.status
+        assert status is not None
+        deadline = time.monotonic() + STALL_TIMEOUT_S + 20
+        while any(isinstance(c, BoundedWebSocketProtocol) for c in srv.server_state.connections):
+            assert time.monotonic() < deadline, "a WebSocket that never reads was not dropped"
+            server.hub.publish(status)
+            time.sleep(0.001)
+        for s in readers:
+            _read_until_closed(s)
+
+
+def _read_until_closed(sock: socket.socket) -> None:
+    """Returns once the peer has closed the socket (what it had sent is skipped); a timeout raises."""
+    sock.settimeout(5)
+    with contextlib.suppress(ConnectionResetError):
+        while sock.recv(65536):
+            pass

@@ -24,6 +24,7 @@ from starlette.websockets import WebSocketDisconnect
 
 from clothd.api.bridge import DaemonBridge
 from clothd.api.commands import Commands, describe_invalid
+from clothd.api.connections import StreamSlots
 from clothd.api.guard import GuardPolicy, RequestGuard
 from clothd.api.metrics import registry_for
 from clothd.api.schemas import CameraInfo, ErrorResponse, Ok, RecordStart, SetpointRequest
@@ -81,6 +82,7 @@ def create_app(
     bridge = bridge or DaemonBridge()
     commands = Commands(daemon, bridge)
     registry = registry_for(hub)
+    streams = StreamSlots(api_cfg.max_streams)
     app = FastAPI(title="clothd", version="1", description="Real-time cloth tracking and control")
     c = api_cfg
     policy = GuardPolicy(c.port, c.allowed_hosts, c.allowed_origins, c.token, c.max_body_bytes)
@@ -161,29 +163,26 @@ def create_app(
         except (httpx.HTTPError, ValueError) as err:
             raise HardwareError(f"hwsim's truth is not answering: {err}") from err
 
-    @api.get("/view.mjpg", response_class=StreamingResponse)
-    async def view_mjpg() -> StreamingResponse:
-        """The annotated camera view as MJPEG (multipart/x-mixed-replace)."""
-        return StreamingResponse(_mjpeg(daemon), media_type="multipart/x-mixed-replace; boundary=frame")
+    @api.get("/view.mjpg", response_class=StreamingResponse, responses={503: {"model": ErrorResponse}})
+    async def view_mjpg() -> Response:
+        """The annotated camera view as MJPEG (multipart/x-mixed-replace); 503 while api.max_streams
+        streams are open."""
+        if not streams.take():
+            return _streams_full(streams)
+        frames = _mjpeg(daemon, streams)
+        return StreamingResponse(frames, media_type="multipart/x-mixed-replace; boundary=frame")
 
     @api.websocket("/stream")
     async def stream(ws: WebSocket, hz: Annotated[float | None, Query(gt=0, le=30)] = None) -> None:
-        """The status every tick, or at most `hz` times a second. A slow client misses messages."""
-        await ws.accept()
-        sub = hub.subscribe(1.0 / hz if hz else 0.0)
+        """The status every tick, or at most `hz` times a second. A slow client misses messages; one that
+        reads nothing is dropped. Refused (close 1013, "try again later") while api.max_streams are open."""
+        if not streams.take():
+            await ws.close(code=1013, reason=f"{streams.max_streams} streams are open (api.max_streams)")
+            return
         try:
-            await ws.send_text(hub.status_json.decode())
-            next_s = time.monotonic()
-            while True:
-                if sub.min_interval_s:
-                    await asyncio.sleep(max(0.0, next_s - time.monotonic()))
-                    next_s = time.monotonic() + sub.min_interval_s
-                data = await sub.take()
-                await ws.send_text(data.decode())
-        except (WebSocketDisconnect, RuntimeError):
-            pass
+            await _serve_stream(ws, hub, hz)
         finally:
-            hub.unsubscribe(sub)
+            streams.give_back()
 
     app.include_router(api)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
@@ -215,8 +214,32 @@ def create_app(
     return app
 
 
-async def _mjpeg(daemon: Daemon) -> AsyncIterator[bytes]:
-    """Frames as the compute process draws them; it draws only while someone watches."""
+def _streams_full(streams: StreamSlots) -> JSONResponse:
+    detail = f"{streams.max_streams} streams are open (api.max_streams); try again later"
+    return JSONResponse({"detail": detail}, status_code=503, headers={"Retry-After": "5"})
+
+
+async def _serve_stream(ws: WebSocket, hub: StreamHub, hz: float | None) -> None:
+    await ws.accept()
+    sub = hub.subscribe(1.0 / hz if hz else 0.0)
+    try:
+        await ws.send_text(hub.status_json.decode())
+        next_s = time.monotonic()
+        while True:
+            if sub.min_interval_s:
+                await asyncio.sleep(max(0.0, next_s - time.monotonic()))
+                next_s = time.monotonic() + sub.min_interval_s
+            data = await sub.take()
+            await ws.send_text(data.decode())
+    except (WebSocketDisconnect, RuntimeError):
+        pass
+    finally:
+        hub.unsubscribe(sub)
+
+
+async def _mjpeg(daemon: Daemon, streams: StreamSlots) -> AsyncIterator[bytes]:
+    """Frames as the compute process draws them; it draws only while someone watches. The stream's slot
+    was taken by the handler and is given back here, however the stream ends."""
     daemon.viewers += 1
     last = -1
     try:
@@ -230,3 +253,4 @@ async def _mjpeg(daemon: Daemon) -> AsyncIterator[bytes]:
             yield head.encode() + jpeg + b"\r\n"
     finally:
         daemon.viewers -= 1
+        streams.give_back()

@@ -9,7 +9,12 @@ logged an error storm, the API stopped answering and the tick stalled behind the
   whole request (one that never has first, then an idle kept-alive one), so a flood of idle connections
   cannot lock out the operator's e-stop, nor push out the dashboard's kept-alive connection. Only when
   every open connection is busy with a real request is the newcomer turned away.
-The cap sits far below the unit's LimitNOFILE (deploy/clothd.service), so the daemon never runs out of
+Streams are bounded apart (`StreamSlots`): WebSockets and MJPEG views, at most `api.max_streams`
+together. An upgraded WebSocket leaves the HTTP count, so open WebSockets can never fill the slots an
+e-stop request needs. And any client that stops reading is dropped (`DropsStalledReaders`): once its
+unsent bytes pass asyncio's high-water mark, it has `api.stall_timeout_s` to read before the connection
+is aborted, so a stream's slot and descriptor are never held by a client that is gone.
+The caps sit far below the unit's LimitNOFILE (deploy/clothd.service), so the daemon never runs out of
 descriptors, and nothing here logs per connection.
 """
 
@@ -19,9 +24,61 @@ import asyncio
 from typing import Any
 
 from uvicorn.protocols.http.h11_impl import H11Protocol
+from uvicorn.protocols.websockets.websockets_sansio_impl import WebSocketsSansIOProtocol
 
 
-class BoundedH11Protocol(H11Protocol):
+class StreamSlots:
+    """How many long-lived streams (WebSockets, MJPEG views) are open, against their own cap."""
+
+    def __init__(self, max_streams: int) -> None:
+        self.max_streams = max_streams
+        self.open = 0
+
+    def take(self) -> bool:
+        if self.open >= self.max_streams:
+            return False
+        self.open += 1
+        return True
+
+    def give_back(self) -> None:
+        self.open -= 1
+
+
+class DropsStalledReaders(asyncio.Protocol):
+    """Aborts the connection when its peer has not read for `stall_timeout_s` while writes wait."""
+
+    stall_timeout_s = 5.0
+    transport: Any
+    _stall: asyncio.TimerHandle | None = None
+
+    def pause_writing(self) -> None:
+        super().pause_writing()
+        if self._stall is None:
+            self._stall = asyncio.get_running_loop().call_later(self.stall_timeout_s, self.transport.abort)
+
+    def resume_writing(self) -> None:
+        self._cancel_stall()
+        super().resume_writing()
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._cancel_stall()
+        super().connection_lost(exc)
+
+    def _cancel_stall(self) -> None:
+        if self._stall is not None:
+            self._stall.cancel()
+            self._stall = None
+
+
+class BoundedWebSocketProtocol(DropsStalledReaders, WebSocketsSansIOProtocol):
+    """uvicorn's WebSocket protocol, dropping a client that does not read."""
+
+    @classmethod
+    def bounded(cls, stall_timeout_s: float) -> type[BoundedWebSocketProtocol]:
+        return type("BoundedWebSocketProtocol", (cls,), {"stall_timeout_s": stall_timeout_s})
+
+
+class BoundedH11Protocol(DropsStalledReaders, H11Protocol):
     max_connections = 128
     request_timeout_s = 5.0
 
@@ -32,17 +89,21 @@ class BoundedH11Protocol(H11Protocol):
         self._answered = 0  # whole requests answered on this connection
 
     @classmethod
-    def bounded(cls, max_connections: int, request_timeout_s: float) -> type[BoundedH11Protocol]:
+    def bounded(
+        cls, max_connections: int, request_timeout_s: float, stall_timeout_s: float
+    ) -> type[BoundedH11Protocol]:
         """This protocol with its own bounds (uvicorn takes a class)."""
-        return type(
-            "BoundedH11Protocol",
-            (cls,),
-            {"max_connections": max_connections, "request_timeout_s": request_timeout_s},
-        )
+        bounds = {
+            "max_connections": max_connections,
+            "request_timeout_s": request_timeout_s,
+            "stall_timeout_s": stall_timeout_s,
+        }
+        return type("BoundedH11Protocol", (cls,), bounds)
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
-        if len(self.connections) > self.max_connections and not self._evict_a_waiting_one():
+        http = sum(1 for c in self.connections if isinstance(c, H11Protocol))  # upgraded ones have left
+        if http > self.max_connections and not self._evict_a_waiting_one():
             self.transport.abort()
             return
         self._arm_deadline()
