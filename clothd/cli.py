@@ -111,15 +111,16 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, {"tracker": overrides})
     tracker_cfg = cfg.tracker
     start_taichi(cfg.taichi.arch)
+    out = args.out or Path("out/replay") / args.source.stem
     result = replay(
-        args.source, args.out, tracker_cfg, roi=args.roi, camera_json=args.camera, commands_csv=args.commands
+        args.source, out, tracker_cfg, roi=args.roi, camera_json=args.camera, commands_csv=args.commands
     )
     source_input = "on" if tracker_cfg.use_input else "off"
     print(f"camera: {result.camera}")
     print(
         f"replayed {result.frames} frames ({tracker_cfg.model}, input {source_input}) "
         f"in {result.wall_s:.1f} s, {result.realtime_factor:.1f}x real time "
-        f"({result.steady_realtime_factor:.1f}x after start-up) -> {args.out}"
+        f"({result.steady_realtime_factor:.1f}x after start-up) -> {out}"
     )
     return 0
 
@@ -407,8 +408,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     rn.set_defaults(func=_cmd_run)
     r = sub.add_parser("replay", help="track recorded footage offline")
-    r.add_argument("source", type=Path, help="a video file, an image directory, or an hwsim recording")
-    r.add_argument("--out", type=Path, required=True)
+    r.add_argument("source", type=Path, help="a video file, an image directory, or a recording directory")
+    r.add_argument("--out", type=Path, help="where to write (default: out/replay/NAME, the source's name)")
     r.add_argument("--model", choices=["none", "predict", "rigid", "mesh"])
     r.add_argument("--no-input", action="store_true", help="the model takes the modules as stopped")
     r.add_argument("--roi", choices=["auto", "full"], default="auto")

@@ -85,6 +85,7 @@ class TickReply:
     halt_reason: str | None = None  # the commands stopped the modules for a fault of this tick
     flatness: Flatness | None = None  # of this tick's estimate, when it has a mesh and tracks
     compute_mono_s: tuple[float, float] | None = None  # host monotonic: the compute began, and replied
+    starved_ms: float | None = None  # the daemon was silent this long: the tracker started afresh
 
 
 @dataclass(frozen=True)
@@ -106,6 +107,7 @@ class ComputeSpec:
     foxglove: FoxgloveConfig | None = None  # the live server's section (None: off)
     track_ahead: bool = True  # loop.track_ahead: track a frame as it arrives, not when its tick asks
     opencv_threads: int = 2  # loop.compute_threads
+    starved_s: float = 0.15  # loop.starved_ms
 
 
 @dataclass(frozen=True)
@@ -161,6 +163,7 @@ class Compute:
         self._late_view: bytes | None = None  # the view it drew, for the next reply
         self._after_failed = False
         self._in_force: ModuleCommands | None = None  # what the modules were last told, as far as known
+        self._heard_mono_s: float | None = None  # when the daemon last said what it sent
         self._ahead: _Ahead | None = None  # a frame tracked before its tick asked
 
     def start(self) -> None:
@@ -188,7 +191,11 @@ class Compute:
 
     def in_force(self, commands: ModuleCommands) -> None:
         """The daemon has just told the modules this (InForce)."""
-        self._in_force = commands
+        self._in_force, self._heard_mono_s = commands, time.monotonic()
+
+    def _silent_s(self, now_mono_s: float) -> float:
+        """How long the daemon has said nothing of what it sent (0 before it ever has)."""
+        return 0.0 if self._heard_mono_s is None else now_mono_s - self._heard_mono_s
 
     def track_ahead(self) -> None:
         """Between requests: track a frame that has arrived since the last tick, with the commands in
@@ -197,6 +204,8 @@ class Compute:
             return
         frame = self.frames.latest()
         if frame is None or frame.index == self._last_frame_index:
+            return
+        if self._silent_s(frame.t_mono_s) > self.spec.starved_s:  # what the modules ran is unknown
             return
         began_mono_s = time.monotonic()
         try:
@@ -208,12 +217,18 @@ class Compute:
         self._ahead = _Ahead(frame, est, flatness, self._in_force, began_mono_s)
 
     def tick(self, req: TickRequest) -> TickReply:
-        self._in_force = req.commands_in_force
+        # Silent past the bound, the daemon sent nothing, the controller's watchdog may have stopped the
+        # modules, and the belts the model drove the cloth with are unknown: an estimate carried through
+        # the gap invents ridges that the regulator then chases. The tracker starts afresh instead.
+        silent_s = self._silent_s(time.monotonic())
+        starved = silent_s > self.spec.starved_s and self._estimate is not None
+        reset = req.reset or starved
+        self._in_force, self._heard_mono_s = req.commands_in_force, time.monotonic()
         ahead, self._ahead = self._ahead, None
         if self._after_failed:
             self._after_failed = False
             return self.stop_reply("fault")
-        if req.reset:
+        if reset:
             ahead = None  # tracked on the state the reset discards: the frame is tracked afresh below
         timing, self._late_timing = self._late_timing, {}
         if ahead is not None:
@@ -221,7 +236,7 @@ class Compute:
         else:
             frame = self._frame(req.frame_wait_until_mono_s, timing)  # its wait is not the compute's time
         t0, began_mono_s = time.perf_counter(), time.monotonic()
-        if req.reset:
+        if reset:
             self.tracker.reset()
             self.controller.reset()
             self.flatness_monitor.reset()
@@ -264,6 +279,7 @@ class Compute:
             halt,
             flatness,
             (began_mono_s, time.monotonic()),
+            silent_s * 1e3 if starved else None,
         )
 
     def after_reply(self) -> None:
@@ -344,7 +360,7 @@ class Compute:
             spec = self.spec
             try:
                 self.recorder = Recorder(
-                    req.record_start, spec.camera_model, spec.layout, spec.max_record_bytes, time.monotonic()
+                    req.record_start, spec.camera_model, spec.layout, spec.max_record_bytes
                 )
             except OSError as err:
                 log.warning("cannot start recording in %s: %s", req.record_start, err)

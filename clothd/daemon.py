@@ -98,6 +98,7 @@ class Daemon:
         )
         self.setpoint = Setpoint("idle", None)
         self.halt_reason: str | None = None  # why a move last stopped by itself; cleared by a new setpoint
+        self.halt_t_unix_s: float | None = None  # when it stopped, wall clock
         self.state = "starting"
         self.camera = FrameSourceHealth("connecting", False, None, 0)
         self.latest: TickReply | None = None
@@ -146,12 +147,14 @@ class Daemon:
             assert est is not None
             pose = est.pose.copy()
         self.setpoint = Setpoint(mode, None if mode == "idle" else pose)
-        self.halt_reason = None
+        self.halt_reason = self.halt_t_unix_s = None
         self.publish()
 
     def _check_can_move(self) -> None:
         if self.link.estopped:
             raise RequestError("the emergency stop is latched: clear it before moving the cloth")
+        if self.link.state == "starting":  # not up yet since the start: not a fault, only too early
+            raise RequestError("starting")
         if not self.link.connected:
             raise RequestError("the stepper link is not connected: the modules cannot be moved now")
         est = self.latest.estimate if self.latest else None
@@ -328,11 +331,19 @@ class Daemon:
         if reply.state != self.state:
             log.info("state: %s -> %s", self.state, reply.state)
         self.state = reply.state
+        if reply.starved_ms is not None:
+            self._starved(reply.starved_ms)
         if reply.halt_reason is not None:
             self._halt(reply.halt_reason)
         self.camera = reply.camera
         self.latest = reply
         self._notify_systemd(time.monotonic(), reply)
+
+    def _starved(self, silent_ms: float) -> None:
+        self.stats.starved_restarts += 1
+        reason = f"the daemon was silent {silent_ms:.0f} ms (loop.starved_ms): the tracker started afresh"
+        log.warning("%s", reason)
+        self._halt(reason)
 
     def _halt(self, reason: str) -> None:
         """A fault stopped the modules: drop the move, so that nothing restarts until a supervisor sends a
@@ -341,7 +352,7 @@ class Daemon:
             return
         log.warning("%s stopped: %s; idle until a new setpoint", self.setpoint.mode, reason)
         self.setpoint = Setpoint("idle", None)
-        self.halt_reason = reason
+        self.halt_reason, self.halt_t_unix_s = reason, time.time()
 
     # -- publishing ------------------------------------------------------------------------------------
 
@@ -352,6 +363,7 @@ class Daemon:
             state=self.state,
             setpoint=self.setpoint,
             halt_reason=self.halt_reason,
+            halt_t_unix_s=self.halt_t_unix_s,
             estimate=self.latest.estimate if self.latest else None,
             flatness=self.latest.flatness if self.latest else None,
             timing=self.stats.cached_summary(),

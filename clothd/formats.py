@@ -20,7 +20,7 @@ import numpy as np
 
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
-from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.messages import Estimate, ModuleCommands, feature_detections
 from clothd.errors import InputError
 
 CAMERA_KEYS = ("K", "dist", "T_cam_world", "width", "height")
@@ -181,9 +181,11 @@ class RecordingLog:
 # -- estimates.npz ---------------------------------------------------------------------------------
 
 
-def write_estimates(path: Path, estimates: list[Estimate]) -> None:
-    """t_s (F,), pose (F, 3), feature_id (n,), meas_px and pred_px (F, n, 2) (NaN where a feature is not
-    alive), and nodes_m (F, ny, nx, 3) when every estimate with nodes has the same mesh."""
+def write_estimates(path: Path, estimates: list[Estimate], t0_s: float = 0.0) -> None:
+    """t_s (F,) (the frames' times less t0_s), pose (F, 3), feature_id (n,), meas_px and pred_px (F, n, 2)
+    (NaN where a feature is not alive), detect_frame (n,) and detect_px (n, 2) (the frame and pixel each
+    feature was detected at; -1 and NaN if before the first frame), and nodes_m (F, ny, nx, 3) when every
+    estimate with nodes has the same mesh."""
     ids = np.unique(np.concatenate([e.feature_id for e in estimates])) if estimates else np.zeros(0, np.int64)
     col = {int(i): k for k, i in enumerate(ids)}
     F, n = len(estimates), len(ids)
@@ -194,12 +196,18 @@ def write_estimates(path: Path, estimates: list[Estimate]) -> None:
         if len(cols):
             meas[f, cols] = e.meas_px
             pred[f, cols] = e.pred_px
+    detect_frame = np.full(n, -1, np.int64)
+    detect_px = np.full((n, 2), np.nan, np.float32)
+    for fid, (k, px) in feature_detections(estimates).items():
+        detect_frame[col[fid]], detect_px[col[fid]] = k, px
     arrays: dict[str, np.ndarray] = {
-        "t_s": np.array([e.frame_t_s for e in estimates]),
+        "t_s": np.array([e.frame_t_s - t0_s for e in estimates]),
         "pose": np.array([e.pose for e in estimates]),
         "feature_id": ids,
         "meas_px": meas,
         "pred_px": pred,
+        "detect_frame": detect_frame,
+        "detect_px": detect_px,
     }
     shapes = {e.nodes_m.shape for e in estimates if e.nodes_m is not None}
     if len(shapes) == 1:

@@ -96,6 +96,7 @@ class LoopStats:
         self.ticks = 0
         self.missed_ticks = 0
         self.compute_overruns = 0  # ticks that went out with the previous commands: compute not done
+        self.starved_restarts = 0  # the tracker started afresh after the daemon was silent too long
         self.frame_locked = False  # the tick's phase follows the camera's frames
 
     def add_stages(self, timing_s: dict[str, float]) -> None:
@@ -119,6 +120,7 @@ class LoopStats:
             "missed_ticks": self.missed_ticks,
             "missed_pct": self.missed_pct,
             "compute_overruns": self.compute_overruns,
+            "starved_restarts": self.starved_restarts,
             "frame_locked": self.frame_locked,
         }
 
@@ -128,6 +130,7 @@ class LoopStats:
             "missed_ticks": self.missed_ticks,
             "missed_pct": self.missed_pct,
             "compute_overruns": self.compute_overruns,
+            "starved_restarts": self.starved_restarts,
             "frame_locked": self.frame_locked,
             "stages": {name: w.summary() for name, w in self.stages.items()},
             "jitter": self.jitter.summary(),

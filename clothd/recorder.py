@@ -1,11 +1,16 @@
 """Session recording, in the format `clothd replay` reads (docs/recording-format.md) and writes:
 
 DIR/frames/NNNNNN.png   every new camera frame, lossless
-DIR/frames.csv          index, t_s: each frame's capture time, seconds since the recording began
+DIR/frames.csv          index, t_s: each frame's capture time, seconds since the first frame's
 DIR/camera.json         the camera model the daemon ran with
 DIR/table.json          the module layout
 DIR/commands.csv        t_s, module, speed_m_s, heading_rad: the commands sent, as they changed
-DIR/estimates.npz       what the tracker believed live (replay's format), written when recording stops
+DIR/estimates.npz       what the tracker believed live (replay's format, its t_s as frames.csv's), written
+                        when recording stops
+
+The recording's time origin is its first frame's capture time, as frame 0 of an hwsim recording is at
+0 s: the first frame may have been captured before the recording was asked for (a frame already
+waiting for its tick), and a time before the origin is no time an MCAP file can stamp.
 
 A frame's PNG is written before its frames.csv row, and both files are flushed as they grow, so a
 recording cut short (process killed, disk full, size limit) replays up to its last complete frame.
@@ -65,12 +70,10 @@ def recording_path(recording_dir: Path, requested: str | None, suffix: str = "")
 
 
 class Recorder:
-    def __init__(
-        self, out_dir: Path, camera: CameraModel, layout: ConveyorLayout, max_bytes: int, t0_mono_s: float
-    ) -> None:
+    def __init__(self, out_dir: Path, camera: CameraModel, layout: ConveyorLayout, max_bytes: int) -> None:
         self.dir = out_dir
         self.max_bytes = max_bytes
-        self.t0_mono_s = t0_mono_s
+        self.t0_mono_s: float | None = None  # the first frame's capture time, host monotonic
         self.frames = 0
         self.bytes = 0
         self.active = True
@@ -90,6 +93,8 @@ class Recorder:
         """One new frame, the commands in force with it, and the estimate made from it."""
         if not self.active:
             return
+        if self.t0_mono_s is None:
+            self.t0_mono_s = t_mono_s
         t_s = t_mono_s - self.t0_mono_s
         ok, png = cv2.imencode(".png", image, _PNG_PARAMS)
         if not ok:
@@ -118,8 +123,8 @@ class Recorder:
         log.info("recording %s stopped: %s (%d frames)", self.dir, reason, self.frames)
         for error in self._log.close():
             log.warning("recording: %s", error)
-        if self._estimates:
+        if self._estimates and self.t0_mono_s is not None:
             try:
-                write_estimates(self.dir / "estimates.npz", self._estimates)
+                write_estimates(self.dir / "estimates.npz", self._estimates, self.t0_mono_s)
             except OSError as err:  # the disk is full: the frames and commands stay replayable
                 self.stopped_reason = f"{reason}; estimates not written: {err.strerror or err}"

@@ -136,6 +136,7 @@ def build(cfg: Config) -> Parts:
         foxglove=cfg.foxglove,
         track_ahead=cfg.loop.track_ahead,
         opencv_threads=cfg.loop.compute_threads,
+        starved_s=cfg.loop.starved_ms / 1e3,
     )
     settings = DaemonSettings(
         period_s=cfg.loop.period_s,

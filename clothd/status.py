@@ -72,6 +72,9 @@ class Timing(BaseModel):
     missed_ticks: int
     missed_pct: float
     compute_overruns: int = Field(description="ticks sent with the previous commands: compute not done")
+    starved_restarts: int = Field(
+        0, description="times the tracker started afresh after the daemon was silent past loop.starved_ms"
+    )
     frame_locked: bool = Field(
         False,
         description="the tick's phase follows the camera's frames (loop.frame_lock, docs/architecture.md)",
@@ -197,6 +200,7 @@ class Status(BaseModel):
     halt_reason: str | None = Field(
         description="why the last hold or move stopped by itself (a fault); null after a new setpoint"
     )
+    halt_t_unix_s: float | None = Field(description="when it stopped (wall clock); null with halt_reason")
     estop: bool
     pose: PoseWithCovariance | None
     mesh: Mesh | None
@@ -217,6 +221,7 @@ def build_status(
     state: str,
     setpoint: Setpoint,
     halt_reason: str | None,
+    halt_t_unix_s: float | None,
     estimate: Estimate | None,
     flatness: Flatness | None,
     timing: dict[str, object],
@@ -250,6 +255,7 @@ def build_status(
         mode=setpoint.mode,
         setpoint=None if setpoint.pose is None else Pose.of(setpoint.pose),
         halt_reason=halt_reason,
+        halt_t_unix_s=halt_t_unix_s,
         estop=link.estopped,
         pose=pose,
         mesh=mesh,

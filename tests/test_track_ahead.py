@@ -69,3 +69,26 @@ def test_a_reset_tracks_the_frame_afresh_and_nothing_is_tracked_before_the_first
     reply = tick(compute, TickRequest(IDLE, stopped, reset=True, want_view=False))
     assert len(calls) == 3  # the reset threw the frame tracked ahead away with the tracker's state
     assert reply.new_frame and reply.estimate is not None
+
+
+def test_after_the_daemon_fell_silent_past_the_bound_the_tracker_starts_afresh_and_says_so(
+    short_recording: Callable[[str], Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    compute = compute_on(short_recording("translate"), starved_s=0.05)
+    n = compute.spec.layout.n_modules
+    sent = ModuleCommands(np.full(n, 0.03), np.full(n, np.pi / 2))
+    reply = tick(compute, TickRequest(IDLE, sent, reset=False, want_view=False))
+    assert reply.starved_ms is None  # the first request: nothing was heard before it
+    resets: list[bool] = []
+    monkeypatch.setattr(compute.tracker, "reset", lambda: resets.append(True))
+    calls = _counting(compute, monkeypatch)
+    compute.in_force(sent)
+    time.sleep(0.02)
+    reply = tick(compute, TickRequest(IDLE, sent, reset=False, want_view=False))
+    assert reply.starved_ms is None and resets == []  # within the bound: tracked on
+    time.sleep(0.1)  # the daemon starved: the modules may have stopped on the controller's watchdog
+    compute.track_ahead()
+    assert calls == [sent], "a frame captured after the silence is not tracked with commands now unknown"
+    reply = tick(compute, TickRequest(IDLE, sent, reset=False, want_view=False))
+    assert reply.starved_ms is not None and reply.starved_ms >= 100
+    assert resets == [True] and reply.new_frame

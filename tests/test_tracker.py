@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from clothd.config import FeatureConfig, TrackerConfig
-from clothd.core.messages import Estimate
+from clothd.core.messages import Estimate, feature_detections
 from clothd.core.tracker import Tracker
 from clothd.drivers.footage import open_footage
-from clothd.formats import read_camera
+from clothd.formats import read_camera, write_estimates
 from clothd.taichi_runtime import start_taichi
 from clothd.tools.grading import material_coordinates, true_positions
 from clothd.tools.offline import OfflineTracking
@@ -89,6 +89,31 @@ def test_features_keep_their_identity_and_are_resampled(short_recording: Recorde
     ids_end = set(ests[-1].feature_id.tolist())
     assert ids_end - first, "no feature was ever resampled"
     assert len(first & ids_end) > 100, "identities must persist"
+
+
+def test_the_estimates_say_where_each_feature_was_detected(short_recording: Recorder, tmp_path: Path) -> None:
+    """A feature is detected where and when it joins the tracker's features: in a frame's first detection
+    or in its upkeep (then the next frame's estimate is the first to carry it). estimates.npz says so per
+    feature (detect_frame, detect_px), the material point `clothd bench accuracy` grades it as."""
+    run = OfflineTracking(short_recording("occlude"), TrackerConfig(model="mesh"), read_ahead=False)
+    joined: dict[int, tuple[int, np.ndarray]] = {}
+    ests = []
+    for k, (_, _, est) in enumerate(run):
+        ests.append(est)
+        assert run.tracker.features is not None
+        for fid, px in zip(run.tracker.features.ids.tolist(), run.tracker.features.px, strict=True):
+            joined.setdefault(fid, (k, px))
+    detected = feature_detections(ests)
+    assert set(detected) == set(np.concatenate([e.feature_id for e in ests]).tolist())
+    assert any(k > 0 for k, _ in detected.values()), "no feature was detected after the first frame"
+    for fid, (k, px) in detected.items():
+        assert k == joined[fid][0]
+        np.testing.assert_array_equal(px, joined[fid][1])
+    write_estimates(tmp_path / "estimates.npz", ests)
+    with np.load(tmp_path / "estimates.npz") as z:
+        for fid, k, px in zip(z["feature_id"].tolist(), z["detect_frame"], z["detect_px"], strict=True):
+            assert k == detected[fid][0]
+            np.testing.assert_array_equal(px, detected[fid][1])
 
 
 def test_a_budget_the_cloth_cannot_fill_is_not_detected_for_every_tick(short_recording: Recorder) -> None:

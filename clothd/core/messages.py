@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,6 +30,33 @@ class ModuleCommands:
 
 
 @dataclass(frozen=True)
+class Detections:
+    """Features where they were detected: ids (m,), the capture time t_s (m,) of the frame each was
+    detected in, and the pixel px (m, 2) there."""
+
+    ids: np.ndarray
+    t_s: np.ndarray
+    px: np.ndarray
+
+    @classmethod
+    def none(cls) -> Detections:
+        return cls(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 2)))
+
+    @classmethod
+    def join(cls, parts: list[Detections]) -> Detections:
+        if not parts:
+            return cls.none()
+        return cls(
+            np.concatenate([d.ids for d in parts]),
+            np.concatenate([d.t_s for d in parts]),
+            np.concatenate([d.px for d in parts]),
+        )
+
+    def subset(self, keep: np.ndarray) -> Detections:
+        return Detections(self.ids[keep], self.t_s[keep], self.px[keep])
+
+
+@dataclass(frozen=True)
 class Estimate:
     """What the tracker believes after one frame. Everything a consumer needs is here, so that nothing
     reaches into the tracker.
@@ -39,7 +67,8 @@ class Estimate:
     its rest mesh moved rigidly; None without a model. outline_m (k, 2): the cloth's outline on the table,
     in order around it; None without a model. cloth_size_m: the cloth's (width, height) at rest.
     Feature arrays are indexed like feature_id: pred_px is where the estimate places each feature,
-    meas_px where LK measured it this frame (NaN if not)."""
+    meas_px where LK measured it this frame (NaN if not). `detected`: the features this estimate is the
+    first to carry, where they were detected (in this frame, or in the previous one's upkeep)."""
 
     frame_t_s: float
     status: str  # "tracking" or "lost"
@@ -56,6 +85,7 @@ class Estimate:
     # (ny - 1, nx - 1): whether the cloth is seen at each mesh quad's centre; None without a model or when
     # the cloth's colour is not known (a folded-over corner leaves its quads' place showing the table).
     quad_seen: np.ndarray | None = None
+    detected: Detections = field(default_factory=Detections.none)
 
     @property
     def tracking(self) -> bool:
@@ -70,3 +100,16 @@ class Estimate:
     def residual_px(self) -> np.ndarray:
         ok = ~np.isnan(self.meas_px[:, 0])
         return np.asarray(np.linalg.norm(self.meas_px[ok] - self.pred_px[ok], axis=1))
+
+
+def feature_detections(estimates: Sequence[Estimate]) -> dict[int, tuple[int, np.ndarray]]:
+    """Feature id -> (index into `estimates` of the frame it was detected in, its pixel (2,) there), for
+    every feature detected in one of these frames (those detected earlier are left out)."""
+    frame_at = {e.frame_t_s: k for k, e in enumerate(estimates)}
+    out: dict[int, tuple[int, np.ndarray]] = {}
+    for e in estimates:
+        d = e.detected
+        for fid, t_s, px in zip(d.ids.tolist(), d.t_s.tolist(), d.px, strict=True):
+            if t_s in frame_at:
+                out[fid] = (frame_at[t_s], px)
+    return out

@@ -35,7 +35,7 @@ from clothd.core.features import (
     structure_ratios,
 )
 from clothd.core.mesh import QuadMesh
-from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.messages import Detections, Estimate, ModuleCommands
 from clothd.core.outline_edges import OutlineEdges
 from clothd.core.segmentation import (
     ClothColour,
@@ -124,6 +124,7 @@ class Tracker:
         self.anchors.engine = self.engine
         self.anchors.reset()
         self._upkeep_frame: GrayFrame | None = None  # the tracked frame whose upkeep is still to do
+        self._detected: list[Detections] = []  # features detected since the last estimate
 
     def step(self, image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None) -> Estimate:
         """Track one BGR frame captured at frame_t_s, with `commands` the modules' commands in force while
@@ -293,7 +294,7 @@ class Tracker:
             )
             self.outline.measure(image, state.nodes_m.reshape(-1, 3))  # the points' offsets at the start
         # Cloth space is where the cloth lies now.
-        self.features.add(px, self.camera_model.backproject_to_plane(px)[:, :2], np.ones(len(px), bool))
+        self._add_features(px, self.camera_model.backproject_to_plane(px)[:, :2], np.ones(len(px), bool), t_s)
         if f.anchor:
             self.anchors.adopt(frame, self.features)
         timing["tick"] = self.clock() - t0
@@ -333,13 +334,24 @@ class Tracker:
             return
         target = mask if short else cv2.bitwise_and(mask, holes)
         px = self.engine.detect(frame, target, room, avoid_px=features.px).astype(np.float64)
-        if len(px):
-            features.add(px, *self.estimator.cloth_coordinates(px))
+        if len(px):  # in the upkeep of the last tracked frame, self.prev
+            self._add_features(px, *self.estimator.cloth_coordinates(px), self.prev_t_s)
+
+    def _add_features(self, px: np.ndarray, cloth_st: np.ndarray, on_cloth: np.ndarray, t_s: float) -> None:
+        """FeatureSet.add, noting where and when the features it takes were detected for the estimate."""
+        assert self.features is not None
+        first_new_id = self.features.next_id
+        self.features.add(px, cloth_st, on_cloth)
+        new = self.features.ids >= first_new_id
+        ids, new_px = self.features.ids[new], self.features.px[new].astype(np.float64)
+        self._detected.append(Detections(ids, np.full(len(ids), t_s), new_px))
 
     def _estimate(
         self, t_s: float, meas: np.ndarray, stats: UpdateStats, timing: dict[str, float], image: np.ndarray
     ) -> Estimate:
         assert self.features is not None and self.mesh is not None
+        detected = Detections.join(self._detected)
+        self._detected = []
         state = self.estimator.estimate()
         pred = self.estimator.feature_pixels(self.features)
         quad_seen = None
@@ -362,6 +374,7 @@ class Tracker:
             stats,
             timing,
             quad_seen,
+            detected.subset(np.isin(detected.ids, self.features.ids)),  # the dropped never reach one
         )
 
 

@@ -106,7 +106,7 @@ def open_footage(source: Path) -> Footage:
                 images, times = images[: len(times)], times[: len(images)]
             return Footage(
                 source,
-                _recording_fps(source),
+                _recording_fps(source, times),
                 _existing(source / "camera.json"),
                 _existing(source / "table.json"),
                 _existing(source / "commands.csv"),
@@ -135,7 +135,11 @@ def _images_in(directory: Path) -> tuple[Path, ...]:
     return tuple(images)
 
 
-def _recording_fps(recording: Path) -> float:
+def _recording_fps(recording: Path, times_s: tuple[float, ...] | None) -> float:
+    """A live recording's mean frame rate over its capture times (a live camera's rate is its own, 15 fps
+    from hwsim serve); an hwsim recording's scenario.yaml fps; else DEFAULT_FPS."""
+    if times_s is not None and len(times_s) > 1 and times_s[-1] > times_s[0]:
+        return (len(times_s) - 1) / (times_s[-1] - times_s[0])
     scenario = recording / "scenario.yaml"
     if scenario.exists():
         data = yaml.safe_load(scenario.read_text())

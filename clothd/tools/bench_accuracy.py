@@ -23,7 +23,7 @@ from clothd.config import TrackerConfig
 from clothd.core.binding import cloth_coordinates
 from clothd.core.camera_model import CameraModel
 from clothd.core.mesh import QuadMesh
-from clothd.core.messages import Estimate
+from clothd.core.messages import Estimate, feature_detections
 from clothd.formats import read_camera
 from clothd.tools.grading import material_coordinates, true_positions
 from clothd.tools.offline import OfflineTracking
@@ -71,18 +71,12 @@ Births = dict[int, tuple[int, np.ndarray]]  # feature id -> (frame, detection pi
 
 
 def track_with_births(run: OfflineTracking) -> tuple[list[Estimate], Births]:
-    """Every frame's estimate, and where each feature was detected: the frame and pixel of its detection.
-    A feature found in a frame's upkeep is first measured by LK in the next frame; that measurement may
-    already have slipped (along a periodic weave's stripes, by whole pixels), so it is not its birth."""
-    ests: list[Estimate] = []
-    births: Births = {}
-    for k, (_, _, est) in enumerate(run):
-        ests.append(est)
-        features = run.tracker.features
-        if features is not None:
-            for fid, px in zip(features.ids.tolist(), features.px.astype(np.float64), strict=True):
-                births.setdefault(fid, (k, px))
-    return ests, births
+    """Every frame's estimate, and where each feature was detected: the frame and pixel of its detection,
+    as the estimates say (estimates.npz's detect_frame and detect_px). A feature found in a frame's upkeep
+    is first measured by LK in the next frame; that measurement may already have slipped (along a periodic
+    weave's stripes, by whole pixels), so it is not its birth."""
+    ests = [est for _, _, est in run]
+    return ests, feature_detections(ests)
 
 
 def _seen_nodes_m(truth: Truth, k: int, exposure_s: float) -> np.ndarray:
