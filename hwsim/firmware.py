@@ -6,8 +6,9 @@ the pty's slave end by a stable symlink, as it would a /dev/serial/by-id path; `
 pty and, after a pause, opens a new one behind the same symlink.
 
 Safety behaviour:
-- watchdog: no valid frame for WATCHDOG_S -> every module commanded to stop (a controlled stop at the
-  acceleration limit), a WATCHDOG fault sent, and the flag held until the next command;
+- watchdog: armed by the first COMMAND; then no valid frame for WATCHDOG_S -> every module commanded
+  to stop (a controlled stop at the acceleration limit), a WATCHDOG fault sent, and the flag held until
+  the next command;
 - e-stop: every module's speed is cut to zero at once (drivers disabled) and latched; commands are
   refused (NACK) until ESTOP_CLEAR.
 """
@@ -228,7 +229,9 @@ class Firmware:
         self._ack(seq)
 
     def _check_watchdog(self) -> None:
-        if self.last_host_s is None or self.watchdog_tripped:
+        # Before the first COMMAND no host has driven anything: a host that said HELLO and went quiet
+        # (a handshake that timed out, a daemon still starting) left nothing running to stop.
+        if self.last_host_s is None or not self.commands_applied or self.watchdog_tripped:
             return
         if time.monotonic() - self.last_host_s > WATCHDOG_S:
             with self.lock:

@@ -62,7 +62,8 @@ def test_status_reports_every_section(client: TestClient) -> None:
     s = client.get("/api/v1/status").json()
     assert s["mode"] == "idle" and s["estop"] is False
     assert {"pose", "mesh", "features", "residual", "timing", "camera", "link"} <= set(s)
-    assert s["link"]["state"] == "disconnected"
+    assert s["link"]["state"] == "starting"  # never up since the start
+    assert s["halt_reason"] is None and s["halt_t_unix_s"] is None
 
 
 def test_setpoint_validation_gives_reasons(client: TestClient) -> None:
@@ -83,10 +84,14 @@ def test_flatten_with_a_rigid_tracker_is_a_conflict_that_says_why() -> None:
     assert c.get("/api/v1/status").json()["mode"] == "idle"
 
 
-def test_hold_before_the_daemon_runs_is_a_conflict(client: TestClient) -> None:
-    """Never started: no link (each refusal by itself: tests/test_loop_safety.py)."""
-    r = client.put("/api/v1/setpoint", json={"mode": "hold"})
-    assert r.status_code == 409 and "stepper link" in r.json()["detail"]
+def test_a_setpoint_before_the_link_first_comes_up_is_refused_as_starting(client: TestClient) -> None:
+    """Never started: the link has not been up yet, which is the start, not a fault (each refusal by
+    itself: tests/test_loop_safety.py)."""
+    for body in ({"mode": "hold"}, {"mode": "move", "x_m": 0.1, "y_m": 0.0, "theta_rad": 0.5}):
+        r = client.put("/api/v1/setpoint", json=body)
+        assert (r.status_code, r.json()) == (409, {"detail": "starting"})
+    assert client.put("/api/v1/setpoint", json={"mode": "idle"}).status_code == 200
+    assert client.get("/api/v1/status").json()["mode"] == "idle"
 
 
 def test_estop_latches_and_refuses_moves_until_cleared(client: TestClient) -> None:
@@ -99,7 +104,7 @@ def test_estop_latches_and_refuses_moves_until_cleared(client: TestClient) -> No
     assert client.get("/api/v1/status").json()["estop"] is False
     # Cleared, but this daemon never started: no link, no cloth, so still nothing may move.
     r = client.put("/api/v1/setpoint", json=move)
-    assert r.status_code == 409 and "stepper link" in r.json()["detail"]
+    assert (r.status_code, r.json()["detail"]) == (409, "starting")
     assert client.get("/api/v1/status").json()["mode"] == "idle"
 
 

@@ -5,6 +5,7 @@ e-stop is clear, the link up and the cloth tracked inside the workspace."""
 from __future__ import annotations
 
 import asyncio
+import time
 from collections import deque
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -195,6 +196,7 @@ def test_no_restart_after_a_fault_until_a_new_setpoint(fault: str, expected: str
         assert daemon.setpoint.mode == "idle"
         assert daemon.halt_reason is not None and expected in daemon.halt_reason
         assert daemon.status is not None and daemon.status.halt_reason == daemon.halt_reason
+        assert daemon.status.halt_t_unix_s is not None and abs(daemon.status.halt_t_unix_s - time.time()) < 5
         # The fault goes away: the camera is back, the link reconnects. Nothing moves by itself.
         link.state, compute.state, compute.halt_reason = "connected", "tracking", None
         link.sent.clear()
@@ -204,7 +206,7 @@ def test_no_restart_after_a_fault_until_a_new_setpoint(fault: str, expected: str
         # A new setpoint, and only that, moves the cloth again.
         _move(daemon)
         await _ticks(daemon, 3)
-        assert _moving(link) and daemon.halt_reason is None
+        assert _moving(link) and daemon.halt_reason is None and daemon.halt_t_unix_s is None
 
     _run(scenario)
 
@@ -233,6 +235,9 @@ def test_moves_are_refused_unless_tracked_linked_clear_and_on_the_table() -> Non
         with pytest.raises(RequestError, match="emergency stop"):
             _move(daemon)
         daemon.estop_clear()
+        link.state = "starting"  # not up yet since the start
+        with pytest.raises(RequestError, match=r"^starting$"):
+            _move(daemon)
         link.state = "disconnected"
         with pytest.raises(RequestError, match="stepper link"):
             _move(daemon)

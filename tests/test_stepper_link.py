@@ -20,7 +20,7 @@ from clothd.core.messages import ModuleCommands
 from clothd.drivers import wire
 from clothd.drivers.stepper_link import StepperLink
 from clothd.tools.pty_relay import PtyRelay
-from hwsim.firmware import FAULT_WATCHDOG, Firmware
+from hwsim.firmware import FAULT_WATCHDOG, WATCHDOG_S, Firmware
 from hwsim.scenario import TableSpec
 from hwsim.table import Table
 
@@ -133,6 +133,9 @@ def test_watchdog_stops_the_modules_when_the_host_goes_silent(tmp_path: Path) ->
         link = _link(fw.link_path)
         async with _running(link):
             await _until(lambda: link.connected)
+            # A host that has only said HELLO has driven nothing: its silence is no fault (start-up).
+            await asyncio.sleep(3 * WATCHDOG_S)
+            assert not fw.watchdog_tripped and not link.faults
             link.send_commands(_forward(0.1))
             await _until(lambda: table.cmd_speed_m_s[0] > 0)
             # The host stops talking (a hung or killed daemon): within the watchdog the modules stop.
@@ -150,9 +153,22 @@ def test_link_comes_back_after_an_unplug(tmp_path: Path) -> None:
             await _until(lambda: link.connected)
             fw.unplug(0.3)
             await _until(lambda: not link.connected)
-            assert link.last_error
+            assert link.last_error and link.state in ("disconnected", "connecting")
             await _until(lambda: link.connected, timeout_s=5.0)
             assert link.counters.reconnects >= 1
+
+    _with_firmware(tmp_path, body)
+
+
+def test_a_port_that_appears_late_is_the_start_not_a_reconnect(tmp_path: Path) -> None:
+    async def body(fw: Firmware, table: Table) -> None:
+        port = tmp_path / "by-id"
+        async with _running(_link(port)) as link:
+            await asyncio.sleep(0.4)  # several tries (0.05 s doubling to 0.2 s) at a port not there yet
+            assert link.state == "starting" and link.last_error
+            port.symlink_to(fw.link_path)
+            await _until(lambda: link.connected)
+            assert link.counters.reconnects == 0 and not link.faults
 
     _with_firmware(tmp_path, body)
 

@@ -89,7 +89,7 @@ class ModuleLink(Protocol):
     The emergency stop is latched here, in one place: `estopped` is true from `estop()` until
     `estop_clear()`, and no command goes out meanwhile."""
 
-    state: str  # disconnected | connecting | connected
+    state: str  # starting (never up since the start) | connecting | connected | disconnected
     last_error: str | None
     firmware: str | None
     counters: LinkCounters

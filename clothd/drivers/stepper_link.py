@@ -53,7 +53,8 @@ class StepperLink:
         self.clock = clock
         self.counters = LinkCounters()
         self.faults: deque[ControllerFault] = deque(maxlen=FAULTS_KEPT)
-        self.state = "disconnected"  # disconnected | connecting | connected
+        self.state = "starting"  # starting (never up yet) | connecting | connected | disconnected
+        self._was_up = False
         self.last_error: str | None = None
         self.firmware: str | None = None
         self.controller_flags = 0
@@ -138,12 +139,13 @@ class StepperLink:
                 return
             await asyncio.sleep(delay)
             delay = min(delay * 2, self.cfg.reconnect_max_s)
-            self.counters.reconnects += 1
+            if self._was_up:  # the tries before the first connection are the start, not reconnects
+                self.counters.reconnects += 1
 
     # -- the connection ---------------------------------------------------------------------------
 
     async def _session(self) -> None:
-        self.state = "connecting"
+        self._down("connecting")
         reader, writer = await asyncio.wait_for(
             serial_asyncio_fast.open_serial_connection(url=self.cfg.port, baudrate=self.cfg.baud), 2.0
         )
@@ -153,6 +155,7 @@ class StepperLink:
         try:
             await self._handshake()
             self.state = "connected"
+            self._was_up = True
             self.last_error = None
             log.info("stepper link up on %s (%s)", self.cfg.port, self.firmware)
             supervising = asyncio.create_task(self._supervise())
@@ -303,7 +306,7 @@ class StepperLink:
         """Declare the link lost: all-stop written on the way out (a controller that hears but cannot
         answer stops at once; one that hears nothing stops on its watchdog), then reconnect."""
         was_connected = self.state == "connected"
-        self.state = "disconnected"  # from now on no command goes out
+        self._down("disconnected")  # from now on no command goes out
         if was_connected:
             log.warning("stepper link lost: %s", reason)
             self.counters.losses += 1
@@ -321,8 +324,12 @@ class StepperLink:
             log.warning("stepper link: %s", reason)
         self.last_error = reason
 
+    def _down(self, state: str) -> None:
+        """Not connected: `state`, or `starting` while the link has never been up."""
+        self.state = state if self._was_up else "starting"
+
     def _close(self) -> None:
-        self.state = "disconnected"
+        self._down("disconnected")
         self._pending = None
         self._unanswered_since_s = None
         self._retries = 0
