@@ -1,7 +1,9 @@
-"""Long commands show progress on a terminal and nothing elsewhere; the daemon's logs suit journald."""
+"""Long commands show progress on a terminal and nothing elsewhere; the daemon's logs suit journald and
+a storm of errors writes a few lines, not a storm."""
 
 from __future__ import annotations
 
+import logging
 import os
 import subprocess
 import sys
@@ -9,8 +11,10 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
 from terminal import on_terminal, piped
 
+from clothd.logs import RateLimit
 from clothd.view import wall_clock_label
 
 Recorder = Callable[[str], Path]
@@ -55,3 +59,27 @@ def test_the_live_view_labels_frames_with_the_wall_clock() -> None:
     label = wall_clock_label(time.monotonic() - 2.0)
     expected = time.strftime("%H:%M:%S", time.localtime(time.time() - 2.0))
     assert label.startswith(expected[:5]) and len(label) == len("12:34:56.7")
+
+
+def test_a_storm_of_errors_is_rate_limited_with_one_traceback_and_a_count(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    now = [100.0]
+    monkeypatch.setattr("clothd.logs.time.monotonic", lambda: now[0])
+    limit = RateLimit(burst=3, window_s=10.0)
+
+    def record(msg: str) -> logging.LogRecord:
+        try:
+            raise ValueError("malformed")
+        except ValueError:
+            return logging.LogRecord("asyncua.x", logging.ERROR, __file__, 1, msg, (), sys.exc_info())
+
+    storm = [record("Exception raised while parsing") for _ in range(20)]
+    passed = [r for r in storm if limit.filter(r)]
+    assert len(passed) == 3
+    assert passed[0].exc_info is not None and all(r.exc_info is None for r in passed[1:])
+    assert limit.filter(record("another place"))  # counted apart
+    now[0] += 10.0
+    later = record("Exception raised while parsing")
+    assert limit.filter(later) and later.getMessage().endswith("(17 more like this dropped)")
+    assert later.exc_info is not None  # a new window's first keeps its traceback
