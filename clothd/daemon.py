@@ -116,6 +116,8 @@ class Daemon:
         self._in_force = self._commands  # what the modules were last told: the model's input
         self._reset_requested = False
         self._record_start: Path | None = None
+        self._recording_starting: Path | None = None  # asked for, and no reply has shown the outcome yet
+        self._start_in_flight = False  # the request in flight carries a recording's start
         self._record_stop = False
         self._stopping = False
         self._ready_sent = False
@@ -179,6 +181,8 @@ class Daemon:
         rec = self.latest.recording if self.latest else None
         if rec is not None and rec.active:
             raise RequestError(f"already recording into {rec.dir}: stop it first")
+        if self._recording_starting is not None:  # two requests at once: the first one wins
+            raise RequestError(f"a recording is starting in {self._recording_starting}: stop it first")
         mcap = self.settings.recording_format == "mcap"
         if mcap and out.suffix != ".mcap":
             out = out.with_name(out.name + ".mcap")
@@ -194,7 +198,7 @@ class Daemon:
         except OSError as err:  # a full disk is the daemon's trouble (507); anything else is the place's
             error = StorageError if err.errno in (errno.ENOSPC, errno.EDQUOT) else InvalidRequestError
             raise error(f"cannot create {out}: {err.strerror or err}") from None
-        self._record_start = out
+        self._record_start = self._recording_starting = out
         return out
 
     def stop_recording(self) -> None:
@@ -297,6 +301,7 @@ class Daemon:
         want_view = self.viewers > 0 and now - self._last_view_s >= self.settings.view_period_s
         reset, self._reset_requested = self._reset_requested, False
         start, self._record_start = self._record_start, None
+        self._start_in_flight = start is not None
         stop, self._record_stop = self._record_stop, False
         wait_until = self.phase.wait_until_s(now) if self.phase is not None else None
         req = TickRequest(self.setpoint, self._in_force, reset, want_view, start, stop, wait_until)
@@ -321,6 +326,8 @@ class Daemon:
         except (EOFError, OSError) as err:
             self._compute_died(err)
         self._commands = reply.commands
+        if self._start_in_flight:  # the reply's recording status now says how the start went
+            self._start_in_flight, self._recording_starting = False, None
         if reply.new_frame and reply.frame_t_mono_s is not None:
             self._unsent_frame = (reply.frame_t_mono_s, self._asked_s, reply.compute_mono_s)
             if self.phase is not None:
