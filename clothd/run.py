@@ -72,6 +72,7 @@ def start_sim(scenario: str) -> SimCell:
     """Start `hwsim serve` and wait for the line that says where its hardware is."""
     state_dir = Path(tempfile.mkdtemp(prefix="clothd-sim-"))
     cmd = [sys.executable, "-m", "hwsim.cli", "serve", "--scenario", scenario, "--state-dir", str(state_dir)]
+    cmd.append("--exit-with-parent")  # a daemon killed with -9 takes its simulated cell with it
     # Its own session: a Ctrl-C in the terminal must not take the cell away before the daemon has
     # stopped the modules; the daemon stops it last.
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, start_new_session=True)

@@ -134,11 +134,27 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         raise SystemExit(0)
 
     signal.signal(signal.SIGTERM, _terminate)
+    if args.exit_with_parent:
+        _exit_with_parent(signal.SIGTERM)
     sc = scenarios.load(args.scenario)
     state_dir = args.state_dir or Path(tempfile.mkdtemp(prefix="hwsim-"))
     with contextlib.suppress(KeyboardInterrupt):
         serve(sc, state_dir, args.port, args.camera_fps, arch=args.arch)
     return 0
+
+
+def _exit_with_parent(signum: int) -> None:
+    """Have Linux send `signum` when the parent process dies (prctl PR_SET_PDEATHSIG), so that a parent
+    killed with -9 does not leave the cell running on its own; a parent already gone ends us now."""
+    import ctypes
+    import os
+
+    parent = os.getppid()
+    pr_set_pdeathsig = 1
+    if ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signum) != 0:
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+    if os.getppid() != parent or parent == 1:
+        raise SystemExit(0)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -207,6 +223,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--port", type=int, default=0, help="HTTP port on 127.0.0.1 (default: any free one)")
     s.add_argument("--state-dir", type=Path, help="for the pty link and camera.json (default: temp)")
     s.add_argument("--camera-fps", type=float, default=15.0, help="frames served per second")
+    s.add_argument(
+        "--exit-with-parent", action="store_true", help="stop when the process that started it dies (Linux)"
+    )
     s.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "vulkan"], help="Taichi backend")
     s.set_defaults(func=_cmd_serve)
     return p
