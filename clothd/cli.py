@@ -91,13 +91,17 @@ def _cmd_export(args: argparse.Namespace) -> int:
 
 
 def _cmd_picture(args: argparse.Namespace) -> int:
-    from clothd.tools.mcap_picture import draw_picture, highest_mesh_t_ns, read_cell_mcap
+    from clothd.tools.mcap_picture import (
+        after_first_frame_ns,
+        draw_picture,
+        highest_mesh_t_ns,
+        read_cell_mcap,
+    )
 
     log = read_cell_mcap(args.mcap)
-    t0_ns = log.camera[0][0]
-    at_ns = highest_mesh_t_ns(log) if args.at_s is None else t0_ns + round(args.at_s * 1e9)
-    draw_picture(log, args.out, at_ns)
-    print(f"drew {args.mcap} at {(at_ns - t0_ns) / 1e9:.2f} s -> {args.out}")
+    at_ns = highest_mesh_t_ns(log) if args.at_s is None else after_first_frame_ns(log, args.at_s)
+    drawn_ns = draw_picture(log, args.out, at_ns)
+    print(f"drew {args.mcap} at {(drawn_ns - log.camera[0][0]) / 1e9:.2f} s -> {args.out}")
     return 0
 
 

@@ -17,7 +17,7 @@ from clothd.cli import main
 from clothd.drivers.footage import open_footage
 from clothd.errors import InputError
 from clothd.formats import read_camera
-from clothd.foxglove_channels import encode_jpeg
+from clothd.foxglove_channels import CellChannels, encode_jpeg
 from clothd.tools.mcap_picture import read_cell_mcap
 from clothd.view import draw_tracking
 
@@ -123,3 +123,23 @@ def test_a_picture_of_a_file_without_camera_frames_is_refused(tmp_path: Path) ->
         read_cell_mcap(empty)
     with pytest.raises(InputError, match="no such MCAP file"):
         read_cell_mcap(tmp_path / "missing.mcap")
+
+
+def test_a_picture_past_the_files_end_is_refused_and_one_within_names_the_frame_it_drew(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--at-s 99` on a shorter file drew its last frame and said 99.00 s: a time outside the frames is
+    refused, and a time within them is drawn at the nearest frame, whose time it prints."""
+    mcap = tmp_path / "three.mcap"
+    ctx = foxglove.Context()
+    channels = CellChannels(ctx)
+    jpeg = encode_jpeg(np.zeros((48, 64, 3), np.uint8))
+    assert jpeg is not None
+    with foxglove.open_mcap(mcap, context=ctx):
+        for t_ns in (0, 100_000_000, 200_000_000):
+            channels.log_camera(jpeg, t_ns)
+    png = str(tmp_path / "p.png")
+    assert main(["picture", str(mcap), "--out", png, "--at-s", "99"]) == 2
+    assert "--at-s 99: the file's camera frames span 0 to 0.20 s" in capsys.readouterr().err
+    assert main(["picture", str(mcap), "--out", png, "--at-s", "0.13"]) == 0
+    assert f"drew {mcap} at 0.10 s" in capsys.readouterr().out

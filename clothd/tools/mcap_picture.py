@@ -96,11 +96,22 @@ def highest_mesh_t_ns(log: CellLog) -> int:
     return max(log.mesh, key=lambda m: float(m.ends_m[:, 2].max())).t_ns
 
 
+def after_first_frame_ns(log: CellLog, at_s: float) -> int:
+    """The log time at_s seconds after the first camera frame; refused outside the frames' span, where
+    the nearest frame would be drawn under a time it does not have."""
+    first_ns, last_ns = log.camera[0][0], log.camera[-1][0]
+    span_s = (last_ns - first_ns) / 1e9
+    if not 0.0 <= at_s <= span_s:
+        raise InputError(f"--at-s {at_s:g}: the file's camera frames span 0 to {span_s:.2f} s")
+    return first_ns + round(at_s * 1e9)
+
+
 def _nearest(times_ns: list[int], t_ns: int) -> int:
     return int(np.argmin(np.abs(np.asarray(times_ns, dtype=np.int64) - t_ns)))
 
 
-def draw_picture(log: CellLog, out: Path, at_ns: int) -> None:
+def draw_picture(log: CellLog, out: Path, at_ns: int) -> int:
+    """The picture at the camera frame nearest at_ns, written to `out`; that frame's log time."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -169,3 +180,4 @@ def draw_picture(log: CellLog, out: Path, at_ns: int) -> None:
     fig.tight_layout()
     fig.savefig(out)
     plt.close(fig)
+    return t_cam
