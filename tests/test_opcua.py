@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import math
 import socket
 import stat
@@ -113,6 +114,19 @@ def test_the_address_space_browses_as_documented() -> None:
             assert math.isnan(await (await cell.get_child([f"{idx}:Pose", f"{idx}:X_m"])).read_value())
 
     asyncio.run(main())
+
+
+def test_the_start_names_its_security_policy_in_words(caplog: pytest.LogCaptureFixture) -> None:
+    """The log line once read "OPC UA on opc.tcp://.../clothd/ (None)", like a bug."""
+    cfg = _loopback()
+
+    async def main() -> None:
+        async with _server(cfg, None):
+            pass
+
+    with caplog.at_level(logging.INFO, logger="clothd.api.opcua_server"):
+        asyncio.run(main())
+    assert f"OPC UA on {cfg.endpoint}, security policy None" in caplog.messages
 
 
 def test_a_refusal_is_a_bad_code_with_the_rest_apis_reason() -> None:

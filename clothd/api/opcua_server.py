@@ -147,7 +147,9 @@ class OpcUaServer:
                 "choose another address with --opcua-endpoint or opcua.endpoint"
             ) from None
         self._publisher = asyncio.create_task(self._publish())
-        log.info("OPC UA on %s (%s)", self.cfg.endpoint, ", ".join(self.cfg.security_policies))
+        policies = self.cfg.security_policies
+        named = "security policy" if len(policies) == 1 else "security policies"
+        log.info("OPC UA on %s, %s %s", self.cfg.endpoint, named, " and ".join(policies))
 
     async def stop(self) -> None:
         if self._publisher is not None:
