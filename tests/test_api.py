@@ -212,6 +212,13 @@ def test_bodies_are_json_bounded_and_never_echoed(client: TestClient) -> None:
         assert "NaN" not in r.text and "ud800" not in r.text
 
 
+def test_a_body_that_is_not_json_is_a_422_as_docs_api_md_says(client: TestClient) -> None:
+    r = client.put("/api/v1/setpoint", content='{"mode": ', headers={"Content-Type": "application/json"})
+    assert r.status_code == 422 and "detail" in r.json()
+    api_md = " ".join((Path(__file__).parent.parent / "docs" / "api.md").read_text().split())
+    assert f"{r.status_code} for a body that is not JSON" in api_md
+
+
 def test_with_a_token_nothing_is_read_before_it_is_checked() -> None:
     c = TestClient(_app(token=TOKEN), base_url=BASE)
     huge = b"{" + b" " * 10_000_000 + b"}"
