@@ -34,9 +34,10 @@ lock-check: $(STAMP)
 	@diff -q -I '^#' $(LOCK) $(VENV)/lock-check.txt >/dev/null || \
 	  { echo "$(LOCK) is out of date with pyproject.toml: run make lock"; exit 1; }
 
-# The main job: the daemon against the simulated cell (hwsim serve as its child), API on loopback.
+# The main job: the daemon against the simulated cell (hwsim serve as its child), API on loopback;
+# PORT=8081 serves the dashboard and the API on another port.
 run: $(STAMP)
-	$(BIN)/clothd run --sim --config config.yaml
+	$(BIN)/clothd run --sim --config config.yaml $(if $(PORT),--port $(PORT))
 
 lint: $(STAMP)
 	$(BIN)/ruff check clothd hwsim tests

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from importlib.metadata import version
 from pathlib import Path
 
 from clothd.config import load_config, with_overrides
@@ -384,6 +385,7 @@ def _mesh_size(text: str) -> tuple[int, int]:
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="clothd", description="Real-time cloth tracking and control.")
+    p.add_argument("--version", action="version", version=f"%(prog)s {version('clothd')}")
     sub = p.add_subparsers(dest="command", required=True)
     c = sub.add_parser("check-config", help="validate a configuration file")
     c.add_argument("file", type=Path)

@@ -1,14 +1,22 @@
-"""The command line's own parsing: what `clothd bench speed` picks from --features and --mesh."""
+"""The command line's own parsing: `--version`, and what `clothd bench speed` picks from --features and
+--mesh."""
 
 from __future__ import annotations
 
 import json
+from importlib.metadata import version
 from pathlib import Path
 
 import pytest
 
 from clothd.cli import build_parser
 from clothd.tools.bench_speed import STAGES, Row, format_rows, plot, read_rows, rows_json
+
+
+def test_version_is_the_installed_packages(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as done:
+        build_parser().parse_args(["--version"])
+    assert done.value.code == 0 and capsys.readouterr().out == f"clothd {version('clothd')}\n"
 
 
 def test_bench_speed_takes_feature_budgets_and_mesh_sizes_repeated_or_listed() -> None:
