@@ -8,7 +8,7 @@ from importlib.metadata import version
 from pathlib import Path
 
 from clothd.config import load_config, with_overrides
-from clothd.errors import ClothdError
+from clothd.errors import ClothdError, InvalidRequestError
 
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
@@ -73,9 +73,13 @@ def _cmd_bench_faults(args: argparse.Namespace) -> int:
 def _cmd_bench_abuse(args: argparse.Namespace) -> int:
     import json
 
-    from clothd.tools.bench_abuse import format_rows, run_bench
+    from clothd.tools.bench_abuse import FLOODS, format_rows, run_bench
 
-    rows = run_bench(connections=args.connections, flood_s=args.seconds)
+    floods = tuple(args.floods or FLOODS)
+    unknown = [f for f in floods if f not in FLOODS]
+    if unknown:
+        raise InvalidRequestError(f"--floods: unknown {', '.join(unknown)}; choose from {', '.join(FLOODS)}")
+    rows = run_bench(connections=args.connections, flood_s=args.seconds, floods=floods)
     print(format_rows(rows))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2) + "\n")
@@ -651,8 +655,9 @@ def build_parser() -> argparse.ArgumentParser:
     btn.add_argument("--out", type=Path, default=Path("out/bench/tune"), help="where the tunes' outputs go")
     btn.add_argument("--json", type=Path, help="also write the figures as JSON")
     btn.set_defaults(func=_cmd_bench_tune)
-    bab = bsub.add_parser("abuse", help="slow-header and slow-body floods: e-stop round trip, missed ticks")
-    bab.add_argument("--connections", type=int, default=1100, help="sockets held open during each flood")
+    bab = bsub.add_parser("abuse", help="HTTP, WebSocket and OPC UA floods: e-stop round trip, missed ticks")
+    bab.add_argument("--connections", type=int, default=1100, help="sockets held open by the HTTP floods")
+    bab.add_argument("--floods", nargs="+", help="which floods (default: all; the bench lists them)")
     bab.add_argument("--seconds", type=float, default=20.0, help="how long each flood lasts")
     bab.add_argument("--json", type=Path, help="also write the figures as JSON")
     bab.set_defaults(func=_cmd_bench_abuse)
