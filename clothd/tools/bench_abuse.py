@@ -41,8 +41,8 @@ import yaml
 from asyncua import Client
 from tqdm import tqdm
 
-from clothd.api.opcua_nodes import NAMESPACE_URI
 from clothd.tools.bench_loop import DaemonProcess, free_port
+from clothd.tools.opcua_load import NAMESPACE_URI
 from clothd.tools.procfs import open_fds, rss_mb
 
 REOPEN_PER_S = 500.0
