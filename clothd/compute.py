@@ -61,6 +61,7 @@ class TickRequest:
     record_stop: bool = False
     # Wait until this time (host monotonic) for a frame not yet used: the tick started as one was due.
     frame_wait_until_mono_s: float | None = None
+    sent_mono_s: float = field(default_factory=time.monotonic)  # when the daemon made it
 
 
 @dataclass(frozen=True)
@@ -69,6 +70,7 @@ class InForce:
     frame that arrives before the next request is tracked with."""
 
     commands: ModuleCommands
+    sent_mono_s: float = field(default_factory=time.monotonic)  # when the daemon made it
 
 
 @dataclass(frozen=True)
@@ -189,13 +191,14 @@ class Compute:
             halt_reason=f"the compute failed ({state})",
         )
 
-    def in_force(self, commands: ModuleCommands) -> None:
-        """The daemon has just told the modules this (InForce)."""
-        self._in_force, self._heard_mono_s = commands, time.monotonic()
+    def in_force(self, commands: ModuleCommands, sent_mono_s: float) -> None:
+        """The daemon told the modules this at sent_mono_s (InForce)."""
+        self._in_force, self._heard_mono_s = commands, sent_mono_s
 
-    def _silent_s(self, now_mono_s: float) -> float:
-        """How long the daemon has said nothing of what it sent (0 before it ever has)."""
-        return 0.0 if self._heard_mono_s is None else now_mono_s - self._heard_mono_s
+    def _silent_s(self, until_mono_s: float) -> float:
+        """How long before `until_mono_s` the daemon last said what it sent (0 before it ever has). Its
+        messages carry their send times: a compute busy with a slow tick is not a silent daemon."""
+        return 0.0 if self._heard_mono_s is None else until_mono_s - self._heard_mono_s
 
     def track_ahead(self) -> None:
         """Between requests: track a frame that has arrived since the last tick, with the commands in
@@ -220,10 +223,10 @@ class Compute:
         # Silent past the bound, the daemon sent nothing, the controller's watchdog may have stopped the
         # modules, and the belts the model drove the cloth with are unknown: an estimate carried through
         # the gap invents ridges that the regulator then chases. The tracker starts afresh instead.
-        silent_s = self._silent_s(time.monotonic())
+        silent_s = self._silent_s(req.sent_mono_s)
         starved = silent_s > self.spec.starved_s and self._estimate is not None
         reset = req.reset or starved
-        self._in_force, self._heard_mono_s = req.commands_in_force, time.monotonic()
+        self._in_force, self._heard_mono_s = req.commands_in_force, req.sent_mono_s
         ahead, self._ahead = self._ahead, None
         if self._after_failed:
             self._after_failed = False
@@ -422,7 +425,7 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
             if req is None:
                 return
             if isinstance(req, InForce):
-                compute.in_force(req.commands)
+                compute.in_force(req.commands, req.sent_mono_s)
                 continue
             try:
                 reply = compute.tick(req)

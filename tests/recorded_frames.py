@@ -60,6 +60,7 @@ def compute_on(recording: Path, frames: int = 4, cell: CellConfig | None = None,
         taichi_arch="cpu",
         max_record_bytes=10**6,
         frame_source=lambda: RecordedFrames(images),
+        starved_s=60.0,  # a test drives the compute at its own pace: no pause of it is a silent daemon
     )
     built = dataclasses.replace(built, **spec)
     return Compute(built, built.frame_source())

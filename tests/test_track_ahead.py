@@ -39,7 +39,7 @@ def test_a_frame_tracked_ahead_is_what_the_next_tick_controls_on(
     tick(compute, TickRequest(IDLE, stopped, reset=False, want_view=False))  # initialises
     calls = _counting(compute, monkeypatch)
     sent = ModuleCommands(np.full(n, 0.03), np.full(n, np.pi / 2))
-    compute.in_force(sent)
+    compute.in_force(sent, time.monotonic())
     compute.track_ahead()
     compute.track_ahead()  # one at a time: the next waits for a tick to take this one
     assert len(calls) == 1 and calls[0] is sent
@@ -82,7 +82,7 @@ def test_after_the_daemon_fell_silent_past_the_bound_the_tracker_starts_afresh_a
     resets: list[bool] = []
     monkeypatch.setattr(compute.tracker, "reset", lambda: resets.append(True))
     calls = _counting(compute, monkeypatch)
-    compute.in_force(sent)
+    compute.in_force(sent, time.monotonic())
     time.sleep(0.02)
     reply = tick(compute, TickRequest(IDLE, sent, reset=False, want_view=False))
     assert reply.starved_ms is None and resets == []  # within the bound: tracked on
