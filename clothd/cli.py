@@ -29,10 +29,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_loop(args: argparse.Namespace) -> int:
+    from clothd.tools import bench_hog
     from clothd.tools.bench_loop import format_result, run_bench, write_json
 
-    result = run_bench(args.config, run_s=args.run_seconds, load_s=args.load_seconds, opcua=args.opcua)
-    print(format_result(result))
+    if args.hog is not None:
+        result = bench_hog.run_bench(args.hog, args.config)
+        print(bench_hog.format_result(result))
+    else:
+        result = run_bench(args.config, run_s=args.run_seconds, load_s=args.load_seconds, opcua=args.opcua)
+        print(format_result(result))
     if args.json:
         write_json(result, args.json)
     return 0
@@ -592,6 +597,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--opcua",
         action="store_true",
         help="add an OPC UA client subscribed to the Cell at 10 Hz to the load",
+    )
+    bl.add_argument(
+        "--hog",
+        type=int,
+        metavar="N",
+        help="instead: 10 moves beside N busy processes and a headless browser started 3 times",
     )
     bl.add_argument("--json", type=Path, help="also write the figures as JSON")
     bl.set_defaults(func=_cmd_bench_loop)

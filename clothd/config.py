@@ -216,6 +216,10 @@ class LoopConfig(_Strict):
     # at 24 x 24 nodes tick in 13 ms with 2, 18 ms with 1). Even on a 2-core machine shared with hwsim, 2
     # cut the frame-to-command latency p99 from 16 to 12-13 ms and missed no tick (docs/benchmarks.md).
     compute_threads: int = Field(2, ge=1, le=16, description="OpenCV threads in the compute process")
+    # A loaded PC: the loop and the compute before other programs, the API after the loop
+    # (clothd/priority.py, docs/deploy.md "A loaded cell PC").
+    nice: int = Field(-10, ge=-20, le=0, description="the loop's thread and the compute, where permitted")
+    api_nice: int = Field(10, ge=0, le=19, description="the API's thread (HTTP, WebSocket, OPC UA)")
 
     @model_validator(mode="after")
     def _frame_wait_leaves_time_to_compute(self) -> LoopConfig:

@@ -46,6 +46,7 @@ from clothd.drivers.camera import VideoCaptureSource, redact_source
 from clothd.drivers.stepper_link import StepperLink
 from clothd.errors import ConfigError, HardwareError
 from clothd.formats import read_camera
+from clothd.priority import set_thread_nice
 
 SIM_START_TIMEOUT_S = 120.0
 GIL_SWITCH_S = 0.001
@@ -206,12 +207,15 @@ class ApiThread(threading.Thread):
     """The HTTP API and the OPC UA server on a thread and event loop of their own (api/bridge.py); an
     error that ends them is kept for the main thread to raise."""
 
-    def __init__(self, server: uvicorn.Server, listener: socket.socket, opcua: OpcUaServer | None) -> None:
+    def __init__(
+        self, server: uvicorn.Server, listener: socket.socket, opcua: OpcUaServer | None, nice: int
+    ) -> None:
         super().__init__(name="api")
-        self.server, self.listener, self.opcua = server, listener, opcua
+        self.server, self.listener, self.opcua, self.nice = server, listener, opcua, nice
         self.error: BaseException | None = None
 
     def run(self) -> None:
+        set_thread_nice(self.nice, "the API's thread")  # after the loop, whatever its requests cost
         try:
             asyncio.run(self._serve())
         except BaseException as err:  # handed to the main thread, which stops the daemon first
@@ -266,6 +270,8 @@ async def serve(
     sim_truth_url: str | None = None,
     record_dir: Path | None = None,
 ) -> None:
+    # This thread runs the tick and the stepper link; the compute process, started from it, inherits it.
+    set_thread_nice(cfg.loop.nice, "the loop")
     parts = build(cfg)
     daemon = parts.daemon
     if record_dir is not None:  # the operator's own choice, anywhere
@@ -286,7 +292,7 @@ async def serve(
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, _stop)
     # The APIs on a thread and event loop of their own: their work never delays a tick (api/bridge.py).
-    api = ApiThread(server, listener, opcua)
+    api = ApiThread(server, listener, opcua, cfg.loop.api_nice)
     api.start()
     api_done = loop.run_in_executor(None, api.join)
     while not server.started and api.is_alive():

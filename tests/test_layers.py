@@ -32,6 +32,7 @@ LAYERS: list[tuple[str, tuple[str, ...]]] = [
             "clothd.frame_phase",
             "clothd.notify",
             "clothd.logs",
+            "clothd.priority",
         ),
     ),
     ("tools", ("clothd.tools",)),

@@ -1,0 +1,187 @@
+"""`clothd bench loop --hog N`: the closed loop on a loaded PC, measured from outside.
+
+`clothd run --sim` runs MOVES moves between two poses, one after another, while N busy processes at
+normal priority (nice 0) keep the cores busy, and a headless browser (Debian's chromium, loading the
+dashboard) is started BROWSER_STARTS times during the moves: many processes, memory and disk at once,
+what cancelled moves on a 2-core cell PC. Counted: the stepper link's losses, the moves cancelled (a
+halt before the move arrived), the moves that arrived, and the missed ticks.
+
+Twice, because on a real cell the stepper controller is a microcontroller that no program on the PC
+can starve, while hwsim's firmware is a process on the PC: first with hwsim at the loop's priority
+(`loop.nice`), the stand-in for that microcontroller, which is what the bars are judged on; then with
+hwsim at normal priority, beside the hogs, which shows what of the result is the simulator's.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+from tqdm import tqdm
+
+from clothd.tools.bench_loop import ANGLE_TOL_RAD, POS_TOL_M, DaemonProcess, free_port, pose_error
+
+MOVES = 10
+BROWSER_STARTS = 3
+TARGETS = ((0.05, 0.03, 0.2), (-0.05, -0.03, -0.2))
+MOVE_TIMEOUT_S = 20.0
+HOG_LIMIT_S = 600.0  # a hog ends by itself even if the bench is killed
+SIM_NICE = -10  # hwsim as the microcontroller: at the loop's priority
+BROWSER_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+)
+
+
+@contextlib.contextmanager
+def hogs(n: int) -> Iterator[list[subprocess.Popen[bytes]]]:
+    """n processes that keep a core busy each, at normal priority, for as long as the block runs."""
+    code = f"import time\nend = time.monotonic() + {HOG_LIMIT_S}\nwhile time.monotonic() < end:\n    pass\n"
+    procs = [subprocess.Popen([sys.executable, "-c", code]) for _ in range(n)]
+    try:
+        yield procs
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+
+
+def start_browser(url: str, profile: Path) -> subprocess.Popen[bytes] | None:
+    """Debian's chromium loading `url` headless (None when it is not installed)."""
+    exe = shutil.which("chromium")
+    if exe is None:
+        return None
+    cmd = [exe, *BROWSER_FLAGS, f"--user-data-dir={profile}", "--dump-dom", url]
+    return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+
+
+def set_process_nice(pid: int, nice: int) -> None:
+    """Every thread of the process (Linux's nice is per thread) to this nice value."""
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        with contextlib.suppress(ProcessLookupError):
+            os.setpriority(os.PRIO_PROCESS, int(tid), nice)
+
+
+def hwsim_pid(daemon_pid: int) -> int:
+    """The `hwsim serve` child of `clothd run --sim`."""
+    for tid in os.listdir(f"/proc/{daemon_pid}/task"):
+        for child in Path(f"/proc/{daemon_pid}/task/{tid}/children").read_text().split():
+            if "hwsim.cli" in Path(f"/proc/{child}/cmdline").read_text():
+                return int(child)
+    raise RuntimeError("clothd run --sim has no hwsim serve child")
+
+
+def _status(d: DaemonProcess) -> dict[str, Any]:
+    return dict(httpx.get(f"{d.base}/api/v1/status", timeout=10).json())
+
+
+def run_move(d: DaemonProcess, target: tuple[float, float, float]) -> str:
+    """'arrived', 'cancelled: <why>' or 'timed out', for one move."""
+    body = {"mode": "move", "x_m": target[0], "y_m": target[1], "theta_rad": target[2]}
+    httpx.put(f"{d.base}/api/v1/setpoint", json=body, timeout=10).raise_for_status()
+    deadline = time.monotonic() + MOVE_TIMEOUT_S
+    while time.monotonic() < deadline:
+        s = _status(d)
+        if s["mode"] != "move":
+            return f"cancelled: {s['halt_reason']}"
+        dist, ang = pose_error(httpx.get(d.truth_url, timeout=10).json()["pose"], target)
+        if dist < POS_TOL_M and ang < ANGLE_TOL_RAD:
+            return "arrived"
+        time.sleep(0.1)
+    return "timed out"
+
+
+def measure_phase(d: DaemonProcess, n_hogs: int, sim_nice: int) -> dict[str, Any]:
+    set_process_nice(hwsim_pid(d.proc.pid), sim_nice)
+    before = _status(d)
+    outcomes: list[str] = []
+    browsers: list[subprocess.Popen[bytes]] = []
+    start_at = {round(MOVES * (k + 0.5) / BROWSER_STARTS) for k in range(BROWSER_STARTS)}
+    with tempfile.TemporaryDirectory(prefix="clothd-hog-browser-") as profiles, hogs(n_hogs):
+        for i in tqdm(range(MOVES), desc=f"moves, hwsim at nice {sim_nice}", disable=None, leave=False):
+            if i in start_at:
+                browser = start_browser(f"{d.base}/", Path(profiles) / str(i))
+                if browser is not None:
+                    browsers.append(browser)
+            outcomes.append(run_move(d, TARGETS[i % 2]))
+        for b in browsers:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                b.wait(timeout=30)
+            if b.poll() is None:
+                os.killpg(b.pid, 9)
+                b.wait()
+    after = _status(d)
+    ticks = after["timing"]["ticks"] - before["timing"]["ticks"]
+    missed = after["timing"]["missed_ticks"] - before["timing"]["missed_ticks"]
+    return {
+        "hwsim_nice": sim_nice,
+        "hogs": n_hogs,
+        "browser_starts": len(browsers),
+        "moves": len(outcomes),
+        "moves_arrived": outcomes.count("arrived"),
+        "moves_cancelled": sum(o.startswith("cancelled") for o in outcomes),
+        "moves_timed_out": outcomes.count("timed out"),
+        "halt_reasons": sorted({o.split(": ", 1)[1] for o in outcomes if o.startswith("cancelled")}),
+        "links_lost": after["link"]["counters"]["losses"] - before["link"]["counters"]["losses"],
+        "missed_tick_pct": 100.0 * missed / max(ticks + missed, 1),
+    }
+
+
+def run_bench(n_hogs: int, config: Path | None = None) -> dict[str, Any]:
+    """The bars' phase (hwsim as the microcontroller) at the top level, the other under
+    `hwsim_at_normal_priority`."""
+    d = DaemonProcess(config, free_port())
+    try:
+        d.wait_ready()
+        deadline = time.monotonic() + 120
+        while _status(d)["state"] != "tracking" or _status(d)["link"]["state"] != "connected":
+            if time.monotonic() > deadline:
+                raise RuntimeError("the daemon did not start tracking")
+            time.sleep(0.2)
+        time.sleep(2.0)
+        result = measure_phase(d, n_hogs, SIM_NICE)
+        result["hwsim_at_normal_priority"] = measure_phase(d, n_hogs, 0)
+        result["daemon_nice"] = _nice_of(d.proc.pid)
+        return result
+    finally:
+        d.stop()
+
+
+def _nice_of(pid: int) -> int:
+    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(") ", 1)[1].split()[16])
+
+
+def format_result(r: dict[str, Any]) -> str:
+    def phase(p: dict[str, Any], what: str) -> list[str]:
+        reasons = "; ".join(p["halt_reasons"]) or "none"
+        return [
+            f"  {what}: {p['moves_arrived']} of {p['moves']} moves arrived, "
+            f"{p['moves_cancelled']} cancelled, {p['moves_timed_out']} timed out; "
+            f"links lost {p['links_lost']}; missed ticks {p['missed_tick_pct']:.3f} %",
+            f"    {p['hogs']} hogs at nice 0, the browser started {p['browser_starts']} times",
+            f"    halts: {reasons}",
+        ]
+
+    bars = "bars: 0 links lost, 0 moves cancelled, missed ticks <= 0.5 %"
+    return "\n".join(
+        [
+            f"clothd bench loop --hog {r['hogs']} (the daemon's loop at nice {r['daemon_nice']}; {bars})",
+            *phase(r, "hwsim at nice -10, as the controller's microcontroller"),
+            *phase(r["hwsim_at_normal_priority"], "hwsim at nice 0, beside the hogs (the simulator's share)"),
+        ]
+    )
