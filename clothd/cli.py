@@ -84,7 +84,7 @@ def _cmd_bench_abuse(args: argparse.Namespace) -> int:
     unknown = [f for f in floods if f not in FLOODS]
     if unknown:
         raise InvalidRequestError(f"--floods: unknown {', '.join(unknown)}; choose from {', '.join(FLOODS)}")
-    rows = run_bench(connections=args.connections, flood_s=args.seconds, floods=floods)
+    rows = run_bench(args.connections, args.seconds, floods, token=not args.without_token)
     print(format_rows(rows))
     if args.json:
         args.json.write_text(json.dumps(rows, indent=2) + "\n")
@@ -669,6 +669,7 @@ def build_parser() -> argparse.ArgumentParser:
     bab = bsub.add_parser("abuse", help="HTTP, WebSocket and OPC UA floods: e-stop round trip, missed ticks")
     bab.add_argument("--connections", type=int, default=1100, help="sockets held open by the HTTP floods")
     bab.add_argument("--floods", nargs="+", help="which floods (default: all; the bench lists them)")
+    bab.add_argument("--without-token", action="store_true", help="the daemon with no api.token")
     bab.add_argument("--seconds", type=float, default=20.0, help="how long each flood lasts")
     bab.add_argument("--json", type=Path, help="also write the figures as JSON")
     bab.set_defaults(func=_cmd_bench_abuse)

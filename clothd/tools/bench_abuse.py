@@ -1,5 +1,6 @@
 """`clothd bench abuse`: floods from a local process with no credentials against `clothd run --sim`
-(with api.token set, and the daemon held to 1,024 file descriptors as under systemd), measured from
+(with api.token set, or without it: `token`; the daemon held to 1,024 file descriptors as under
+systemd), measured from
 outside. Each flood lasts `flood_s` seconds, all on loopback, everything closed at the end:
 - slow-header: `connections` sockets send a request line and a header, then nothing;
 - slow-body: `connections` sockets send whole headers announcing a 1,000-byte body, then a byte a second;
@@ -135,14 +136,18 @@ class Flood:
                 s.close()
 
 
-def _post_estop(conn: http.client.HTTPConnection) -> int:
-    conn.request("POST", "/api/v1/estop", headers={"Authorization": f"Bearer {TOKEN}"})
+def _auth(token: bool) -> dict[str, str]:
+    return {"Authorization": f"Bearer {TOKEN}"} if token else {}
+
+
+def _post_estop(conn: http.client.HTTPConnection, token: bool) -> int:
+    conn.request("POST", "/api/v1/estop", headers=_auth(token))
     reply = conn.getresponse()
     reply.read()
     return reply.status
 
 
-def _probe_estops(port: int, stop: EventType, out: QueueType[Any]) -> None:
+def _probe_estops(port: int, token: bool, stop: EventType, out: QueueType[Any]) -> None:
     """In a process of its own, so that neither the flood's thread nor the bench's own work delays a
     probe: POST /api/v1/estop every ESTOP_EVERY_S, on a fresh connection and on a kept-alive one, with
     the standard library's HTTP client (no TLS context to build, unlike a fresh httpx client, whose
@@ -156,7 +161,7 @@ def _probe_estops(port: int, stop: EventType, out: QueueType[Any]) -> None:
             conn = kept if how == "kept" else http.client.HTTPConnection("127.0.0.1", port, timeout=2.0)
             t = time.monotonic()
             try:
-                status = _post_estop(conn)  # a fresh connection's connect is in the round trip
+                status = _post_estop(conn, token)  # a fresh connection's connect is in the round trip
                 if status == 200:
                     rtts[how].append(time.monotonic() - t)
                 else:
@@ -210,8 +215,8 @@ class OpcSessionFlood:
     """OPC_SESSIONS anonymous sessions opened, OPC_CONCURRENCY at a time, and held; then user clothd logs
     in and calls EStop (its outcome in `user_estop`)."""
 
-    def __init__(self, url: str) -> None:
-        self.url = url
+    def __init__(self, url: str, token: bool) -> None:
+        self.url, self.token = url, token
         self.opened = 0
         self.refused = 0
         self.user_estop: dict[str, Any] = {}
@@ -244,7 +249,8 @@ class OpcSessionFlood:
                         await client.disconnect()
 
         await asyncio.gather(*(one() for _ in range(OPC_SESSIONS)))
-        self.user_estop = await self._user_estop()
+        if self.token:  # without one there is no user: the anonymous slots are all there is
+            self.user_estop = await self._user_estop()
         while not self._stop.is_set():
             await asyncio.sleep(0.1)
         for client in held:
@@ -266,13 +272,13 @@ class OpcSessionFlood:
             return {"latched": False, "ms": None, "error": f"{type(err).__name__}: {err}"[:200]}
 
 
-def _flood(d: DaemonProcess, port: int, kind: str, n: int) -> Any:
+def _flood(d: DaemonProcess, port: int, kind: str, n: int, token: bool) -> Any:
     if kind in SOCKET_FLOODS:
         return Flood(port, SOCKET_FLOODS[kind], WEBSOCKETS if kind == "websocket-idle" else n)
     if kind == "opcua-declared":
         host, opc_port = d.opcua_url.split("//")[1].split("/")[0].split(":")
         return OpcDeclaredFlood(host, int(opc_port))
-    return OpcSessionFlood(d.opcua_url)
+    return OpcSessionFlood(d.opcua_url, token)
 
 
 class FlatnessSampler:
@@ -310,15 +316,15 @@ def _link_losses(d: DaemonProcess) -> int:
     return int(httpx.get(f"{d.base}/api/v1/status", timeout=10).json()["link"]["counters"]["losses"])
 
 
-def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float) -> dict[str, Any]:
+def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float, token: bool) -> dict[str, Any]:
     pid = d.proc.pid
     fds0, rss0 = open_fds(pid), rss_mb(pid)
     before = httpx.get(f"{d.base}/api/v1/status", timeout=5).json()["timing"]
     losses0 = _link_losses(d)
     spawn = multiprocessing.get_context("spawn")
     stop, out = spawn.Event(), spawn.Queue()
-    prober = spawn.Process(target=_probe_estops, args=(port, stop, out), daemon=True)
-    with FlatnessSampler(d.base) as flatness, _flood(d, port, kind, n) as flood:
+    prober = spawn.Process(target=_probe_estops, args=(port, token, stop, out), daemon=True)
+    with FlatnessSampler(d.base) as flatness, _flood(d, port, kind, n, token) as flood:
         prober.start()
         time.sleep(flood_s)
         fds_during = open_fds(pid)
@@ -332,6 +338,7 @@ def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float) -> 
     missed = after["missed_ticks"] - before["missed_ticks"]
     row: dict[str, Any] = {
         "flood": kind,
+        "token": token,
         "connections_held": getattr(flood, "n", None),
         "connections_opened": flood.opened,
         "estop_failed": len(failures),
@@ -339,7 +346,9 @@ def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float) -> 
     if isinstance(flood, OpcDeclaredFlood):
         row["streamed_mb"] = flood.streamed_bytes / 2**20
     if isinstance(flood, OpcSessionFlood):
-        row.update(sessions_opened=flood.opened, sessions_refused=flood.refused, user_estop=flood.user_estop)
+        row.update(sessions_opened=flood.opened, sessions_refused=flood.refused)
+        if token:
+            row["user_estop"] = flood.user_estop
     for how, seconds in rtts.items():
         lat = np.asarray(seconds) * 1e3
         row[f"estop_{how}_answered"] = len(lat)
@@ -360,30 +369,28 @@ def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float) -> 
     }
 
 
-def _config_with_token(directory: Path) -> Path:
+def _config(directory: Path, token: bool) -> Path:
     path = directory / "abuse.yaml"
-    path.write_text(yaml.safe_dump({"api": {"token": TOKEN}}))
+    path.write_text(yaml.safe_dump({"api": {"token": TOKEN}} if token else {}))
     return path
 
 
 def run_bench(
-    connections: int = 1100, flood_s: float = 20.0, floods: tuple[str, ...] = FLOODS
+    connections: int = 1100, flood_s: float = 20.0, floods: tuple[str, ...] = FLOODS, token: bool = True
 ) -> list[dict[str, Any]]:
     soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)  # this process holds the flood's sockets
     resource.setrlimit(resource.RLIMIT_NOFILE, (min(hard, max(soft, connections + 256)), hard))
     port = free_port()
     with tempfile.TemporaryDirectory(prefix="clothd-abuse-") as tmp:
-        d = DaemonProcess(_config_with_token(Path(tmp)), port)
+        d = DaemonProcess(_config(Path(tmp), token), port)
         try:
             d.wait_ready()
             resource.prlimit(d.proc.pid, resource.RLIMIT_NOFILE, (DAEMON_FDS, DAEMON_FDS))
             _wait(lambda: httpx.get(f"{d.base}/api/v1/status", timeout=5).json()["state"] == "tracking", 120)
             time.sleep(2.0)
-            rows = [
-                _measure(d, port, kind, connections, flood_s) for kind in tqdm(floods, "floods", leave=False)
-            ]
-            auth = {"Authorization": f"Bearer {TOKEN}"}
-            httpx.post(f"{d.base}/api/v1/estop/clear", headers=auth, timeout=5)
+            shown = tqdm(floods, "floods", leave=False)
+            rows = [_measure(d, port, kind, connections, flood_s, token) for kind in shown]
+            httpx.post(f"{d.base}/api/v1/estop/clear", headers=_auth(token), timeout=5)
             return rows
         finally:
             d.stop()
@@ -402,8 +409,9 @@ def _ms(value: float | None) -> str:
 
 
 def format_rows(rows: list[dict[str, Any]]) -> str:
+    with_token = "with" if all(r["token"] for r in rows) else "without"
     out = [
-        "clothd bench abuse (clothd run --sim with api.token, at 1,024 fds; floods on loopback, bounded)",
+        f"clothd bench abuse (clothd run --sim {with_token} api.token, at 1,024 fds; floods on loopback)",
         "  bars: e-stop p99 <= 100 ms, none failed; missed ticks <= 0.5 %; no link lost; RSS +<= 10 %;"
         " no ridge",
     ]
