@@ -90,10 +90,23 @@ def _status(d: DaemonProcess) -> dict[str, Any]:
     return dict(httpx.get(f"{d.base}/api/v1/status", timeout=10).json())
 
 
+def wait_ready(d: DaemonProcess, timeout_s: float) -> None:
+    """Until the cloth is tracked with the link up (a move is refused otherwise), or the timeout."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        s = _status(d)
+        if s["state"] == "tracking" and s["link"]["state"] == "connected":
+            return
+        time.sleep(0.2)
+
+
 def run_move(d: DaemonProcess, target: tuple[float, float, float]) -> str:
-    """'arrived', 'cancelled: <why>' or 'timed out', for one move."""
+    """'arrived', 'cancelled: <why>' (a refusal included) or 'timed out', for one move."""
+    wait_ready(d, MOVE_TIMEOUT_S)
     body = {"mode": "move", "x_m": target[0], "y_m": target[1], "theta_rad": target[2]}
-    httpx.put(f"{d.base}/api/v1/setpoint", json=body, timeout=10).raise_for_status()
+    answer = httpx.put(f"{d.base}/api/v1/setpoint", json=body, timeout=10)
+    if answer.status_code != 200:
+        return f"cancelled: refused ({answer.status_code}): {answer.json().get('detail')}"
     deadline = time.monotonic() + MOVE_TIMEOUT_S
     while time.monotonic() < deadline:
         s = _status(d)
@@ -112,7 +125,8 @@ def measure_phase(d: DaemonProcess, n_hogs: int, sim_nice: int) -> dict[str, Any
     outcomes: list[str] = []
     browsers: list[subprocess.Popen[bytes]] = []
     start_at = {round(MOVES * (k + 0.5) / BROWSER_STARTS) for k in range(BROWSER_STARTS)}
-    with tempfile.TemporaryDirectory(prefix="clothd-hog-browser-") as profiles, hogs(n_hogs):
+    profiles_dir = tempfile.TemporaryDirectory(prefix="clothd-hog-browser-", ignore_cleanup_errors=True)
+    with profiles_dir as profiles, hogs(n_hogs):
         for i in tqdm(range(MOVES), desc=f"moves, hwsim at nice {sim_nice}", disable=None, leave=False):
             if i in start_at:
                 browser = start_browser(f"{d.base}/", Path(profiles) / str(i))
@@ -148,11 +162,7 @@ def run_bench(n_hogs: int, config: Path | None = None) -> dict[str, Any]:
     d = DaemonProcess(config, free_port())
     try:
         d.wait_ready()
-        deadline = time.monotonic() + 120
-        while _status(d)["state"] != "tracking" or _status(d)["link"]["state"] != "connected":
-            if time.monotonic() > deadline:
-                raise RuntimeError("the daemon did not start tracking")
-            time.sleep(0.2)
+        wait_ready(d, 120)
         time.sleep(2.0)
         result = measure_phase(d, n_hogs, SIM_NICE)
         result["hwsim_at_normal_priority"] = measure_phase(d, n_hogs, 0)
