@@ -5,8 +5,10 @@ stepper link to time out and a move to be cancelled. What Linux offers, and what
 - nice values per thread (Linux's setpriority on a thread id): the daemon's loop thread (tick and
   stepper link) and the compute process run at `loop.nice` (-10), so that the scheduler gives them ten
   times the CPU share of a program at 0 whenever both want it; the API's thread lowers itself to
-  `loop.api_nice` (10), so that no request, however heavy, competes with the tick for a core. Raising
-  a priority needs root, CAP_SYS_NICE or the systemd unit's `Nice=`; lowering one never does.
+  `loop.api_nice` (0), so that requests, however heavy, come after the tick. Not lower than other
+  programs: the API's thread shares the GIL with the tick, and a program that preempted it while it
+  held the GIL would hold the tick too. Raising a priority needs root, CAP_SYS_NICE or the systemd
+  unit's `Nice=`; lowering one never does.
 Not `mlockall`: it locks every mapped page, and Taichi maps a 1 GB arena, so the daemon's locked
 memory went from 0 to 1.1 GB (VmLck) and its resident memory from 0.3 to 0.9 GB for pages that a cell PC
 with room to spare never swaps out anyway.
