@@ -26,6 +26,17 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
+class Miscalibration(_Strict):
+    """A module that does not do what it is told, as a cell before commissioning may have: its drive wired
+    the wrong way round, its steering's zero off, its belt's speed off scale (a wrong pulley or microstep
+    setting). The module applies these to every command it receives (`clothd check-modules` finds them)."""
+
+    module: int = Field(ge=0, description="module id")
+    reversed: bool = Field(False, description="the belt runs the other way from the one commanded")
+    heading_offset_deg: float = Field(0.0, ge=-180, le=180, description="added to every commanded heading")
+    speed_scale: float = Field(1.0, ge=0.5, le=1.5, description="the belt's speed over the commanded speed")
+
+
 class TableSpec(_Strict):
     """The array of steerable conveyor modules, centred on the world origin."""
 
@@ -36,11 +47,23 @@ class TableSpec(_Strict):
     max_speed_m_s: float = Field(0.2, gt=0, le=2.0)
     accel_limit_m_s2: float = Field(2.0, gt=0, le=20.0)
     steer_rate_limit_rad_s: float = Field(3.0, gt=0, le=50.0)
+    miscalibrated: list[Miscalibration] = Field([], max_length=64)
 
     @model_validator(mode="after")
     def _module_fits_pitch(self) -> TableSpec:
         if self.module_size_m > self.pitch_m:
             raise ValueError(f"module_size_m ({self.module_size_m}) must not exceed pitch_m ({self.pitch_m})")
+        return self
+
+    @model_validator(mode="after")
+    def _miscalibrated_modules_exist(self) -> TableSpec:
+        ids = [m.module for m in self.miscalibrated]
+        n_modules = self.modules_x * self.modules_y
+        bad = [i for i in ids if i >= n_modules]
+        if bad:
+            raise ValueError(f"miscalibrated: modules {bad} out of range (table has {n_modules})")
+        if len(set(ids)) != len(ids):
+            raise ValueError("miscalibrated: a module is listed twice")
         return self
 
 

@@ -9,6 +9,10 @@ The modules obey the limits steppers have: surface speed changes at most `accel_
 at most `steer_rate_limit_rad_s`. A belt runs both ways, so a module reaches a commanded (speed,
 heading) by whichever of (speed, heading) and (-speed, heading + π) needs less steering: reversing
 a belt is quicker than turning a turntable half round.
+
+A miscalibrated module (`TableSpec.miscalibrated`) turns each command into what it then does: the heading
+plus its offset (and half a turn when reversed), the speed times its scale. The commands stay as told
+(what commands.csv records); only the belts' motion, which the camera sees, carries the error.
 """
 
 from __future__ import annotations
@@ -44,6 +48,12 @@ class Table:
         self.speed_m_s = np.zeros(n)  # signed: negative runs the belt backwards
         self.heading_rad = np.zeros(n)
         self.travel_m = np.zeros(n)  # belt surface travelled, for scrolling its texture
+        self.heading_error_rad = np.zeros(n)
+        self.speed_scale = np.ones(n)
+        for m in spec.miscalibrated:
+            reversal_rad = math.pi if m.reversed else 0.0
+            self.heading_error_rad[m.module] = math.radians(m.heading_offset_deg) + reversal_rad
+            self.speed_scale[m.module] = m.speed_scale
 
     @property
     def n_modules(self) -> int:
@@ -79,13 +89,15 @@ class Table:
 
     def step(self, dt_s: float) -> None:
         """Advance the module dynamics by dt_s under the acceleration and steering-rate limits."""
+        heading = self.cmd_heading_rad + self.heading_error_rad
+        speed = self.cmd_speed_m_s * self.speed_scale
         # The two equivalent targets; pick the one that needs the smaller steering move.
-        turn_fwd = wrap_angle(self.cmd_heading_rad - self.heading_rad)
-        turn_rev = wrap_angle(self.cmd_heading_rad + math.pi - self.heading_rad)
+        turn_fwd = wrap_angle(heading - self.heading_rad)
+        turn_rev = wrap_angle(heading + math.pi - self.heading_rad)
         use_rev = np.abs(turn_rev) < np.abs(turn_fwd)
         # A stopped command needs no steering at all.
-        turn = np.where(self.cmd_speed_m_s > 0, np.where(use_rev, turn_rev, turn_fwd), 0.0)
-        target_speed = np.where(use_rev, -self.cmd_speed_m_s, self.cmd_speed_m_s)
+        turn = np.where(speed > 0, np.where(use_rev, turn_rev, turn_fwd), 0.0)
+        target_speed = np.where(use_rev, -speed, speed)
         max_turn = self.spec.steer_rate_limit_rad_s * dt_s
         self.heading_rad = wrap_angle(self.heading_rad + np.clip(turn, -max_turn, max_turn))
         max_dv = self.spec.accel_limit_m_s2 * dt_s

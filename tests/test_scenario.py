@@ -45,6 +45,10 @@ def _write(tmp_path: Path, text: str) -> Path:
             "timeline[0].modules.ids",
         ),
         ("duration_s: 1\n", "name"),
+        ("name: x\nduration_s: 1\ntable: {miscalibrated: [{module: 1, offset: 3}]}\n", "0.offset"),
+        ("name: x\nduration_s: 1\ntable: {miscalibrated: [{module: 1, speed_scale: 3}]}\n", "speed_scale"),
+        ("name: x\nduration_s: 1\ntable: {miscalibrated: [{module: 48}]}\n", "out of range"),
+        ("name: x\nduration_s: 1\ntable: {miscalibrated: [{module: 2}, {module: 2}]}\n", "listed twice"),
     ],
 )
 def test_bad_scenario_names_the_key(tmp_path: Path, text: str, must_name: str) -> None:

@@ -1,6 +1,6 @@
 import numpy as np
 
-from hwsim.scenario import ModuleSelector, TableSpec
+from hwsim.scenario import Miscalibration, ModuleSelector, TableSpec
 from hwsim.table import Table
 
 
@@ -50,3 +50,16 @@ def test_speed_is_clipped_to_the_module_maximum() -> None:
     t = Table(TableSpec(max_speed_m_s=0.2))
     t.command(np.array([1]), 5.0, 0.0)
     assert t.cmd_speed_m_s[1] == 0.2
+
+
+def test_a_miscalibrated_module_turns_and_scales_what_it_is_told() -> None:
+    wrong = Miscalibration(module=2, reversed=True, heading_offset_deg=10.0, speed_scale=0.8)
+    t = Table(TableSpec(miscalibrated=[wrong]))
+    t.command(np.arange(t.n_modules), 0.1, 0.5)
+    for _ in range(40):
+        t.step(0.05)
+    v = t.surface_velocity_m_s()
+    actual = 0.5 + np.radians(10.0) + np.pi
+    np.testing.assert_allclose(v[2], 0.08 * np.array([np.cos(actual), np.sin(actual)]), atol=1e-12)
+    np.testing.assert_allclose(v[3], 0.1 * np.array([np.cos(0.5), np.sin(0.5)]), atol=1e-12)
+    assert t.cmd_heading_rad[2] == 0.5 and t.cmd_speed_m_s[2] == 0.1  # the command stays as told
