@@ -1,0 +1,82 @@
+"""Drive scripts: the schema's bounds, compiling for a cell, the commands over time, the cloth's reach."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from clothd.core.conveyor import ConveyorLayout
+from clothd.core.drive_script import DrivePlan, DriveScript, cloth_reach_m, swept_box_m
+from clothd.errors import InvalidRequestError
+
+LAYOUT = ConveyorLayout(8, 6, 0.075, 0.065)
+
+
+def _script(**kw: object) -> DriveScript:
+    body: dict[str, object] = {
+        "duration_s": 2.0,
+        "timeline": [
+            {"t_s": 0.0, "modules": {"region_m": [-1, -1, 0, 1]}, "speed_m_s": 0.03, "heading_rad": 1.5},
+            {"t_s": 1.0, "modules": {"ids": [0]}, "speed_m_s": 0.05, "heading_rad": -1.5},
+        ],
+    }
+    return DriveScript.model_validate({**body, **kw})
+
+
+def test_commands_hold_until_changed_and_stop_at_the_end() -> None:
+    plan = DrivePlan.compile(_script(), LAYOUT, 0.2)
+    left = LAYOUT.centres_m[:, 0] < 0
+    at_half = plan.commands_at(0.5)
+    assert np.all(at_half.speed_m_s[left] == 0.03) and np.all(at_half.speed_m_s[~left] == 0)
+    assert np.all(at_half.heading_rad[left] == 1.5)
+    at_one = plan.commands_at(1.2)
+    assert at_one.speed_m_s[0] == 0.05 and at_one.heading_rad[0] == -1.5 and at_one.speed_m_s[1] == 0.03
+    after = plan.commands_at(2.0)
+    assert np.all(after.speed_m_s == 0) and after.heading_rad[0] == -1.5  # stopped where it was turned
+    assert np.all(plan.commands_at(-0.1).speed_m_s == 0)
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        ({"duration_s": 301}, "duration_s"),
+        ({"duration_s": 0.5}, "at or after duration_s"),
+        ({"timeline": []}, "timeline"),
+        ({"timeline": [{"t_s": 0, "modules": {}, "speed_m_s": 0.1, "heading_rad": 0}]}, "exactly one"),
+        ({"timeline": [{"t_s": 0, "modules": {"all": True}, "speed_m_s": 0.1, "heading": 0}]}, "heading"),
+        ({"speed": 1}, "speed"),
+    ],
+)
+def test_the_schema_refuses_with_the_key(change: dict[str, object], words: str) -> None:
+    with pytest.raises(ValidationError, match=words):
+        _script(**change)
+
+
+def test_compiling_refuses_what_the_cell_cannot_do() -> None:
+    fast = {"timeline": [{"t_s": 0, "modules": {"all": True}, "speed_m_s": 0.3, "heading_rad": 0}]}
+    with pytest.raises(InvalidRequestError, match=r"timeline\[0\]: speed_m_s 0.3 exceeds the modules' 0.2"):
+        DrivePlan.compile(_script(**fast), LAYOUT, 0.2)
+    missing = {"timeline": [{"t_s": 0, "modules": {"ids": [3, 48]}, "speed_m_s": 0.1, "heading_rad": 0}]}
+    with pytest.raises(InvalidRequestError, match=r"modules \[48\] out of range"):
+        DrivePlan.compile(_script(**missing), LAYOUT, 0.2)
+
+
+def test_reach_counts_only_the_modules_near_the_cloth() -> None:
+    outline = np.array([[-0.125, -0.1], [0.125, -0.1], [0.125, 0.1], [-0.125, 0.1]])
+    near = {
+        "duration_s": 2.0,
+        "timeline": [{"t_s": 0, "modules": {"ids": [27]}, "speed_m_s": 0.02, "heading_rad": 0}],
+    }
+    assert cloth_reach_m(
+        DrivePlan.compile(DriveScript.model_validate(near), LAYOUT, 0.2), outline, LAYOUT
+    ) == (pytest.approx(0.04))
+    # Module 0's belt, 0.1 m beyond the corner, is out of reach of 40 mm of travel: it carries nothing.
+    far = {
+        "duration_s": 2.0,
+        "timeline": [{"t_s": 0, "modules": {"ids": [0]}, "speed_m_s": 0.02, "heading_rad": 0}],
+    }
+    assert (
+        cloth_reach_m(DrivePlan.compile(DriveScript.model_validate(far), LAYOUT, 0.2), outline, LAYOUT) == 0.0
+    )
+    np.testing.assert_allclose(swept_box_m(outline, 0.04)[2], [0.165, 0.14])
