@@ -3,8 +3,14 @@ no browser download) against the daemon in sim mode (`clothd run --sim`, hwsim s
 
 from __future__ import annotations
 
+import contextlib
 import math
+import os
 import shutil
+import signal
+import subprocess
+import sys
+import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,6 +22,9 @@ from live_cell import wait
 from playwright.sync_api import Browser, Page, sync_playwright
 
 from clothd.tools.bench_loop import DaemonProcess, free_port
+from hwsim.firmware import Firmware
+from hwsim.scenario import TableSpec
+from hwsim.table import Table
 
 pytestmark = pytest.mark.slow
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -127,6 +136,7 @@ def _move_through_the_form(page: Page, sim: Sim, x_m: float, y_m: float, theta_d
 
 def test_a_setpoint_set_in_the_page_reaches_the_daemon(page: Page, sim: Sim) -> None:
     _move_through_the_form(page, sim, 0.03, -0.02, 10)
+    assert page.text_content("#in-t-rad") == "θ = 0.1745 rad"  # the angle as the API takes it
     sp = sim.status()["setpoint"]
     assert math.isclose(sp["x_m"], 0.03) and math.isclose(sp["y_m"], -0.02)
     assert math.isclose(sp["theta_rad"], math.radians(10), rel_tol=1e-6)
@@ -136,15 +146,49 @@ def test_the_estop_button_stops_the_modules(page: Page, sim: Sim) -> None:
     _move_through_the_form(page, sim, -0.05, 0.03, -15)
     wait(lambda: max(map(abs, sim.truth()["module_speed_m_s"])) > 0.01, 10, "modules running")
     page.click("#estop")
-    wait(lambda: sim.truth()["estopped"], 5, "the controller's e-stop")
-    assert not any(sim.truth()["module_speed_m_s"])
-    page.wait_for_function("document.getElementById('estop').classList.contains('latched')", timeout=5000)
-    ARTIFACTS.mkdir(parents=True, exist_ok=True)
-    page.screenshot(path=str(ARTIFACTS / "dashboard.png"))
-    assert (ARTIFACTS / "dashboard.png").stat().st_size > 10_000
-    page.click("#estop-clear")
-    wait(lambda: not sim.truth()["estopped"], 5, "e-stop cleared")
+    try:
+        wait(lambda: sim.truth()["estopped"], 5, "the controller's e-stop")
+        assert not any(sim.truth()["module_speed_m_s"])
+        page.wait_for_function("document.getElementById('estop').classList.contains('latched')", timeout=5000)
+        page.wait_for_selector("#banner-estop:visible", timeout=5000)
+        assert "Emergency stop latched" in (page.text_content("#banner-estop") or "")
+        # The link holds every command back: its pill says so, and is not green.
+        assert (page.text_content("#link") or "").endswith(" · e-stop")
+        assert page.get_attribute("#link", "class") == "pill bad"
+        assert page.is_hidden("#banner-halt")  # an e-stop is no halt
+        ARTIFACTS.mkdir(parents=True, exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "dashboard_estop.png"))
+        assert (ARTIFACTS / "dashboard_estop.png").stat().st_size > 10_000
+    finally:  # the tests after this one need the e-stop clear
+        page.click("#estop-clear")
+        wait(lambda: not sim.truth()["estopped"], 5, "e-stop cleared")
+    page.wait_for_selector("#banner-estop", state="hidden", timeout=5000)
+    page.wait_for_function("!document.getElementById('link').textContent.includes('e-stop')", timeout=5000)
     time.sleep(0.1)
+
+
+def test_a_move_halted_by_a_fault_says_why_and_when(page: Page, sim: Sim) -> None:
+    hwsim = sim.truth_url.removesuffix("/truth")
+    _move_through_the_form(page, sim, 0.04, 0.02, 5)
+    httpx.post(f"{hwsim}/unplug?seconds=1", timeout=5).raise_for_status()
+    wait(lambda: sim.status()["halt_reason"] is not None, 10, "the move halted")
+    status = sim.status()
+    page.wait_for_selector("#banner-halt:visible", timeout=5000)
+    at = time.strftime("%H:%M:%S", time.localtime(status["halt_t_unix_s"]))
+    said = f"Stopped by itself at {at}: {status['halt_reason']}. The modules are idle until a new setpoint."
+    assert page.text_content("#banner-halt") == said
+    assert page.text_content("#mode") == "mode idle" and page.text_content("#sp-x") == "–"
+    # A fault the controller reports is listed, newest first, with its module and code.
+    wait(lambda: sim.status()["link"]["state"] == "connected", 10, "the link back")
+    httpx.post(f"{hwsim}/fault?code=2&module=7&text=stalled", timeout=5).raise_for_status()
+    newest = "document.querySelector('#faults li').textContent"
+    page.wait_for_function(f"{newest}.endsWith('module 7 · STALL: stalled')", timeout=10000)
+    ARTIFACTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / "dashboard_halt.png"))
+    # A new setpoint clears the halt, and its banner.
+    _move_through_the_form(page, sim, 0.0, 0.0, 0)
+    page.wait_for_selector("#banner-halt", state="hidden", timeout=5000)
+    httpx.put(f"{sim.base}/api/v1/setpoint", json={"mode": "idle"}, timeout=5).raise_for_status()
 
 
 def test_the_truth_overlay_draws_hwsims_cloth(page: Page) -> None:
@@ -169,6 +213,81 @@ def test_the_page_follows_a_dropped_camera_and_its_return(page: Page, sim: Sim) 
     first = _video_signature(page)
     wait(lambda: _video_signature(page) != first, 10, "the video moving again")
     page.wait_for_function("document.getElementById('stream').textContent === 'stream live'", timeout=5000)
+
+
+# Every change to the link's pill, with the faults list and whether the starting banner shows, from the
+# page's first status on (an observer's records come after the status has been drawn whole).
+WATCH_THE_LINK = """document.addEventListener("DOMContentLoaded", () => {
+  window.linkSeen = [];
+  const link = document.getElementById("link"), faults = document.getElementById("faults");
+  const banner = document.getElementById("banner-starting");
+  const note = () => window.linkSeen.push(
+    [link.textContent, link.className, faults.textContent, !banner.hidden]);
+  new MutationObserver(note).observe(link, { childList: true, attributes: true });
+});"""
+
+
+@contextlib.contextmanager
+def _daemon_before_its_controller(tmp_path: Path) -> Iterator[tuple[str, Path]]:
+    """`clothd run` on a cell whose controller is not plugged in yet (its port is absent; no camera):
+    the daemon's URL and the port where the test plugs hwsim's firmware in."""
+    port, api_port = tmp_path / "ttyCELL", free_port()
+    cfg = tmp_path / "clothd.yaml"
+    cfg.write_text(
+        f"camera:\n  source: http://127.0.0.1:{free_port()}/absent.mjpg\n"
+        f"stepper:\n  port: {port}\nopcua:\n  enabled: false\n"
+    )
+    cmd = [sys.executable, "-m", "clothd.cli", "run", "--config", str(cfg), "--port", str(api_port)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    base = f"http://127.0.0.1:{api_port}"
+    try:
+        wait(lambda: _answers(f"{base}/api/v1/status"), 60, "clothd run serving")
+        yield base, port
+    finally:
+        os.killpg(proc.pid, signal.SIGTERM)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+
+
+def _answers(url: str) -> bool:
+    try:
+        return httpx.get(url, timeout=1).status_code == 200
+    except httpx.TransportError:
+        return False
+
+
+def test_start_up_shows_as_starting_not_as_a_fault(browser: Browser, tmp_path: Path) -> None:
+    with _daemon_before_its_controller(tmp_path) as (base, port):
+        pg = browser.new_page(viewport={"width": 1280, "height": 720})
+        try:
+            pg.add_init_script(WATCH_THE_LINK)
+            pg.goto(base + "/", wait_until="domcontentloaded")  # no camera: the view never loads
+            pg.wait_for_selector("#banner-starting:visible", timeout=10000)
+            said = pg.text_content("#banner-starting") or ""
+            assert said.startswith("Starting: waiting for the stepper controller")
+            pg.select_option("#mode-select", "hold")
+            pg.click("#apply")
+            pg.wait_for_function(
+                "document.getElementById('message').textContent === 'starting'", timeout=5000
+            )
+            fw = Firmware(Table(TableSpec()), threading.Lock(), port)  # the controller is plugged in
+            fw.start()
+            try:
+                pg.wait_for_function("document.getElementById('link').className === 'pill ok'", timeout=20000)
+            finally:
+                fw.stop()
+            seen = pg.evaluate("window.linkSeen")
+        finally:
+            pg.close()
+    before_up = seen[: [cls for _, cls, _, _ in seen].index("pill ok")]
+    # Until the link first comes up it is starting (amber, with its banner), never red, and no fault is
+    # listed; once up, the banner is gone.
+    starting = ["link starting", "pill warn", "none", True]
+    assert before_up and all(s == starting for s in before_up), seen
+    assert seen[len(before_up)][3] is False
 
 
 def test_a_daemon_with_a_token_gets_one_from_the_page(

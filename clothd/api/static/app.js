@@ -26,31 +26,67 @@ async function call(method, path, body) {
   return r.json();
 }
 
-function say(text) { $("message").textContent = text; }
+function say(text, refused = false) { $("message").textContent = text; $("message").classList.toggle("refused", refused); }
 
 async function act(method, path, body) {
-  try { const r = await call(method, path, body); say(r.detail || ""); } catch (e) { say(e.message); }
+  try { const r = await call(method, path, body); say(r.detail || ""); } catch (e) { say(e.message, true); }
 }
 
 // -- live status -----------------------------------------------------------------------------------
 
+const LINK_CLASS = { connected: "ok", starting: "warn" }; // connecting, disconnected: it was up, and is down
+const FAULT_CODES = { 1: "WATCHDOG", 2: "STALL", 3: "OVERTEMP", 4: "ESTOP_INPUT" }; // docs/serial-protocol.md
+const FAULTS_SHOWN = 5;
+const WHOLE_BOARD = 0xffff;
+
 function pill(el, text, cls) { el.textContent = text; el.className = `pill ${cls}`; }
 function fmt(v, digits = 4) { return v === null || v === undefined ? "–" : Number(v).toFixed(digits); }
 function push(key, v) { const a = samples[key]; a.push(v); if (a.length > HISTORY) a.shift(); }
+function degToRad(deg) { return deg * Math.PI / 180; }
+function angle(rad) { return rad === null || rad === undefined ? "–" : `${fmt(rad * 180 / Math.PI, 2)}° (${fmt(rad)} rad)`; }
+
+function clock(tUnixS) { // the cell PC's local time of day, HH:MM:SS
+  const d = new Date(tUnixS * 1000);
+  return [d.getHours(), d.getMinutes(), d.getSeconds()].map((v) => String(v).padStart(2, "0")).join(":");
+}
+
+function banner(el, text) { el.hidden = !text; if (text) el.textContent = text; }
+
+// Why nothing moves, at the top of the page: the e-stop, a halted move, or a start not finished.
+function showBanners(s) {
+  $("banner-estop").hidden = !s.estop;
+  banner($("banner-halt"), s.halt_reason &&
+    `Stopped by itself at ${clock(s.halt_t_unix_s)}: ${s.halt_reason}. The modules are idle until a new setpoint.`);
+  banner($("banner-starting"), s.link.state === "starting" &&
+    `Starting: waiting for the stepper controller${s.link.last_error ? ` (${s.link.last_error})` : ""}.`);
+}
+
+function showFaults(faults) {
+  const items = faults.slice(-FAULTS_SHOWN).reverse().map((f) => {
+    const where = f.module === WHOLE_BOARD ? "whole board" : `module ${f.module}`;
+    return `${clock(f.t_unix_s)} · ${where} · ${FAULT_CODES[f.code] || `code ${f.code}`}: ${f.text}`;
+  });
+  $("faults").replaceChildren(...(items.length ? items : ["none"]).map((text) => {
+    const li = document.createElement("li"); li.textContent = text; return li;
+  }));
+}
 
 function show(s) {
   const stateCls = s.state === "tracking" ? "ok" : s.state === "starting" ? "warn" : "bad";
   pill($("state"), s.state, stateCls);
   pill($("mode"), `mode ${s.mode}`, s.mode === "idle" ? "" : "ok");
   pill($("camera"), `camera ${s.camera.state}`, s.camera.healthy ? "ok" : "bad");
-  pill($("link"), `link ${s.link.state}`, s.link.state === "connected" ? "ok" : "bad");
+  // A latched e-stop holds every command back at the link: its pill says so, never green.
+  pill($("link"), `link ${s.link.state}${s.estop ? " · e-stop" : ""}`, s.estop ? "bad" : LINK_CLASS[s.link.state] || "bad");
   $("estop").classList.toggle("latched", s.estop);
+  showBanners(s);
+  showFaults(s.faults);
   const p = s.pose || {};
   $("pose-x").textContent = fmt(p.x_m); $("pose-y").textContent = fmt(p.y_m);
-  $("pose-t").textContent = p.theta_rad === undefined ? "–" : `${fmt(p.theta_rad * 180 / Math.PI, 2)}°`;
+  $("pose-t").textContent = angle(p.theta_rad);
   const sp = s.setpoint || {};
   $("sp-x").textContent = fmt(sp.x_m); $("sp-y").textContent = fmt(sp.y_m);
-  $("sp-t").textContent = sp.theta_rad === undefined ? "–" : `${fmt(sp.theta_rad * 180 / Math.PI, 2)}°`;
+  $("sp-t").textContent = angle(sp.theta_rad);
   $("features").textContent = s.features;
   const f = s.flatness;
   $("flatness").textContent = !f ? "–" : `${f.flat ? "flat" : "wrinkled"} · highest ${fmt(f.max_height_mm, 1)} mm · ` +
@@ -113,11 +149,15 @@ $("reset").onclick = () => act("POST", "/api/v1/reset");
 $("token-save").onclick = () => {
   token = $("token").value; localStorage.setItem("clothd-token", token); $("token-box").hidden = true; say("");
 };
+// θ is entered in degrees; the API takes radians, shown under the form as they will be sent.
+function enteredThetaRad() { return degToRad(Number($("in-t").value)); }
+function showEnteredThetaRad() { $("in-t-rad").textContent = `θ = ${fmt(enteredThetaRad())} rad`; }
+$("in-t").oninput = showEnteredThetaRad;
 $("setpoint-form").onsubmit = (ev) => {
   ev.preventDefault();
   const mode = $("mode-select").value;
   const body = mode === "move"
-    ? { mode, x_m: Number($("in-x").value), y_m: Number($("in-y").value), theta_rad: Number($("in-t").value) * Math.PI / 180 }
+    ? { mode, x_m: Number($("in-x").value), y_m: Number($("in-y").value), theta_rad: enteredThetaRad() }
     : { mode };
   act("PUT", "/api/v1/setpoint", body);
 };
@@ -160,11 +200,12 @@ drag.onpointerup = (ev) => {
   const to = imagePoint(ev);
   const a = toTable(dragFrom), b = toTable(to);
   const moved = Math.hypot(to[0] - dragFrom[0], to[1] - dragFrom[1]) > 8;
-  const theta = moved ? Math.atan2(b[1] - a[1], b[0] - a[0]) : Number($("in-t").value) * Math.PI / 180;
+  const theta = moved ? Math.atan2(b[1] - a[1], b[0] - a[0]) : enteredThetaRad();
   dragFrom = null;
   drag.getContext("2d").clearRect(0, 0, drag.width, drag.height);
   $("mode-select").value = "move";
   $("in-x").value = a[0].toFixed(4); $("in-y").value = a[1].toFixed(4); $("in-t").value = (theta * 180 / Math.PI).toFixed(1);
+  showEnteredThetaRad();
   act("PUT", "/api/v1/setpoint", { mode: "move", x_m: a[0], y_m: a[1], theta_rad: theta });
 };
 
