@@ -376,6 +376,11 @@ class Compute:
             return "camera_lost", self.controller.stop(), "the camera is lost"
         if est is None or not est.tracking:
             return "tracking_lost", self.controller.stop(), "the cloth is not tracked"
+        if sp.drive is not None and est.outline_m is not None:  # a drive script, stopped as a move is
+            off_limits = self.spec.workspace.leaves(est.outline_m)
+            if off_limits is not None:
+                return "tracking", self.controller.stop(), f"at the workspace's edge: {off_limits}"
+            return "tracking", sp.drive.commands_at(time.monotonic() - sp.drive_start_mono_s), None
         if sp.mode == "idle" or sp.pose is None or est.outline_m is None:
             return "tracking", self.controller.stop(), None
         twist = self.controller.plan_twist(est.pose, sp.pose, self.spec.period_s)

@@ -19,7 +19,7 @@ import errno
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NoReturn
 
@@ -27,7 +27,10 @@ import numpy as np
 
 from clothd.compute import InForce, TickReply, TickRequest
 from clothd.compute_process import ComputeProcess
+from clothd.config import CellConfig
 from clothd.core.control import Mode, Setpoint
+from clothd.core.conveyor import ConveyorLayout
+from clothd.core.drive_script import DrivePlan, DriveScript, cloth_reach_m, swept_box_m
 from clothd.core.messages import ModuleCommands
 from clothd.core.workspace import Workspace, cloth_corners_m
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
@@ -66,6 +69,8 @@ class DaemonSettings:
     frame_lead_s: float = 0.001
     frame_wait_s: float = 0.012
     phase_step_s: float = 0.001
+    layout: ConveyorLayout = field(default_factory=lambda: ConveyorLayout.of_cell(CellConfig()))  # for drives
+    max_speed_m_s: float = 0.2  # cell.max_speed_m_s: the most a drive script may ask of a module
 
 
 class Daemon:
@@ -127,10 +132,11 @@ class Daemon:
 
     # -- requests from the API (event loop thread) --------------------------------------------------
 
-    def set_setpoint(self, mode: Mode, pose: np.ndarray | None) -> None:
-        """The one way the modules start moving: hold, move or flatten needs the e-stop clear, the link up
-        and the cloth tracked; a move's target must keep the whole cloth inside the workspace; flatten needs
-        a tracker that follows the cloth's shape."""
+    def set_setpoint(self, mode: Mode, pose: np.ndarray | None, script: DriveScript | None = None) -> None:
+        """The one way the modules start moving: hold, move, flatten or drive needs the e-stop clear, the
+        link up and the cloth tracked; a move's target, and wherever a drive script could carry the cloth,
+        must keep the whole cloth inside the workspace; flatten needs a tracker that follows the cloth's
+        shape."""
         if mode == "flatten" and not self.settings.estimates_shape:
             raise RequestError(
                 "flatten needs the cloth's shape: run the mesh tracker (tracker.model mesh), not a rigid one"
@@ -148,9 +154,27 @@ class Daemon:
         if mode in ("hold", "flatten"):
             assert est is not None
             pose = est.pose.copy()
-        self.setpoint = Setpoint(mode, None if mode == "idle" else pose)
+        if mode == "drive":
+            if script is None:
+                raise RequestError("drive needs a script")
+            assert est is not None and est.outline_m is not None  # tracked: _check_can_move
+            plan = self._drive_plan(script, est.outline_m)
+            self.setpoint = Setpoint("drive", None, plan, time.monotonic())
+        else:
+            self.setpoint = Setpoint(mode, None if mode == "idle" else pose)
         self.halt_reason = self.halt_t_unix_s = None
         self.publish()
+
+    def _drive_plan(self, script: DriveScript, outline_m: np.ndarray) -> DrivePlan:
+        """The script compiled for this cell, refused (422) when the cell cannot play it or when it could
+        carry the cloth out of the workspace."""
+        s = self.settings
+        plan = DrivePlan.compile(script, s.layout, s.max_speed_m_s)
+        reach_m = cloth_reach_m(plan, outline_m, s.layout)
+        reason = s.workspace.leaves(swept_box_m(outline_m, reach_m))
+        if reason is not None:
+            raise UnreachableTargetError(f"the script could carry the cloth {reach_m * 1e3:.0f} mm: {reason}")
+        return plan
 
     def _check_can_move(self) -> None:
         if self.link.estopped:
@@ -265,6 +289,7 @@ class Daemon:
         compute overrun) and the first tick after the reply arrives uses it and asks again. The tick
         rate never depends on the compute."""
         now = time.monotonic()
+        self._end_played_drive(now)
         if self._pending is not None and self._pending.done():  # last tick's compute came in late
             self._use(self._pending, now)
             self._pending = None
@@ -296,6 +321,13 @@ class Daemon:
             self.stats.latency.add(*self._unsent_frame, time.monotonic())
             self._unsent_frame = None
         self.publish()
+
+    def _end_played_drive(self, now: float) -> None:
+        """A drive script played to its end leaves the daemon idle (its modules already stopped)."""
+        plan = self.setpoint.drive
+        if plan is not None and now - self.setpoint.drive_start_mono_s >= plan.duration_s:
+            log.info("drive script played to its end (%.1f s); idle", plan.duration_s)
+            self.setpoint = Setpoint("idle", None)
 
     def _request(self, now: float) -> asyncio.Future[TickReply]:
         want_view = self.viewers > 0 and now - self._last_view_s >= self.settings.view_period_s

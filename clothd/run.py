@@ -155,6 +155,8 @@ def build(cfg: Config) -> Parts:
         frame_lead_s=cfg.loop.frame_lead_ms / 1e3,
         frame_wait_s=cfg.loop.frame_wait_ms / 1e3,
         phase_step_s=cfg.loop.phase_step_ms / 1e3,
+        layout=layout,
+        max_speed_m_s=cfg.cell.max_speed_m_s,
     )
     hub = StreamHub()
     link = StepperLink(cfg.stepper, layout.n_modules)

@@ -195,7 +195,7 @@ class FlatnessState(BaseModel):
 class Status(BaseModel):
     t_unix_s: float
     state: str = Field(description="starting | tracking | tracking_lost | camera_lost | fault")
-    mode: Literal["idle", "hold", "move", "flatten"]
+    mode: Literal["idle", "hold", "move", "flatten", "drive"]
     setpoint: Pose | None
     halt_reason: str | None = Field(
         description="why the last hold or move stopped by itself (a fault); null after a new setpoint"

@@ -41,9 +41,15 @@ def test_commands_hold_until_changed_and_stop_at_the_end() -> None:
     ("change", "words"),
     [
         ({"duration_s": 301}, "duration_s"),
-        ({"duration_s": 0.5}, "at or after duration_s"),
         ({"timeline": []}, "timeline"),
-        ({"timeline": [{"t_s": 0, "modules": {}, "speed_m_s": 0.1, "heading_rad": 0}]}, "exactly one"),
+        (
+            {
+                "timeline": [
+                    {"t_s": 0, "modules": {"all": True, "ids": [1]}, "speed_m_s": 0.1, "heading_rad": 0}
+                ]
+            },
+            "ids",
+        ),
         ({"timeline": [{"t_s": 0, "modules": {"all": True}, "speed_m_s": 0.1, "heading": 0}]}, "heading"),
         ({"speed": 1}, "speed"),
     ],
@@ -57,6 +63,8 @@ def test_compiling_refuses_what_the_cell_cannot_do() -> None:
     fast = {"timeline": [{"t_s": 0, "modules": {"all": True}, "speed_m_s": 0.3, "heading_rad": 0}]}
     with pytest.raises(InvalidRequestError, match=r"timeline\[0\]: speed_m_s 0.3 exceeds the modules' 0.2"):
         DrivePlan.compile(_script(**fast), LAYOUT, 0.2)
+    with pytest.raises(InvalidRequestError, match=r"timeline\[1\]: start at or after duration_s \(0.5 s\)"):
+        DrivePlan.compile(_script(duration_s=0.5), LAYOUT, 0.2)
     missing = {"timeline": [{"t_s": 0, "modules": {"ids": [3, 48]}, "speed_m_s": 0.1, "heading_rad": 0}]}
     with pytest.raises(InvalidRequestError, match=r"modules \[48\] out of range"):
         DrivePlan.compile(_script(**missing), LAYOUT, 0.2)

@@ -17,12 +17,13 @@ from recorded_frames import compute_on
 from clothd.compute import InForce, TickReply, TickRequest
 from clothd.config import AreaConfig, CellConfig
 from clothd.core.control import Setpoint
+from clothd.core.drive_script import DriveScript
 from clothd.core.ekf import UpdateStats
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.workspace import Workspace
 from clothd.daemon import Daemon, DaemonSettings
 from clothd.drivers.ports import ControllerFault, FrameSourceHealth, LinkCounters
-from clothd.errors import RequestError, UnreachableTargetError
+from clothd.errors import InvalidRequestError, RequestError, UnreachableTargetError
 
 N = 48
 PERIOD_S = 0.01
@@ -319,5 +320,32 @@ def test_the_compute_is_told_what_went_out_after_every_tick() -> None:
         link.estop()
         await _ticks(daemon, 2)
         assert not compute.in_force[-1].speed_m_s.any()
+
+    _run(scenario)
+
+
+def _drive_script(speed_m_s: float, duration_s: float, modules: dict[str, object]) -> DriveScript:
+    entry = {"t_s": 0.0, "modules": modules, "speed_m_s": speed_m_s, "heading_rad": 0.0}
+    return DriveScript.model_validate({"duration_s": duration_s, "timeline": [entry]})
+
+
+def test_a_drive_script_is_refused_off_limits_stops_on_a_fault_and_ends_idle() -> None:
+    async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
+        with pytest.raises(UnreachableTargetError, match=r"could carry the cloth 300 mm: .*workspace"):
+            daemon.set_setpoint("drive", None, _drive_script(0.1, 3.0, {"all": True}))
+        with pytest.raises(InvalidRequestError, match=r"exceeds the modules' 0\.2 m/s"):
+            daemon.set_setpoint("drive", None, _drive_script(0.5, 0.1, {"ids": [27]}))
+        daemon.set_setpoint("drive", None, _drive_script(0.02, 2.0, {"ids": [27]}))
+        await _ticks(daemon, 3)
+        assert daemon.setpoint.mode == "drive" and compute.requests[-1].setpoint.drive is not None
+        assert _moving(link)
+        compute.halt_reason = "the camera is lost"
+        await _ticks(daemon, 3)
+        assert daemon.setpoint.mode == "idle" and daemon.halt_reason == "the camera is lost"
+        compute.halt_reason = None
+        daemon.set_setpoint("drive", None, _drive_script(0.02, 0.05, {"ids": [27]}))
+        assert daemon.halt_reason is None
+        await _ticks(daemon, 10)  # 0.1 s: played to its end
+        assert daemon.setpoint.mode == "idle" and daemon.halt_reason is None
 
     _run(scenario)

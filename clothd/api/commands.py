@@ -15,7 +15,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from clothd.api.bridge import DaemonBridge
-from clothd.api.schemas import MoveSetpoint, SetpointRequest
+from clothd.api.schemas import DriveSetpoint, MoveSetpoint, SetpointRequest
 from clothd.daemon import Daemon
 from clothd.errors import InvalidRequestError
 
@@ -38,7 +38,8 @@ class Commands:
             if isinstance(body, MoveSetpoint)
             else None
         )
-        await self.bridge.call(self.daemon.set_setpoint, body.mode, pose)
+        script = body.script if isinstance(body, DriveSetpoint) else None
+        await self.bridge.call(self.daemon.set_setpoint, body.mode, pose, script)
         return f"mode {body.mode}"
 
     async def move(self, x_m: float, y_m: float, theta_rad: float) -> str:

@@ -33,7 +33,7 @@ D, S, B = ua.VariantType.Double, ua.VariantType.String, ua.VariantType.Boolean
 N = ua.VariantType.Int64  # counts
 
 # The cell's modes as OperationMode's states (MachineryItemState's are OPC 40001-1's: machinery_state).
-MODE_STATES = {"idle": "Idle", "hold": "Hold", "move": "Move", "flatten": "Flatten"}
+MODE_STATES = {"idle": "Idle", "hold": "Hold", "move": "Move", "flatten": "Flatten", "drive": "Drive"}
 
 
 def _num(value: float | None) -> float:

@@ -8,6 +8,8 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from clothd.core.drive_script import DriveScript
+
 
 class _Strict(BaseModel):
     # Strict: `true` is not a number and "1" is not a float, whatever Python would make of them.
@@ -41,8 +43,15 @@ class FlattenSetpoint(_Strict):
     mode: Literal["flatten"]
 
 
+class DriveSetpoint(_Strict):
+    """Play a drive script: chosen modules driven over time (docs/api.md, "Drive scripts")."""
+
+    mode: Literal["drive"]
+    script: DriveScript
+
+
 SetpointRequest = Annotated[
-    IdleSetpoint | HoldSetpoint | MoveSetpoint | FlattenSetpoint, Field(discriminator="mode")
+    IdleSetpoint | HoldSetpoint | MoveSetpoint | FlattenSetpoint | DriveSetpoint, Field(discriminator="mode")
 ]
 
 

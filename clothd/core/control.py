@@ -1,7 +1,8 @@
 """From setpoint and estimate to module commands.
 
 Modes: `idle` stops every module; `hold` keeps the pose the cloth had when hold began; `move` drives it to
-a target pose [X_m, Y_m, theta_rad]; `flatten` holds the pose and flattens the cloth. hold and move
+a target pose [X_m, Y_m, theta_rad]; `flatten` holds the pose and flattens the cloth; `drive` plays a
+drive script (core/drive_script.py), the modules told what it says rather than planned here. hold and move
 flatten as they go when `control.flatten` is set (core/flattening.py).
 
 The cloth is moved as a rigid body. Its planned twist (vx, vy, ω about its centre) heads for the target
@@ -26,9 +27,10 @@ import cv2
 import numpy as np
 
 from clothd.config import CellConfig, ControlConfig
+from clothd.core.drive_script import DrivePlan
 from clothd.core.messages import ModuleCommands
 
-Mode = Literal["idle", "hold", "move", "flatten"]
+Mode = Literal["idle", "hold", "move", "flatten", "drive"]
 STILL_SPEED_M_S = 1e-6  # slower than this a module is stopped and keeps its heading
 
 
@@ -36,6 +38,8 @@ STILL_SPEED_M_S = 1e-6  # slower than this a module is stopped and keeps its hea
 class Setpoint:
     mode: Mode
     pose: np.ndarray | None  # (3,) target [X_m, Y_m, theta_rad] for move and hold
+    drive: DrivePlan | None = None  # the script a drive plays (core/drive_script.py)
+    drive_start_mono_s: float = 0.0  # when it began, on the host's monotonic clock (both processes')
 
 
 def _approach_speed(distance: float, v_max: float, a_max: float, gain: float) -> float:

@@ -2,7 +2,8 @@
 
 The format means what hwsim's scenario timeline means (docs/scenarios.md), read by clothd's own schema:
 from `t_s` on, the modules chosen (exactly one of `all`, `ids`, `region_m`) are told `speed_m_s` at
-`heading_rad`, held until a later entry changes them; at `duration_s` every module stops. A script is
+`heading_rad`, held until a later entry changes them; at `duration_s` every module stops (an entry
+starting at or after it is refused). A script is
 bounded (its length, its entries) and, compiled for a cell (`DrivePlan.compile`), refused with the reason
 when it names a module the cell lacks or asks a module for more than its maximum speed.
 
@@ -15,38 +16,44 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Annotated
+from typing import Annotated, Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field
 
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import ModuleCommands
 from clothd.errors import InvalidRequestError
 
-MAX_DURATION_S = 300.0  # long enough for check-modules on every module of a 64 x 64 table's share
-MAX_ENTRIES = 512
+MAX_DURATION_S = 300.0
+# Within the API's 4 KB body: one more entry, or one more id, than allowed is refused as invalid (422),
+# not as too large (413). More modules at once are chosen by region_m.
+MAX_ENTRIES = 32
+MAX_IDS = 64
 
 
 class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
 
-class ModuleChoice(_Strict):
-    """Which modules an entry drives: exactly one of all, ids, region_m (module centres in the box)."""
+class AllModules(_Strict):
+    all: Literal[True]
 
-    all: bool = False
-    ids: list[Annotated[int, Field(ge=0, le=4095)]] | None = Field(None, max_length=4096)
-    region_m: tuple[float, float, float, float] | None = Field(
-        None, description="x_min, y_min, x_max, y_max of module centres, world metres"
+
+class ModuleIds(_Strict):
+    ids: list[Annotated[int, Field(ge=0, le=4095)]] = Field(min_length=1, max_length=MAX_IDS)
+
+
+class ModuleRegion(_Strict):
+    region_m: tuple[float, float, float, float] = Field(
+        description="x_min, y_min, x_max, y_max of module centres, world metres"
     )
 
-    @model_validator(mode="after")
-    def _exactly_one(self) -> ModuleChoice:
-        if sum([self.all, self.ids is not None, self.region_m is not None]) != 1:
-            raise ValueError("choose modules with exactly one of: all, ids, region_m")
-        return self
+
+# Exactly one way of choosing, as alternatives the JSON schema states (anyOf), so that a client's
+# validator and the daemon's agree on what is well formed.
+ModuleChoice = AllModules | ModuleIds | ModuleRegion
 
 
 class DriveEntry(_Strict):
@@ -62,21 +69,13 @@ class DriveScript(_Strict):
     )
     timeline: list[DriveEntry] = Field(min_length=1, max_length=MAX_ENTRIES)
 
-    @model_validator(mode="after")
-    def _inside_duration(self) -> DriveScript:
-        late = [i for i, e in enumerate(self.timeline) if e.t_s >= self.duration_s]
-        if late:
-            raise ValueError(f"timeline entries {late} start at or after duration_s ({self.duration_s} s)")
-        return self
-
 
 def chosen(choice: ModuleChoice, centres_m: np.ndarray) -> np.ndarray:
     """Module ids (k,) an entry drives; ids are checked against the cell by the caller."""
-    if choice.all:
+    if isinstance(choice, AllModules):
         return np.arange(len(centres_m))
-    if choice.ids is not None:
+    if isinstance(choice, ModuleIds):
         return np.asarray(choice.ids, dtype=int)
-    assert choice.region_m is not None
     x0, y0, x1, y1 = choice.region_m
     c = centres_m
     return np.flatnonzero((c[:, 0] >= x0) & (c[:, 0] <= x1) & (c[:, 1] >= y0) & (c[:, 1] <= y1))
@@ -95,6 +94,11 @@ class DrivePlan:
     @classmethod
     def compile(cls, script: DriveScript, layout: ConveyorLayout, max_speed_m_s: float) -> DrivePlan:
         """The plan, or InvalidRequestError naming the entry that the cell cannot do."""
+        late = [i for i, e in enumerate(script.timeline) if e.t_s >= script.duration_s]
+        if late:
+            raise InvalidRequestError(
+                f"timeline{late}: start at or after duration_s ({script.duration_s:g} s)"
+            )
         n = layout.n_modules
         centres = layout.centres_m
         entries = sorted(enumerate(script.timeline), key=lambda ie: ie[1].t_s)
