@@ -289,6 +289,10 @@ class CellConfig(_Strict):
     workspace_margin_m: float = Field(
         0.02, ge=0, le=0.5, description="the default workspace keeps this far inside the outer belts' edges"
     )
+    module_calibration: Path | None = Field(
+        None,
+        description="what clothd check-modules wrote: each module's direction, heading offset, speed scale",
+    )
 
 
 class FlatnessConfig(_Strict):

@@ -32,6 +32,7 @@ from clothd.core.control import Mode, Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.drive_script import DrivePlan, DriveScript, cloth_reach_m, swept_box_m
 from clothd.core.messages import ModuleCommands
+from clothd.core.module_calibration import ModuleCalibration
 from clothd.core.workspace import Workspace, cloth_corners_m
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
 from clothd.errors import (
@@ -71,6 +72,7 @@ class DaemonSettings:
     phase_step_s: float = 0.001
     layout: ConveyorLayout = field(default_factory=lambda: ConveyorLayout.of_cell(CellConfig()))  # for drives
     max_speed_m_s: float = 0.2  # cell.max_speed_m_s: the most a drive script may ask of a module
+    module_calibration: ModuleCalibration | None = None  # cell.module_calibration: corrected on the wire
 
 
 class Daemon:
@@ -309,7 +311,10 @@ class Daemon:
                 self._halt(f"the compute has not answered for {self._stale_ticks} ticks")
         if not self.link.connected:
             self._halt("the stepper link is down")
-        sent = self.link.send_commands(self._commands)
+        calibration = self.settings.module_calibration
+        sent = self.link.send_commands(
+            self._commands if calibration is None else calibration.to_send(self._commands)
+        )
         # A link that is down or e-stopped moves nothing: the controller's watchdog or e-stop holds them.
         self._in_force = self._commands if sent else ModuleCommands.all_stop(self.settings.n_modules)
         try:

@@ -3,7 +3,8 @@
 - camera.json: the camera model (K, dist, T_cam_world, width, height);
 - table.json: the module layout;
 - frames.csv and commands.csv: a recording's capture times and the commands sent as they changed;
-- estimates.npz: what the tracker believed, frame by frame.
+- estimates.npz: what the tracker believed, frame by frame;
+- module calibration (YAML): what `clothd check-modules` found each module does with a command.
 
 The core never opens a file: footage, the recorder, replay and the composition root go through here and
 hand the core objects. Any problem reading is an InputError that names the file and what is wrong.
@@ -17,13 +18,17 @@ from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
+import yaml
 
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import Estimate, ModuleCommands, feature_detections
+from clothd.core.module_check import ModuleCalibrationEntry
 from clothd.errors import InputError
 
 CAMERA_KEYS = ("K", "dist", "T_cam_world", "width", "height")
+CALIBRATION_KEYS = {"module", "reversed", "heading_offset_deg", "speed_scale"}
+SPEED_SCALE_RANGE = (0.25, 4.0)  # beyond this a module is broken, not miscalibrated
 FRAMES_CSV_HEADER = "index,t_s\n"
 COMMANDS_CSV_HEADER = "t_s,module,speed_m_s,heading_rad\n"
 
@@ -224,3 +229,50 @@ def write_estimates(path: Path, estimates: list[Estimate], t0_s: float = 0.0) ->
     except OSError:
         partial.unlink(missing_ok=True)
         raise
+
+
+def write_module_calibration(path: Path, entries: list[ModuleCalibrationEntry], note: str) -> None:
+    """The modules' calibration as YAML, `note` (what measured it, when) as its first comment."""
+    rows = [
+        {
+            "module": e.module,
+            "reversed": e.reversed,
+            "heading_offset_deg": round(e.heading_offset_deg, 2),
+            "speed_scale": round(e.speed_scale, 4),
+        }
+        for e in entries
+    ]
+    path.write_text(f"# {note}\n" + yaml.safe_dump({"modules": rows}, sort_keys=False))
+
+
+def read_module_calibration(path: Path, n_modules: int) -> list[ModuleCalibrationEntry]:
+    """A module calibration file; anything unusable is an InputError naming the entry and the key."""
+    try:
+        data = yaml.safe_load(path.read_text())
+    except (OSError, yaml.YAMLError) as err:
+        raise InputError(f"{path}: cannot read a module calibration ({err})") from None
+    rows = data.get("modules") if isinstance(data, dict) else None
+    if not isinstance(rows, list):
+        raise InputError(f"{path}: a module calibration is a mapping with a list under 'modules'")
+    entries = []
+    for i, row in enumerate(rows):
+        where = f"{path}: modules[{i}]"
+        if not isinstance(row, dict) or set(row) != CALIBRATION_KEYS:
+            raise InputError(f"{where}: needs exactly {', '.join(sorted(CALIBRATION_KEYS))}")
+        try:
+            e = ModuleCalibrationEntry(
+                int(row["module"]),
+                bool(row["reversed"]),
+                float(row["heading_offset_deg"]),
+                float(row["speed_scale"]),
+            )
+        except (TypeError, ValueError) as err:
+            raise InputError(f"{where}: {err}") from None
+        if not 0 <= e.module < n_modules:
+            raise InputError(f"{where}.module: {e.module} out of range (the cell has {n_modules})")
+        if not abs(e.heading_offset_deg) <= 180:
+            raise InputError(f"{where}.heading_offset_deg: {e.heading_offset_deg} is not within ±180")
+        if not SPEED_SCALE_RANGE[0] <= e.speed_scale <= SPEED_SCALE_RANGE[1]:
+            raise InputError(f"{where}.speed_scale: {e.speed_scale} is not within {SPEED_SCALE_RANGE}")
+        entries.append(e)
+    return entries

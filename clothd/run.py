@@ -40,12 +40,13 @@ from clothd.compute_process import ComputeProcess
 from clothd.config import ApiConfig, Config, FoxgloveConfig, OpcUaConfig, opcua_host_port, with_overrides
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
+from clothd.core.module_calibration import ModuleCalibration
 from clothd.core.workspace import Workspace
 from clothd.daemon import Daemon, DaemonSettings
 from clothd.drivers.camera import VideoCaptureSource, redact_source
 from clothd.drivers.stepper_link import StepperLink
 from clothd.errors import ConfigError, HardwareError
-from clothd.formats import read_camera
+from clothd.formats import read_camera, read_module_calibration
 from clothd.priority import set_thread_nice
 
 SIM_START_TIMEOUT_S = 120.0
@@ -111,6 +112,15 @@ def camera_model_for(cfg: Config) -> CameraModel:
     return CameraModel.ideal(c.width_px, c.height_px, c.f_px, c.distance_m)
 
 
+def module_calibration_for(cfg: Config, layout: ConveyorLayout) -> ModuleCalibration | None:
+    path = cfg.cell.module_calibration
+    return (
+        None
+        if path is None
+        else ModuleCalibration.of(read_module_calibration(path, layout.n_modules), layout.n_modules)
+    )
+
+
 @dataclass
 class Parts:
     daemon: Daemon
@@ -157,6 +167,7 @@ def build(cfg: Config) -> Parts:
         phase_step_s=cfg.loop.phase_step_ms / 1e3,
         layout=layout,
         max_speed_m_s=cfg.cell.max_speed_m_s,
+        module_calibration=module_calibration_for(cfg, layout),
     )
     hub = StreamHub()
     link = StepperLink(cfg.stepper, layout.n_modules)

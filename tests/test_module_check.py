@@ -4,19 +4,25 @@ calibration that velocity implies."""
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
 from clothd.core.camera_model import CameraModel
+from clothd.core.messages import ModuleCommands
+from clothd.core.module_calibration import ModuleCalibration
 from clothd.core.module_check import (
     PATCH_M_PER_PX,
     BeltPatch,
+    ModuleCalibrationEntry,
     calibration_of,
     fitted_velocity_m_s,
     surface_shift_m,
 )
+from clothd.errors import InputError
+from clothd.formats import read_module_calibration, write_module_calibration
 
 
 def _ribbed_texture(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -63,3 +69,31 @@ def test_the_patch_lies_on_the_table_where_the_camera_sees_it() -> None:
     centre_px = camera.project(np.array([[0.1, -0.05, 0.0]]))[0]
     np.testing.assert_allclose([patch.map_x.mean(), patch.map_y.mean()], centre_px, atol=0.1)
     assert not BeltPatch.of(camera, np.array([0.5, 0.0]), 0.04).inside(640, 480)
+
+
+def test_the_commands_sent_undo_a_module_s_calibration() -> None:
+    wrong = ModuleCalibrationEntry(module=1, reversed=True, heading_offset_deg=10.0, speed_scale=0.8)
+    calibration = ModuleCalibration.of([wrong], 3)
+    sent = calibration.to_send(ModuleCommands(np.array([0.04, 0.04, 0.0]), np.array([0.7, 0.7, 0.2])))
+    # The module adds its error to what it is told: it then runs the wanted 0.04 m/s at 0.7 rad.
+    done_heading = sent.heading_rad[1] + math.pi + math.radians(10.0)
+    assert math.remainder(done_heading - 0.7, 2 * math.pi) == pytest.approx(0.0, abs=1e-12)
+    assert sent.speed_m_s[1] * 0.8 == pytest.approx(0.04)
+    np.testing.assert_allclose(sent.speed_m_s[[0, 2]], [0.04, 0.0])
+    np.testing.assert_allclose(sent.heading_rad[[0, 2]], [0.7, 0.2])
+
+
+def test_a_calibration_file_round_trips_and_refuses_nonsense(tmp_path: Path) -> None:
+    path = tmp_path / "modules.yaml"
+    found = [ModuleCalibrationEntry(9, True, 10.04, 0.8012), ModuleCalibrationEntry(10, False, -0.3, 1.0)]
+    write_module_calibration(path, found, "clothd check-modules")
+    assert read_module_calibration(path, 48) == [
+        ModuleCalibrationEntry(9, True, 10.04, 0.8012),
+        ModuleCalibrationEntry(10, False, -0.3, 1.0),
+    ]
+    path.write_text("modules:\n  - {module: 48, reversed: false, heading_offset_deg: 0, speed_scale: 1}\n")
+    with pytest.raises(InputError, match=r"modules\[0\].module: 48 out of range"):
+        read_module_calibration(path, 48)
+    path.write_text("modules:\n  - {module: 1, reversed: false, heading_offset_deg: 0, speed: 1}\n")
+    with pytest.raises(InputError, match="needs exactly"):
+        read_module_calibration(path, 48)
