@@ -10,7 +10,7 @@ UV_VERSION := $(shell sed -n 's/^uv==\([^ ]*\).*/\1/p' $(LOCK))
 COMPILE = $(BIN)/uv pip compile --quiet pyproject.toml --extra dev --universal --generate-hashes \
 	--python-version 3.11
 
-.PHONY: run test lint lock lock-check venv clean browser
+.PHONY: run test lint lock lock-check venv clean browser postgres
 
 venv: $(STAMP)
 
@@ -49,7 +49,14 @@ browser:
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; \
 	  else echo "make test: the browser tests need Debian's chromium: sudo apt-get install chromium"; exit 1; fi; }
 
-test: lock-check lint browser
+# clothd tune's shared-study test starts its own server from Debian's PostgreSQL (initdb and pg_ctl, kept
+# under /usr/lib/postgresql/VERSION/bin); CI runs as root and installs it.
+postgres:
+	@ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || command -v initdb >/dev/null || { \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q postgresql; \
+	  else echo "make test: the shared-study test needs Debian's postgresql: sudo apt-get install postgresql"; exit 1; fi; }
+
+test: lock-check lint browser postgres
 	$(BIN)/pytest -q
 
 clean:

@@ -270,9 +270,15 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     return 0
 
 
+# clothd tune's trials per search, and clothd bench tune's: the fewest that met the held-out bar on every
+# seed tried (docs/commissioning.md, "How many trials").
+TUNE_TRIALS = 200
+
+
 def _cmd_tune(args: argparse.Namespace) -> int:
     from clothd.tools.tune import tune
     from clothd.tools.tune_report import BEST_YAML, POPULATION_CSV, format_table, write_outputs
+    from clothd.tools.tune_verdict import VERDICT_JSON, format_verdict, write_verdict
 
     cfg = load_config(args.config)
     run = tune(
@@ -288,21 +294,30 @@ def _cmd_tune(args: argparse.Namespace) -> int:
         args.study_name,
     )
     recordings = ", ".join(str(r) for r in args.recordings)
-    designs = write_outputs(run.study, cfg.tracker.physics, args.out, f"{args.model} on {recordings}")
-    print(format_table(designs, args.top))
-    print(
-        f"\n{run.trials_run} trials in {run.wall_s:.1f} s on {args.workers} worker(s); "
-        f"{len(designs)} designs in the study"
+    written = run.verdict.generalises
+    designs = write_outputs(
+        run.study, cfg.tracker.physics, args.out, f"{args.model} on {recordings}", written
     )
-    print(f"best design (trial {designs[0].trial}) written to {args.out / BEST_YAML}")
-    print(f"population in {args.out / POPULATION_CSV}, plots in {args.out}/")
-    return 0
+    write_verdict(run.verdict, written, args.out / VERDICT_JSON)
+    print(format_table(designs, args.top))
+    print(f"\n{format_verdict(run.verdict)}")
+    print(
+        f"\n{run.trials_run} trials in {run.wall_s:.1f} s on {args.workers} worker(s), "
+        f"{len(run.searches)} search(es); {len(designs)} designs in study {run.study.study_name!r}"
+    )
+    if written:
+        print(f"best design (trial {designs[0].trial}) written to {args.out / BEST_YAML}")
+    print(
+        f"population in {args.out / POPULATION_CSV}, the verdict in {args.out / VERDICT_JSON}, "
+        f"plots in {args.out}/"
+    )
+    return 0 if written else 1
 
 
 def _cmd_bench_tune(args: argparse.Namespace) -> int:
     from clothd.tools.bench_tune import format_result, run_bench, write_json
 
-    result = run_bench(args.cache, args.out, args.trials, args.seed)
+    result = run_bench(args.cache, args.out, args.trials, args.seed, args.fabric, tuple(args.workers))
     print(format_result(result))
     if args.json:
         write_json(result, args.json)
@@ -495,9 +510,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="fit the cloth model's constants to recorded footage (the report's Table 2)",
         description="Searches the mass-spring constants (tracker.physics, within config.py's bounds) with "
         "Optuna's CMA-ES for the least mean + 2 x worst feature pixel error of the model's prediction. "
-        "Writes DIR/best.yaml (a config fragment for --config), DIR/population.csv, history.png and "
-        "importance.png, and keeps the study in DIR/study.db so that a stopped tune resumes. "
-        "docs/commissioning.md, 'Tune', describes the recordings to make.",
+        "With two recordings it searches on the first and keeps the second out; with three or more it "
+        "cross-validates. Writes DIR/best.yaml (a config fragment for --config) only when the best design "
+        "beats the start on the held-out footage (exit status 1 otherwise, with the reason), and "
+        "DIR/verdict.json, DIR/population.csv, history.png and importance.png; keeps the studies in "
+        "DIR/study.db so that a stopped tune resumes. docs/commissioning.md, 'Tune', describes the "
+        "recordings to make.",
     )
     tn.add_argument(
         "recordings",
@@ -507,7 +525,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="hwsim recordings or clothd run --record sessions",
     )
     tn.add_argument("--out", type=Path, required=True, metavar="DIR")
-    tn.add_argument("--trials", type=_positive_int, default=200, help="trials to run now (default 200)")
+    tn.add_argument(
+        "--trials",
+        type=_positive_int,
+        default=TUNE_TRIALS,
+        help=f"trials to run now in each search (default {TUNE_TRIALS})",
+    )
     tn.add_argument(
         "--workers", type=_positive_int, default=1, help="local processes sharing the study (default 1)"
     )
@@ -655,11 +678,29 @@ def build_parser() -> argparse.ArgumentParser:
     bc.set_defaults(func=_cmd_bench_calibrate)
     btn = bsub.add_parser(
         "tune",
-        help="clothd tune on hwsim's shirting: held-out node error, default and tuned constants, "
+        help="clothd tune on hwsim's shirting or lining: held-out node error, default and tuned constants, "
         "and the speed-up from --workers 2",
     )
-    btn.add_argument("--trials", type=_positive_int, default=200, help="trials of each tune (default 200)")
+    btn.add_argument(
+        "--trials",
+        type=_positive_int,
+        default=TUNE_TRIALS,
+        help=f"trials of each search (default {TUNE_TRIALS})",
+    )
     btn.add_argument("--seed", type=int, default=0)
+    btn.add_argument(
+        "--fabric",
+        choices=["shirting", "lining"],
+        default="shirting",
+        help="hwsim's fabric (default shirting)",
+    )
+    btn.add_argument(
+        "--workers",
+        type=_positive_int,
+        nargs="+",
+        default=[1, 2],
+        help="a tune from scratch with each (default 1 2); the first one's design is graded",
+    )
     btn.add_argument(
         "--cache", type=Path, default=Path("out/bench"), help="where the shirting scenarios are recorded"
     )

@@ -1,12 +1,18 @@
 """`clothd tune`: identify the cloth model's constants from recorded footage, as the original report's
 Table 2 did (docs/commissioning.md, "Tune").
 
-The recordings are measured once (tune_fitness.measure); then `workers` processes share one Optuna study,
-each asking the study's CMA-ES for constants and scoring them (tune_fitness), until `trials` more trials
-are done or `timeout_s` has passed. The study lives in its storage (a SQLite file in DIR by default), so a
-tune stopped for any reason goes on where it was when run again, and `--storage` lets machines elsewhere
-join it. The constants the search starts from (the configuration's) are the study's first trial, so the
-population always holds the design it set out to improve on.
+Every tune keeps footage out of its search, to judge the result on (tune_verdict): with two recordings
+it searches on the first and keeps the second out; with three or more it cross-validates, one search on
+all but each recording in turn (the folds), then the search on all of them, whose best design is the one
+written. Why: a search on a few recordings can fit them with constants that follow other footage worse
+than the start did, and only footage it never saw shows it.
+
+The recordings are measured once (tune_fitness.measure); then `workers` processes share each search's
+Optuna study in turn, each asking the study's CMA-ES for constants and scoring them (tune_fitness), until
+`trials` more trials are done or its share of `timeout_s` has passed. The studies live in their storage (a
+SQLite file in DIR by default), so a tune stopped for any reason goes on where it was when run again, and
+`--storage` lets machines elsewhere join them. The constants the search starts from (the configuration's)
+are each study's first trial, so the population always holds the design it set out to improve on.
 
 Workers are spawned, not forked: Taichi's runtime does not survive a fork, and each worker starts its own
 (taichi_runtime.start_taichi) with the configuration's arch.
@@ -36,6 +42,7 @@ from clothd.errors import ClothdError, ConfigError, InputError
 from clothd.taichi_runtime import start_taichi
 from clothd.tools import tune_space
 from clothd.tools.tune_fitness import ModelPredictor, Sequence, SequenceScore, measure, track_score
+from clothd.tools.tune_verdict import Verdict, judge
 
 MODELS = ("predict", "mesh")
 _POLL_S = 0.5  # how often the progress bar reads the study
@@ -43,22 +50,56 @@ BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"
 
 
 @dataclass(frozen=True)
+class Search:
+    """One study of a tune: the recordings it searches on, and the one it never sees, which judges its best
+    design (None: the search on every recording, judged by the folds of a cross-validation)."""
+
+    study_name: str
+    train: tuple[int, ...]  # indices into the recordings as given
+    held_out: int | None
+
+
+def plan(n_recordings: int, study_name: str) -> tuple[Search, ...]:
+    """Two recordings: search on the first, keep the second out. Three or more: leave-one-out folds, then
+    the search on all of them (more footage fits better; the folds say whether such a fit generalises)."""
+    if n_recordings < 2:
+        raise InputError(
+            f"{n_recordings} recording given, 2 needed: a tune keeps one out of its search to check the "
+            "result on (3 or more are cross-validated; docs/commissioning.md, 'Tune')"
+        )
+    if n_recordings == 2:
+        return (Search(study_name, (0,), 1),)
+    every = tuple(range(n_recordings))
+    folds = tuple(
+        Search(f"{study_name} without {k + 1}", tuple(i for i in every if i != k), k) for k in every
+    )
+    return (*folds, Search(study_name, every, None))
+
+
+@dataclass(frozen=True)
 class TuneJob:
-    """What every worker needs: the study, the measured recordings and the configuration they start from."""
+    """What every worker needs: the searches, the measured recordings and the configuration they start
+    from."""
 
     storage: str  # storage_url's
-    study_name: str
     model: str
-    sequences: tuple[Sequence, ...]
+    searches: tuple[Search, ...]
+    sequences: tuple[Sequence, ...]  # every recording's, as given
     cfg: Config
     seed: int
 
 
 @dataclass(frozen=True)
 class TuneRun:
-    study: optuna.Study
-    trials_run: int  # by this run; the study may hold more from earlier ones
+    searches: tuple[Search, ...]
+    studies: tuple[optuna.Study, ...]  # the searches'; the last one's best is the design written
+    verdict: Verdict
+    trials_run: int  # by this run, over every search; the studies may hold more from earlier ones
     wall_s: float
+
+    @property
+    def study(self) -> optuna.Study:
+        return self.studies[-1]
 
 
 def storage_url(storage: str | None, out_dir: Path) -> str:
@@ -99,14 +140,23 @@ def open_study(
     storage: optuna.storages.BaseStorage, name: str, recordings: list[Path], model: str, start: Config
 ) -> optuna.Study:
     """The study, created on first use with the configured constants as its first trial; a study begun on
-    other recordings or another model is refused, since its fitness values would not compare."""
-    study = optuna.create_study(study_name=name, storage=storage, direction="minimize", load_if_exists=True)
+    other recordings or another model is refused, since its fitness values would not compare.
+
+    Of processes starting on one study at once (machines sharing --storage), the storage lets exactly one
+    create it, and that one enqueues the start; the others take it as it is, unchecked while its creator
+    has not yet recorded what it runs on."""
     names = [str(r.resolve()) for r in recordings]
-    if not study.trials:
+    try:
+        study = optuna.create_study(study_name=name, storage=storage, direction="minimize")
+    except optuna.exceptions.DuplicatedStudyError:
+        study = optuna.load_study(study_name=name, storage=storage)
+    else:
         study.set_user_attr("recordings", names)
         study.set_user_attr("model", model)
         study.enqueue_trial(tune_space.point_of(start.tracker.physics), user_attrs={"start": True})
-    elif study.user_attrs.get("recordings") != names or study.user_attrs.get("model") != model:
+        return study
+    attrs = study.user_attrs
+    if "recordings" in attrs and (attrs["recordings"] != names or attrs.get("model") != model):
         raise InputError(
             f"study {name!r} was run on {study.user_attrs.get('recordings')} with model "
             f"{study.user_attrs.get('model')}: give the same recordings and --model, or another --study-name"
@@ -128,14 +178,12 @@ def _sampler(job: TuneJob, worker: int) -> optuna.samplers.CmaEsSampler:
         )
 
 
-class Objective:
-    """One trial: the constants CMA-ES proposes, scored on every recording; the fitness is the mean of
-    the recordings' mean + 2 x worst. Per-recording figures go into the trial's user attributes."""
+class Scorer:
+    """A search-space point scored on one recording, by the model alone or the whole tracker."""
 
-    def __init__(self, job: TuneJob) -> None:
-        self.job = job
-        self.tracker: TrackerConfig = job.cfg.tracker.model_copy(update={"model": job.model})
-        self.predictor = ModelPredictor(self.tracker) if job.model == "predict" else None
+    def __init__(self, cfg: Config, model: str) -> None:
+        self.tracker: TrackerConfig = cfg.tracker.model_copy(update={"model": model})
+        self.predictor = ModelPredictor(self.tracker) if model == "predict" else None
 
     def score(self, seq: Sequence, params: dict[str, float]) -> SequenceScore:
         physics = tune_space.physics_of(params, self.tracker.physics)
@@ -143,9 +191,19 @@ class Objective:
             return self.predictor.score(seq, physics)
         return track_score(seq, self.tracker.model_copy(update={"physics": physics}))
 
+
+class Objective:
+    """One trial: the constants CMA-ES proposes, scored on every recording of the search; the fitness is
+    the mean of the recordings' mean + 2 x worst. Per-recording figures go into the trial's user
+    attributes."""
+
+    def __init__(self, scorer: Scorer, sequences: tuple[Sequence, ...]) -> None:
+        self.scorer = scorer
+        self.sequences = sequences
+
     def __call__(self, trial: optuna.Trial) -> float:
         params = tune_space.suggest(trial)
-        scores = [self.score(seq, params) for seq in self.job.sequences]
+        scores = [self.scorer.score(seq, params) for seq in self.sequences]
         trial.set_user_attr("mean_px", float(np.mean([s.mean_px for s in scores])))
         trial.set_user_attr("worst_px", float(np.mean([s.worst_px for s in scores])))
         rmse = [s.node_rmse_mm for s in scores if s.node_rmse_mm is not None]
@@ -156,14 +214,18 @@ class Objective:
 
 
 def _work(job: TuneJob, worker: int, trials: int, deadline: float | None) -> None:
-    """A worker process: its share of the trials, within the deadline (time.time())."""
+    """A worker process: its share of each search's trials in turn, each search within an even share of
+    the time left before the deadline (time.time()), so that a timeout leaves none of them empty."""
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     start_taichi(job.cfg.taichi.arch)
-    study = optuna.load_study(
-        study_name=job.study_name, storage=storage_of(job.storage), sampler=_sampler(job, worker)
-    )
-    timeout = None if deadline is None else max(deadline - time.time(), 0.0)
-    study.optimize(Objective(job), n_trials=trials, timeout=timeout)
+    storage = storage_of(job.storage)
+    scorer = Scorer(job.cfg, job.model)
+    for k, search in enumerate(job.searches):
+        sampler = _sampler(job, worker)
+        study = optuna.load_study(study_name=search.study_name, storage=storage, sampler=sampler)
+        timeout = None if deadline is None else max((deadline - time.time()) / (len(job.searches) - k), 0.0)
+        objective = Objective(scorer, tuple(job.sequences[i] for i in search.train))
+        study.optimize(objective, n_trials=trials, timeout=timeout)
 
 
 def _shares(trials: int, workers: int) -> list[int]:
@@ -183,9 +245,11 @@ def tune(
     seed: int = 0,
     study_name: str = "tune",
 ) -> TuneRun:
-    """Run `trials` more trials of the study (fewer if timeout_s runs out first) on `workers` processes."""
+    """Run `trials` more trials of each search's study (fewer if timeout_s runs out first) on `workers`
+    processes, then judge the result on the footage each search kept out."""
     if not recordings:
         raise InputError("no recordings to tune on")
+    searches = plan(len(recordings), study_name)
     if workers < 1 or trials < 1:
         raise InputError(f"--workers ({workers}) and --trials ({trials}) must be at least 1")
     if model not in MODELS:
@@ -198,9 +262,12 @@ def tune(
     deadline = None if timeout_s is None else time.time() + timeout_s
     out_dir.mkdir(parents=True, exist_ok=True)
     url = storage_url(storage, out_dir)
-    study = open_study(storage_of(url), study_name, recordings, model, cfg)
-    job = TuneJob(url, study_name, model, tuple(measure(r, cfg.tracker) for r in recordings), cfg, seed)
-    before = _finished(study)
+    studies = tuple(
+        open_study(storage_of(url), s.study_name, [recordings[i] for i in s.train], model, cfg)
+        for s in searches
+    )
+    job = TuneJob(url, model, searches, tuple(measure(r, cfg.tracker) for r in recordings), cfg, seed)
+    before = _finished(studies)
     ctx = multiprocessing.get_context("spawn")
     procs: list[BaseProcess] = [
         ctx.Process(target=_work, args=(job, w, n, deadline), name=f"tune-{w}")
@@ -211,14 +278,18 @@ def tune(
         for p in procs:
             p.start()
     try:
-        _follow(study, before, trials, procs)
+        _follow(studies, before, trials * len(searches), procs)
     finally:
         for p in procs:
             p.join()
     failed = [p.name for p in procs if p.exitcode != 0]
     if failed:
         raise ClothdError(f"tune workers failed ({', '.join(failed)}): see their messages above")
-    return TuneRun(study, _finished(study) - before, time.perf_counter() - start)
+    start_taichi(cfg.taichi.arch)  # only now: the workers are done, and the judge runs the model here
+    physics = cfg.tracker.physics
+    score = Scorer(cfg, model).score
+    verdict = judge(searches, studies, job.sequences, score, tune_space.point_of(physics), physics)
+    return TuneRun(searches, studies, verdict, _finished(studies) - before, time.perf_counter() - start)
 
 
 @contextlib.contextmanager
@@ -238,20 +309,16 @@ def _blas_threads() -> Iterator[None]:
             os.environ.pop(var, None)
 
 
-def _finished(study: optuna.Study) -> int:
-    return len(study.get_trials(deepcopy=False, states=_FINISHED))
+def _finished(studies: tuple[optuna.Study, ...]) -> int:
+    return sum(len(s.get_trials(deepcopy=False, states=_FINISHED)) for s in studies)
 
 
-def _follow(study: optuna.Study, before: int, trials: int, procs: list[BaseProcess]) -> None:
-    """A progress bar over this run's trials, with the best fitness so far (on a terminal only)."""
+def _follow(studies: tuple[optuna.Study, ...], before: int, trials: int, procs: list[BaseProcess]) -> None:
+    """A progress bar over this run's trials of every search (on a terminal only)."""
     with tqdm(total=trials, desc="tune", unit="trial", disable=None) as bar:
         while any(p.is_alive() for p in procs):
             time.sleep(_POLL_S)
-            done = study.get_trials(deepcopy=False, states=_FINISHED)
-            bar.update(max(len(done) - before - bar.n, 0))
-            best = min((t.value for t in done if t.value is not None), default=None)
-            if best is not None:
-                bar.set_postfix_str(f"best {best:.3f} px")
+            bar.update(max(_finished(studies) - before - bar.n, 0))
 
 
 _FINISHED = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.FAIL, optuna.trial.TrialState.PRUNED)

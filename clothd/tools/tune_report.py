@@ -1,5 +1,6 @@
 """What `clothd tune` leaves in DIR: the population of designs (population.csv), the original report's
-Table 2 (the best designs side by side with the search's limits), best.yaml, and two plots.
+Table 2 (the best designs side by side with the search's limits), best.yaml when the tune generalises
+(tune_verdict), and two plots.
 
 A design is a completed trial: its constants in config.yaml's names and units, its fitness (mean + 2 x
 worst feature pixel error, averaged over the recordings) and, where the recordings had truth, its node
@@ -160,14 +161,21 @@ def plot_importance(study: optuna.Study, path: Path) -> dict[str, float] | None:
     return dict(importances)
 
 
-def write_outputs(study: optuna.Study, base: PhysicsConfig, out_dir: Path, note: str) -> list[Design]:
-    """best.yaml, population.csv and the plots into out_dir; the population, best first."""
+def write_outputs(
+    study: optuna.Study, base: PhysicsConfig, out_dir: Path, note: str, generalises: bool
+) -> list[Design]:
+    """population.csv, the plots and, when the tune generalises, best.yaml into out_dir (otherwise an
+    earlier run's best.yaml goes: it would stand for a study whose best no longer passes); the population,
+    best first."""
     designs = population(study, base)
     if not designs:
         raise ClothdError(f"study {study.study_name!r} has no completed trial yet")
     best = designs[0]
     header = f"trial {best.trial} of study {study.study_name!r}, fitness {best.fitness_px:.3f} px, {note}"
-    write_best(best, out_dir / BEST_YAML, header)
+    if generalises:
+        write_best(best, out_dir / BEST_YAML, header)
+    else:
+        (out_dir / BEST_YAML).unlink(missing_ok=True)
     write_population(designs, out_dir / POPULATION_CSV)
     plot_history(study, out_dir / HISTORY_PNG)
     plot_importance(study, out_dir / IMPORTANCE_PNG)
