@@ -128,6 +128,25 @@ def test_estop_cuts_the_drives_and_refuses_commands_until_cleared(tmp_path: Path
     _with_firmware(tmp_path, body)
 
 
+def test_an_estop_cleared_while_the_link_is_down_is_cleared_on_the_controller_when_it_is_back(
+    tmp_path: Path,
+) -> None:
+    async def body(fw: Firmware, table: Table) -> None:
+        async with _running(_link(fw.link_path)) as link:
+            await _until(lambda: link.connected)
+            link.estop()
+            await _until(lambda: link.controller_estopped)
+            fw.unplug(0.5)
+            await _until(lambda: not link.connected)
+            link.estop_clear()  # the operator clears it while the cable is out
+            await _until(lambda: link.connected, timeout_s=5.0)
+            await _until(lambda: not fw.estopped)
+            await _until(lambda: link.send_commands(_forward(0.03)) and table.cmd_speed_m_s[0] > 0)
+            await link.stop()
+
+    _with_firmware(tmp_path, body)
+
+
 def test_watchdog_stops_the_modules_when_the_host_goes_silent(tmp_path: Path) -> None:
     async def body(fw: Firmware, table: Table) -> None:
         link = _link(fw.link_path)

@@ -59,6 +59,7 @@ class StepperLink:
         self.firmware: str | None = None
         self.controller_flags = 0
         self._estop_latched = False
+        self._clear_on_connect = False  # an e-stop cleared while the link was down: the controller is told
         self._writer: asyncio.StreamWriter | None = None
         self._seq = 0
         self._pending: _Pending | None = None  # the newest unacknowledged COMMAND
@@ -106,13 +107,18 @@ class StepperLink:
     def estop(self) -> None:
         """Stop every module now: written ahead of anything else, repeated until acknowledged."""
         self._estop_latched = True
+        self._clear_on_connect = False
         self._pending = None
         self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()))
 
     def estop_clear(self) -> None:
+        """Release the e-stop; while the link is down, as soon as it is up again (the controller keeps its
+        latch across a lost link, and would otherwise refuse every command)."""
         self._estop_latched = False
         if self.connected:
             self._write(wire.encode(wire.MsgType.ESTOP_CLEAR, self._next_seq()))
+        else:
+            self._clear_on_connect = True
 
     async def stop(self) -> None:
         """Stop the modules, then close the port."""
@@ -200,6 +206,9 @@ class StepperLink:
             self.firmware = hello.firmware
             if self._estop_latched:
                 self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()))
+            elif self._clear_on_connect:
+                self._write(wire.encode(wire.MsgType.ESTOP_CLEAR, self._next_seq()))
+            self._clear_on_connect = False
             return
         if self.counters.invalid:
             raise HardwareError(
