@@ -109,7 +109,7 @@ class ComputeSpec:
     foxglove: FoxgloveConfig | None = None  # the live server's section (None: off)
     track_ahead: bool = True  # loop.track_ahead: track a frame as it arrives, not when its tick asks
     opencv_threads: int = 2  # loop.compute_threads
-    starved_s: float = 0.15  # loop.starved_ms
+    starved_s: float = 0.25  # loop.starved_ms
 
 
 @dataclass(frozen=True)

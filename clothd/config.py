@@ -197,10 +197,10 @@ class LoopConfig(_Strict):
     max_stale_ticks: int = Field(
         10, ge=1, le=30, description="ticks in a row without the compute's answer before the modules stop"
     )
-    # The link's own loss bound (stepper: 3 x 50 ms): a daemon silent longer has sent nothing that long,
-    # and the controller may have stopped the modules on its watchdog.
+    # The controller's watchdog: a host silent longer has had its modules stopped by the controller, so
+    # the commands the model drives the cloth with are no longer what the modules did.
     starved_ms: float = Field(
-        150.0, ge=50, le=2000, description="the daemon silent this long: the tracker starts afresh"
+        250.0, ge=50, le=2000, description="the daemon silent this long: the tracker starts afresh"
     )
     # The tick's phase follows the camera's frames (clothd/frame_phase.py, docs/architecture.md).
     frame_lock: bool = Field(True, description="start ticks just before the camera's frames are due")
