@@ -9,6 +9,7 @@ from pathlib import Path
 
 from clothd.config import load_config, with_overrides
 from clothd.errors import ClothdError, InvalidRequestError
+from clothd.tools.commissioning_cli import add_commands as add_commissioning_commands
 
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
@@ -447,6 +448,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--commands", type=Path, help="commands.csv (default: the recording's)")
     r.add_argument("--config", type=Path)
     r.set_defaults(func=_cmd_replay)
+    add_commissioning_commands(sub)
     e = sub.add_parser("export", help="a recording as MCAP for Foxglove")
     e.add_argument("recording", type=Path, help="a recording directory (clothd run --record, hwsim record)")
     e.add_argument("--mcap", type=Path, required=True, help="the MCAP file to write")
