@@ -194,6 +194,36 @@ def test_the_refusal_names_the_loss_the_free_constants_and_a_late_best() -> None
     assert math.isinf(spread[2].ratio)
 
 
+def test_a_fold_may_lose_where_its_recording_shows_what_the_others_do_not() -> None:
+    """Cross-validated, the verdict is the folds' mean held-out fitness, as the tune's fitness is a mean
+    over recordings: one fold that never saw the only push lost there, the others won by more; the design
+    written was searched on all of them. The report names the fold that lost."""
+    folds = (
+        HeldOut(
+            Path("rec/shear"),
+            "tune without 1",
+            150,
+            SequenceScore(20.0, 40.0, 10.1),
+            SequenceScore(5.0, 5.0, 2.6),
+        ),
+        HeldOut(
+            Path("rec/squeeze"),
+            "tune without 2",
+            185,
+            SequenceScore(30.0, 35.0, 30.5),
+            SequenceScore(40.0, 53.0, 47.2),
+        ),
+    )
+    verdict = Verdict(folds, best_trial=120, trials=200, good_designs=6, spread=())
+    assert verdict.generalises and verdict.start_px == 100.0 and verdict.best_px == 80.5
+    text = format_verdict(verdict)
+    assert "held-out footage: mean 80.50 px against the start's 100.00 px (-19.5 %)" in text
+    assert (
+        "squeeze: 146.00 px (trial 185 of 'tune without 2') against the start's 100.00 px (+46.0 %)" in text
+    )
+    assert "shear:" not in text.split("beat the start")[1]
+
+
 def test_three_recordings_are_cross_validated(
     recording: Path, held_out: Path, wrong_config: Path, tmp_path_factory: pytest.TempPathFactory
 ) -> None:

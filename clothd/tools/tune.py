@@ -45,7 +45,7 @@ from clothd.tools.tune_fitness import ModelPredictor, Sequence, SequenceScore, m
 from clothd.tools.tune_verdict import Verdict, judge
 
 MODELS = ("predict", "mesh")
-_POLL_S = 0.5  # how often the progress bar reads the study
+_POLL_S = 0.5  # how often the progress bar reads the studies
 BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 

@@ -2,10 +2,14 @@
 scored on the recording that search never saw, and the spread of the good designs of the search whose best
 is written (the original report's Table 2 read for what the footage leaves free).
 
-best.yaml is written only when the best design beats the start on every held-out recording. Otherwise the
-verdict says by how much it lost, and why it may have: designs equally good on the training footage that
-differ widely in a constant say the footage does not pin that constant down (an ill-posed fit), and a best
-found among the last trials says the search had not finished.
+best.yaml is written only when the best designs beat the start on the held-out footage: their mean
+held-out fitness below the start's, over the folds of a cross-validation as the tune's fitness is a mean
+over recordings. Every fold counts, not each: a recording that shows what the others do not (the cloth
+pushed together, where the others shear it) defeats the one search that never saw it, while the search on
+all of them, the design written, has it; the report names such a fold. Otherwise the verdict says by how
+much the best lost, and why it may have: designs equally good on the training footage that differ widely
+in a constant say the footage does not pin that constant down (an ill-posed fit), and a best found among
+the last trials says the search had not finished.
 """
 
 from __future__ import annotations
@@ -81,8 +85,22 @@ class Verdict:
     spread: tuple[Spread, ...]
 
     @property
+    def start_px(self) -> float:
+        """The start's mean held-out fitness."""
+        return sum(h.start.cost_px for h in self.held_out) / len(self.held_out)
+
+    @property
+    def best_px(self) -> float:
+        """The best designs' mean held-out fitness, each on the recording its search never saw."""
+        return sum(h.best.cost_px for h in self.held_out) / len(self.held_out)
+
+    @property
+    def change_pct(self) -> float:
+        return 100.0 * (self.best_px / self.start_px - 1.0)
+
+    @property
     def generalises(self) -> bool:
-        return all(h.beats_start for h in self.held_out)
+        return self.best_px < self.start_px
 
     @property
     def free(self) -> tuple[Spread, ...]:
@@ -161,11 +179,21 @@ def _format_spread(verdict: Verdict) -> list[str]:
 
 
 def _conclusion(verdict: Verdict) -> list[str]:
-    if verdict.generalises:
-        return [f"the best design (trial {verdict.best_trial}) beats the start on every held-out recording"]
+    mean = (
+        f"mean {verdict.best_px:.2f} px against the start's {verdict.start_px:.2f} px "
+        f"({verdict.change_pct:+.1f} %)"
+    )
     lost = [h for h in verdict.held_out if not h.beats_start]
+    if verdict.generalises:
+        lines = [f"the best designs beat the start on the held-out footage: {mean}"]
+        if lost:
+            lines.append(
+                "  but lost where a recording shows what the others do not (the design written saw it):"
+            )
+        return lines + [_lost(h) for h in lost]
     lines = [
-        "best.yaml not written: the best design does not beat the start on footage its search never saw:",
+        f"best.yaml not written: the best designs do not beat the start on footage their searches never saw: "
+        f"{mean}",
         *(_lost(h) for h in lost),
     ]
     if verdict.free:
@@ -195,6 +223,9 @@ def verdict_json(verdict: Verdict, written: bool) -> dict[str, Any]:
     return {
         "generalises": verdict.generalises,
         "best_yaml_written": written,
+        "start_fitness_px": verdict.start_px,
+        "best_fitness_px": verdict.best_px,
+        "change_pct": verdict.change_pct,
         "best_trial": verdict.best_trial,
         "trials": verdict.trials,
         "held_out": [
