@@ -77,11 +77,11 @@ class Daemon:
                 self.proc.wait()
 
 
-def serve_cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cell]:
+def serve_cell(tmp_path_factory: pytest.TempPathFactory, scenario: str = "cell") -> Iterator[Cell]:
     """`hwsim serve` for a test module (use as a module-scoped fixture)."""
     state = tmp_path_factory.mktemp("cell")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "hwsim.cli", "serve", "--state-dir", str(state)],
+        [sys.executable, "-m", "hwsim.cli", "serve", "--scenario", scenario, "--state-dir", str(state)],
         stdout=subprocess.PIPE,
         stderr=subprocess.DEVNULL,
     )

@@ -17,6 +17,7 @@ where the cloth lies and the daemon can keep its drives off it.
 
 from __future__ import annotations
 
+import datetime
 import math
 import time
 from dataclasses import dataclass
@@ -129,6 +130,8 @@ def _drive_intervals(
         elif speed == 0 and m in running:
             t_on, s, h = running.pop(m)
             found[m] = (t_on, t, s, h)
+    # The recording may stop before the last drive's stop reaches it: that one runs to the last frame.
+    found.update({m: (t_on, math.inf, s, h) for m, (t_on, s, h) in running.items()})
     return found
 
 
@@ -181,7 +184,8 @@ def check_modules(client: CellClient, asked: list[int] | None) -> tuple[list[Mod
     check_cell_ready(status)
     camera = client.http.get("/camera").json()
     table_to_pixel = np.asarray(camera["table_to_pixel"], dtype=float)
-    recording = client.record_start(f"check-modules-{time.strftime('%Y%m%d-%H%M%S')}")
+    now = datetime.datetime.now(datetime.UTC)
+    recording = client.record_start(f"check-modules-{now.strftime('%Y%m%d-%H%M%S-%f')}")
     try:
         layout = read_layout(recording / "table.json")
         modules, left_out = modules_to_check(
@@ -192,7 +196,7 @@ def check_modules(client: CellClient, asked: list[int] | None) -> tuple[list[Mod
         clocks = {m: _drive_with_clock(client, m) for m in modules}
     finally:
         client.record_stop()
-    _wait_recording_closed(client)
+        _wait_recording_closed(client)
     return measure(recording, modules, clocks), left_out, recording
 
 
