@@ -283,8 +283,6 @@ async def serve(
     sim_truth_url: str | None = None,
     record_dir: Path | None = None,
 ) -> None:
-    # This thread runs the tick and the stepper link; the compute process, started from it, inherits it.
-    set_thread_nice(cfg.loop.nice, "the loop")
     parts = build(cfg)
     daemon = parts.daemon
     if record_dir is not None:  # the operator's own choice, anywhere
@@ -347,6 +345,10 @@ def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -
     except ConfigError:
         listener.close()
         raise
+    # This thread runs the tick and the stepper link; the compute process started from it inherits its
+    # priority, and so does hwsim: a simulated controller at the loop's priority, as a microcontroller
+    # is, which nothing on the PC starves.
+    set_thread_nice(cfg.loop.nice, "the loop")
     sim = start_sim(sim_scenario) if sim_scenario is not None else None
     try:
         if sim is not None:
