@@ -4,7 +4,6 @@ status, setpoints, recordings, and playing a drive script to its end."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -46,14 +45,6 @@ class CellClient:
     def status(self) -> dict[str, Any]:
         return self._call("GET", "/status")
 
-    def sim_time_s(self) -> float | None:
-        """hwsim's own clock (its truth's t_s), or None on a real cell."""
-        try:
-            r = self.http.get("/sim/truth")
-        except httpx.HTTPError as err:
-            raise CellError(f"no answer from the daemon at {self.url}: {err}") from None
-        return float(r.json()["t_s"]) if r.status_code == 200 else None
-
     def record_start(self, name: str | None) -> Path:
         """Start recording into `name` inside the daemon's recording.dir; where it records."""
         self._call("POST", "/record/start", {"dir": name} if name else None)
@@ -68,14 +59,11 @@ class CellClient:
     def record_stop(self) -> None:
         self._call("POST", "/record/stop")
 
-    def play(self, script: DriveScript, on_poll: Callable[[], None] | None = None) -> None:
-        """Play a drive script and wait for its end, calling on_poll every POLL_S meanwhile; CellError with
-        the halt reason if a fault stopped it."""
+    def play(self, script: DriveScript) -> None:
+        """Play a drive script and wait for its end; CellError with the halt reason if a fault stopped it."""
         self._call("PUT", "/setpoint", {"mode": "drive", "script": script.model_dump(mode="json")})
         deadline = time.monotonic() + script.duration_s + END_SLACK_S
         while time.monotonic() < deadline:
-            if on_poll is not None:
-                on_poll()
             s = self.status()
             if s["mode"] == "idle":
                 if s.get("halt_reason"):

@@ -6,8 +6,9 @@ against the command gives its direction, heading offset and speed scale, written
 `cell.module_calibration` names.
 
 hwsim falls behind real time on a loaded machine (its world steps slower, and so do its belts), while
-the frames are stamped on the host's clock: against the simulated cell every speed is measured per
-second of hwsim's own clock (its truth's t_s, read through each drive), as a real cell's is per second.
+the frames are stamped on the host's clock: against the simulated cell the time between two frames is
+taken on hwsim's own clock instead, its camera's frame period (`frame_period_s`), as a real cell's is
+on the host's.
 
 A module under the cloth cannot be checked: the belts around it hold the cloth, which then shows nothing
 of the one belt beneath (hwsim: 0.02 mm of cloth motion for 20 mm of belt). The check refuses such a
@@ -47,7 +48,6 @@ SETTLE_S = 0.8  # the turntable turns (at most a quarter turn at 3 rad/s) and th
 PATCH_SIDE_M = 0.04  # the belt's middle: inside a 65 mm belt at any heading (half-diagonal 28 mm)
 CLEAR_OF_CLOTH_M = 0.005  # the patch stays this far from the cloth's outline
 MIN_PAIRS = 8
-CLOCK_SAMPLE_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -135,9 +135,10 @@ def _drive_intervals(
     return found
 
 
-def measure(recording: Path, modules: list[int], clocks: dict[int, CellClock | None]) -> list[ModuleResult]:
-    """Each module's calibration from a recording of its drive; a simulated cell's clock (`clocks`, by
-    module) corrects its speeds."""
+def measure(recording: Path, modules: list[int], frame_period_s: float | None = None) -> list[ModuleResult]:
+    """Each module's calibration from a recording of its drive. With `frame_period_s` (a simulated
+    camera's) the time between two frames is that period times the frames the pair spans, not the host's
+    time between their arrivals."""
     camera = read_camera(recording / "camera.json")
     layout = read_layout(recording / "table.json")
     times = read_frame_times(recording / "frames.csv")
@@ -163,11 +164,19 @@ def measure(recording: Path, modules: list[int], clocks: dict[int, CellClock | N
             raise InputError(
                 f"module {m}: only {len(shifts)} frame pairs measured (at least {MIN_PAIRS} needed)"
             )
-        clock = clocks.get(m)
-        rate = 1.0 if clock is None else clock.rate(t_s[ks[0]] - t_on, t_s[ks[-1]] - t_on)
-        v = mean_velocity_m_s(np.asarray(dts), np.asarray(shifts)) / rate
+        moved_m = np.asarray(shifts)
+        between_s = np.asarray(dts) if frame_period_s is None else _frame_steps(moved_m) * frame_period_s
+        v = mean_velocity_m_s(between_s, moved_m)
         results.append(ModuleResult(calibration_of(m, speed, heading, v), float(np.hypot(*v)), len(shifts)))
     return results
+
+
+def _frame_steps(shifts_m: np.ndarray) -> np.ndarray:
+    """How many camera frames each pair of received frames spans, for a camera on its own clock: a belt
+    at a steady speed moves as far each frame, so a pair the daemon received with a frame missed between
+    moved twice the usual (the host's arrival times cannot tell a missed frame from a late one)."""
+    length_m = np.hypot(shifts_m[:, 0], shifts_m[:, 1])
+    return np.maximum(1, np.round(length_m / np.median(length_m)))
 
 
 def _frame(recording: Path, index: int) -> np.ndarray:
@@ -178,8 +187,11 @@ def _frame(recording: Path, index: int) -> np.ndarray:
     return np.asarray(image)
 
 
-def check_modules(client: CellClient, asked: list[int] | None) -> tuple[list[ModuleResult], list[str], Path]:
-    """Drive and measure; the results, the modules left out (why) and the recording."""
+def check_modules(
+    client: CellClient, asked: list[int] | None, frame_period_s: float | None = None
+) -> tuple[list[ModuleResult], list[str], Path]:
+    """Drive and measure; the results, the modules left out (why) and the recording. `frame_period_s`: a
+    simulated camera's, on its own clock (below)."""
     status = client.status()
     check_cell_ready(status)
     camera = client.http.get("/camera").json()
@@ -193,47 +205,12 @@ def check_modules(client: CellClient, asked: list[int] | None) -> tuple[list[Mod
         )
         if not modules:
             raise CellError("no module can be checked: " + "; ".join(left_out))
-        clocks = {m: _drive_with_clock(client, m) for m in modules}
+        for m in modules:
+            client.play(script_for(m))
     finally:
         client.record_stop()
         _wait_recording_closed(client)
-    return measure(recording, modules, clocks), left_out, recording
-
-
-@dataclass(frozen=True)
-class CellClock:
-    """A simulated cell's clock read on the host's through a drive: host_s[k] (from the drive's start,
-    which the recording's commands.csv stamps t_on) and sim_s[k] paired."""
-
-    host_s: np.ndarray
-    sim_s: np.ndarray
-
-    def rate(self, from_s: float, to_s: float) -> float:
-        """The cell's seconds per host second between from_s and to_s after the drive began."""
-        sim = np.interp([from_s, to_s], self.host_s, self.sim_s)
-        return float(sim[1] - sim[0]) / (to_s - from_s)
-
-
-def _drive_with_clock(client: CellClient, module: int) -> CellClock | None:
-    """Drive the module; the simulated cell's clock meanwhile (None on a real cell, whose clock is real)."""
-    if client.sim_time_s() is None:
-        client.play(script_for(module))
-        return None
-    samples: list[tuple[float, float]] = []
-
-    def sample() -> None:
-        # Seldom: the daemon relays the whole truth (every cloth node) each time.
-        if samples and time.monotonic() - samples[-1][0] < CLOCK_SAMPLE_S:
-            return
-        sim_s = client.sim_time_s()
-        if sim_s is not None:
-            samples.append((time.monotonic(), sim_s))
-
-    start_s = time.monotonic()
-    client.play(script_for(module), on_poll=sample)
-    samples.append((time.monotonic(), client.sim_time_s() or math.nan))
-    host, sim = np.array(samples).T
-    return CellClock(host - start_s, sim)
+    return measure(recording, modules, frame_period_s), left_out, recording
 
 
 def _wait_recording_closed(client: CellClient, timeout_s: float = 10.0) -> None:

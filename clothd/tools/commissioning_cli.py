@@ -12,6 +12,7 @@ from pathlib import Path
 # The commands' modules (OpenCV, httpx) are imported when one runs: the CLI starts quickly for the others.
 DEFAULT_URL = "http://127.0.0.1:8080"
 SIM_SCENARIO = "cell-miscalibrated"  # hwsim's live cell with module 9 wired wrong (docs/scenarios.md)
+SIM_FRAME_PERIOD_S = 1.0 / 15.0  # hwsim serve's camera (--camera-fps 15, as clothd run --sim starts it)
 
 
 def _cmd_drive(args: argparse.Namespace) -> int:
@@ -32,22 +33,22 @@ def _cmd_check_modules(args: argparse.Namespace) -> int:
     from clothd.tools.sim_daemon import sim_daemon
 
     if args.sim is None:
-        return _check(args, args.url)
+        return _check(args, args.url, None)
     with (
         tempfile.TemporaryDirectory(prefix="clothd-check-modules-") as tmp,
         sim_daemon(args.sim, Path(tmp)) as url,
     ):
-        return _check(args, url)
+        return _check(args, url, SIM_FRAME_PERIOD_S)
 
 
-def _check(args: argparse.Namespace, url: str) -> int:
+def _check(args: argparse.Namespace, url: str, frame_period_s: float | None) -> int:
     from clothd.formats import write_module_calibration
     from clothd.tools.cell_client import CellClient
     from clothd.tools.check_modules import check_modules, format_results
 
     client = CellClient(url, args.token)
     try:
-        results, left_out, recording = check_modules(client, args.modules)
+        results, left_out, recording = check_modules(client, args.modules, frame_period_s)
     finally:
         client.close()
     print(format_results(results))
