@@ -195,9 +195,9 @@ def test_the_refusal_names_the_loss_the_free_constants_and_a_late_best() -> None
 
 
 def test_a_fold_may_lose_where_its_recording_shows_what_the_others_do_not() -> None:
-    """Cross-validated, the verdict is the folds' mean held-out fitness, as the tune's fitness is a mean
-    over recordings: one fold that never saw the only push lost there, the others won by more; the design
-    written was searched on all of them. The report names the fold that lost."""
+    """Cross-validated, the verdict is the geometric mean of the folds' held-out fitness relative to the
+    start's: one fold that never saw the only shear lost there, the other won by more; the design written
+    was searched on all of them. The report names the fold that lost."""
     folds = (
         HeldOut(
             Path("rec/shear"),
@@ -215,9 +215,9 @@ def test_a_fold_may_lose_where_its_recording_shows_what_the_others_do_not() -> N
         ),
     )
     verdict = Verdict(folds, best_trial=120, trials=200, good_designs=6, spread=())
-    assert verdict.generalises and verdict.start_px == 100.0 and verdict.best_px == 80.5
+    assert verdict.generalises and verdict.ratio == pytest.approx(math.sqrt(0.15 * 1.46))
     text = format_verdict(verdict)
-    assert "held-out footage: mean 80.50 px against the start's 100.00 px (-19.5 %)" in text
+    assert "held-out footage: -53.2 % (geometric mean over 2 folds)" in text
     assert (
         "squeeze: 146.00 px (trial 185 of 'tune without 2') against the start's 100.00 px (+46.0 %)" in text
     )

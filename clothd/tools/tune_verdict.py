@@ -2,14 +2,15 @@
 scored on the recording that search never saw, and the spread of the good designs of the search whose best
 is written (the original report's Table 2 read for what the footage leaves free).
 
-best.yaml is written only when the best designs beat the start on the held-out footage: their mean
-held-out fitness below the start's, over the folds of a cross-validation as the tune's fitness is a mean
-over recordings. Every fold counts, not each: a recording that shows what the others do not (the cloth
-pushed together, where the others shear it) defeats the one search that never saw it, while the search on
-all of them, the design written, has it; the report names such a fold. Otherwise the verdict says by how
-much the best lost, and why it may have: designs equally good on the training footage that differ widely
-in a constant say the footage does not pin that constant down (an ill-posed fit), and a best found among
-the last trials says the search had not finished.
+best.yaml is written only when the best designs beat the start on the held-out footage: the geometric
+mean over the folds of each one's held-out fitness relative to the start's is below 1, so that every
+recording's relative change counts alike, whatever its scale in pixels. The folds together decide, not
+each: a recording that shows what the others do not (the cloth sheared, where the others push or turn it)
+defeats the one search that never saw it, while the search on all of them, the design written, has it;
+the report names such a fold. Otherwise the verdict says by how much the best lost, and why it may have:
+designs equally good on the training footage that differ widely in a constant say the footage does not
+pin that constant down (an ill-posed fit), and a best found among the last trials says the search had not
+finished.
 """
 
 from __future__ import annotations
@@ -85,22 +86,19 @@ class Verdict:
     spread: tuple[Spread, ...]
 
     @property
-    def start_px(self) -> float:
-        """The start's mean held-out fitness."""
-        return sum(h.start.cost_px for h in self.held_out) / len(self.held_out)
-
-    @property
-    def best_px(self) -> float:
-        """The best designs' mean held-out fitness, each on the recording its search never saw."""
-        return sum(h.best.cost_px for h in self.held_out) / len(self.held_out)
+    def ratio(self) -> float:
+        """The best designs' held-out fitness relative to the start's, geometric mean over the folds."""
+        return math.prod(h.best.cost_px / h.start.cost_px for h in self.held_out) ** (
+            1.0 / len(self.held_out)
+        )
 
     @property
     def change_pct(self) -> float:
-        return 100.0 * (self.best_px / self.start_px - 1.0)
+        return 100.0 * (self.ratio - 1.0)
 
     @property
     def generalises(self) -> bool:
-        return self.best_px < self.start_px
+        return self.ratio < 1.0
 
     @property
     def free(self) -> tuple[Spread, ...]:
@@ -179,10 +177,8 @@ def _format_spread(verdict: Verdict) -> list[str]:
 
 
 def _conclusion(verdict: Verdict) -> list[str]:
-    mean = (
-        f"mean {verdict.best_px:.2f} px against the start's {verdict.start_px:.2f} px "
-        f"({verdict.change_pct:+.1f} %)"
-    )
+    folds = len(verdict.held_out)
+    mean = f"{verdict.change_pct:+.1f} %" + (f" (geometric mean over {folds} folds)" if folds > 1 else "")
     lost = [h for h in verdict.held_out if not h.beats_start]
     if verdict.generalises:
         lines = [f"the best designs beat the start on the held-out footage: {mean}"]
@@ -223,8 +219,6 @@ def verdict_json(verdict: Verdict, written: bool) -> dict[str, Any]:
     return {
         "generalises": verdict.generalises,
         "best_yaml_written": written,
-        "start_fitness_px": verdict.start_px,
-        "best_fitness_px": verdict.best_px,
         "change_pct": verdict.change_pct,
         "best_trial": verdict.best_trial,
         "trials": verdict.trials,
