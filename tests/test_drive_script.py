@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.drive_script import DrivePlan, DriveScript, cloth_reach_m, swept_box_m
-from clothd.errors import InvalidRequestError
+from clothd.errors import InputError, InvalidRequestError
+from clothd.tools.drive import load_script
 
 LAYOUT = ConveyorLayout(8, 6, 0.075, 0.065)
 
@@ -88,3 +91,14 @@ def test_reach_counts_only_the_modules_near_the_cloth() -> None:
         cloth_reach_m(DrivePlan.compile(DriveScript.model_validate(far), LAYOUT, 0.2), outline, LAYOUT) == 0.0
     )
     np.testing.assert_allclose(swept_box_m(outline, 0.04)[2], [0.165, 0.14])
+
+
+def test_a_script_file_is_refused_naming_the_key(tmp_path: Path) -> None:
+    path = tmp_path / "shear.yaml"
+    path.write_text(
+        "duration_s: 1\ntimeline:\n  - {t_s: 0, modules: {all: true}, speed: 0.1, heading_rad: 0}\n"
+    )
+    with pytest.raises(
+        InputError, match=r"shear.yaml: timeline.0.speed_m_s: Field required; timeline.0.speed: Extra inputs"
+    ):
+        load_script(path)

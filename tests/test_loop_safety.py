@@ -20,6 +20,8 @@ from clothd.core.control import Setpoint
 from clothd.core.drive_script import DriveScript
 from clothd.core.ekf import UpdateStats
 from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.module_calibration import ModuleCalibration
+from clothd.core.module_check import ModuleCalibrationEntry
 from clothd.core.workspace import Workspace
 from clothd.daemon import Daemon, DaemonSettings
 from clothd.drivers.ports import ControllerFault, FrameSourceHealth, LinkCounters
@@ -126,7 +128,12 @@ class FakeCompute:
 Scenario = Callable[[Daemon, FakeLink, FakeCompute], Awaitable[None]]
 
 
-def _run(scenario: Scenario, max_stale_ticks: int = 3, estimates_shape: bool = True) -> None:
+def _run(
+    scenario: Scenario,
+    max_stale_ticks: int = 3,
+    estimates_shape: bool = True,
+    module_calibration: ModuleCalibration | None = None,
+) -> None:
     link, compute = FakeLink(), FakeCompute()
     settings = DaemonSettings(
         period_s=PERIOD_S,
@@ -138,6 +145,7 @@ def _run(scenario: Scenario, max_stale_ticks: int = 3, estimates_shape: bool = T
         camera_source="fake",
         link_port="fake",
         estimates_shape=estimates_shape,
+        module_calibration=module_calibration,
     )
     daemon = Daemon(settings, link, compute)  # type: ignore[arg-type]
 
@@ -349,3 +357,17 @@ def test_a_drive_script_is_refused_off_limits_stops_on_a_fault_and_ends_idle() -
         assert daemon.setpoint.mode == "idle" and daemon.halt_reason is None
 
     _run(scenario)
+
+
+def test_a_module_calibration_corrects_what_goes_out_not_what_is_in_force() -> None:
+    wrong = ModuleCalibrationEntry(module=3, reversed=True, heading_offset_deg=10.0, speed_scale=0.8)
+
+    async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
+        _move(daemon)
+        await _ticks(daemon, 3)
+        sent, in_force = link.sent[-1], compute.in_force[-1]
+        np.testing.assert_array_equal(in_force.speed_m_s, MOVING.speed_m_s)  # the tracker's input: as asked
+        assert sent.speed_m_s[3] == pytest.approx(0.05 / 0.8) and sent.speed_m_s[2] == pytest.approx(0.05)
+        assert sent.heading_rad[3] == pytest.approx(np.pi - np.radians(10.0))
+
+    _run(scenario, module_calibration=ModuleCalibration.of([wrong], N))
