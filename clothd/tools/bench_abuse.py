@@ -34,7 +34,7 @@ from collections.abc import Callable
 from multiprocessing.queues import Queue as QueueType
 from multiprocessing.synchronize import Event as EventType
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 import httpx
 import numpy as np
@@ -71,22 +71,32 @@ SOCKET_FLOODS = {
 FLOODS = (*SOCKET_FLOODS, "opcua-declared", "opcua-sessions")
 
 
-class Flood:
-    """Holds `n` sockets open to the port with `opening` sent, re-opening dropped ones, until stopped."""
+class Background:
+    """Work on a thread of its own from `with` to its end, which stops and joins it."""
 
-    def __init__(self, port: int, opening: bytes, n: int) -> None:
-        self.port, self.opening, self.n = port, opening, n
-        self.opened = 0
+    def __init__(self) -> None:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
 
-    def __enter__(self) -> Flood:
+    def __enter__(self) -> Self:
         self._thread.start()
         return self
 
     def __exit__(self, *exc: object) -> None:
         self._stop.set()
-        self._thread.join(timeout=30)
+        self._thread.join(timeout=60)
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+
+class Flood(Background):
+    """Holds `n` sockets open to the port with `opening` sent, re-opening dropped ones, until stopped."""
+
+    def __init__(self, port: int, opening: bytes, n: int) -> None:
+        self.port, self.opening, self.n = port, opening, n
+        self.opened = 0
+        super().__init__()
 
     def _open(self) -> socket.socket | None:
         try:
@@ -176,7 +186,7 @@ def _probe_estops(port: int, token: bool, stop: EventType, out: QueueType[Any]) 
     out.put((rtts, failures))
 
 
-class OpcDeclaredFlood:
+class OpcDeclaredFlood(Background):
     """One OPC UA connection after another: a header declaring DECLARED_BYTES, then up to STREAM_BYTES
     streamed into it until the daemon closes it (before any Hello: no login helps)."""
 
@@ -184,16 +194,7 @@ class OpcDeclaredFlood:
         self.host, self.port = host, port
         self.opened = 0
         self.streamed_bytes = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def __enter__(self) -> OpcDeclaredFlood:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(timeout=30)
+        super().__init__()
 
     def _run(self) -> None:
         block = bytes(65536)
@@ -211,7 +212,7 @@ class OpcDeclaredFlood:
                 self._stop.wait(1.0 / REOPEN_PER_S)
 
 
-class OpcSessionFlood:
+class OpcSessionFlood(Background):
     """OPC_SESSIONS anonymous sessions opened, OPC_CONCURRENCY at a time, and held; then user clothd logs
     in and calls EStop (its outcome in `user_estop`)."""
 
@@ -220,18 +221,12 @@ class OpcSessionFlood:
         self.opened = 0
         self.refused = 0
         self.user_estop: dict[str, Any] = {}
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=lambda: asyncio.run(self._run()), daemon=True)
+        super().__init__()
 
-    def __enter__(self) -> OpcSessionFlood:
-        self._thread.start()
-        return self
+    def _run(self) -> None:
+        asyncio.run(self._flood())
 
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(timeout=60)
-
-    async def _run(self) -> None:
+    async def _flood(self) -> None:
         logging.getLogger("asyncua").setLevel(logging.CRITICAL)  # the refusals are the point, not news
         held: list[Client] = []
         gate = asyncio.Semaphore(OPC_CONCURRENCY)
@@ -281,7 +276,7 @@ def _flood(d: DaemonProcess, port: int, kind: str, n: int, token: bool) -> Any:
     return OpcSessionFlood(d.opcua_url, token)
 
 
-class FlatnessSampler:
+class FlatnessSampler(Background):
     """The daemon's reported flatness, sampled every SAMPLE_EVERY_S on a thread of its own."""
 
     def __init__(self, base: str) -> None:
@@ -289,16 +284,7 @@ class FlatnessSampler:
         self.max_ridges = 0
         self.max_height_mm = 0.0
         self.links_lost = 0
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-
-    def __enter__(self) -> FlatnessSampler:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self._stop.set()
-        self._thread.join(timeout=30)
+        super().__init__()
 
     def sample(self) -> None:
         with contextlib.suppress(httpx.HTTPError, KeyError, TypeError):
