@@ -194,6 +194,23 @@ def test_the_refusal_names_the_loss_the_free_constants_and_a_late_best() -> None
     assert math.isinf(spread[2].ratio)
 
 
+def test_a_model_that_ran_away_on_held_out_footage_reads_as_a_power_of_ten() -> None:
+    """A design fitted elsewhere can run away on footage it never saw without going NaN (20 shirting
+    trials did: 6.2e18 px); the report stays readable."""
+    ran_away = HeldOut(
+        Path("rec/shear"),
+        "tune without 1",
+        14,
+        SequenceScore(15.0, 16.0, 9.2),
+        SequenceScore(6.2e18, 0.0, 1e17),
+    )
+    text = format_verdict(Verdict((ran_away,), best_trial=14, trials=20, good_designs=1, spread=()))
+    assert (
+        "shear: 6.2e+18 px (trial 14 of 'tune without 1') against the start's 47.00 px (+1.3e+19 %)" in text
+    )
+    assert "9.20 → 1.0e+17 mm" in text
+
+
 def test_a_fold_may_lose_where_its_recording_shows_what_the_others_do_not() -> None:
     """Cross-validated, the verdict is the geometric mean of the folds' held-out fitness relative to the
     start's: one fold that never saw the only shear lost there, the other won by more; the design written

@@ -154,11 +154,11 @@ def format_verdict(verdict: Verdict) -> str:
     lines.append(head + ("  node RMSE (truth) start → best" if truth else ""))
     for h in verdict.held_out:
         row = (
-            f"{h.recording.name:<24} {h.study_name:<18} {h.start.cost_px:7.2f}px {h.best.cost_px:7.2f}px "
-            f"{h.change_pct:+7.1f}%"
+            f"{h.recording.name:<24} {h.study_name:<18} {_num(h.start.cost_px, 7)}px "
+            f"{_num(h.best.cost_px, 7)}px {_pct(h.change_pct, 7)}%"
         )
         if h.start.node_rmse_mm is not None and h.best.node_rmse_mm is not None:
-            row += f"  {h.start.node_rmse_mm:.2f} → {h.best.node_rmse_mm:.2f} mm"
+            row += f"  {_num(h.start.node_rmse_mm)} → {_num(h.best.node_rmse_mm)} mm"
         lines.append(row)
     lines += ["", *_format_spread(verdict), "", *_conclusion(verdict)]
     return "\n".join(lines)
@@ -178,7 +178,7 @@ def _format_spread(verdict: Verdict) -> list[str]:
 
 def _conclusion(verdict: Verdict) -> list[str]:
     folds = len(verdict.held_out)
-    mean = f"{verdict.change_pct:+.1f} %" + (f" (geometric mean over {folds} folds)" if folds > 1 else "")
+    mean = f"{_pct(verdict.change_pct)} %" + (f" (geometric mean over {folds} folds)" if folds > 1 else "")
     lost = [h for h in verdict.held_out if not h.beats_start]
     if verdict.generalises:
         lines = [f"the best designs beat the start on the held-out footage: {mean}"]
@@ -210,9 +210,18 @@ def _lost(h: HeldOut) -> str:
     if h.best.cost_px == h.start.cost_px:
         return f"  {h.recording.name}: the search {h.study_name!r} found nothing better than the start"
     return (
-        f"  {h.recording.name}: {h.best.cost_px:.2f} px (trial {h.best_trial} of {h.study_name!r}) against "
-        f"the start's {h.start.cost_px:.2f} px ({h.change_pct:+.1f} %)"
+        f"  {h.recording.name}: {_num(h.best.cost_px)} px (trial {h.best_trial} of {h.study_name!r}) against "
+        f"the start's {_num(h.start.cost_px)} px ({_pct(h.change_pct)} %)"
     )
+
+
+def _num(value: float, width: int = 0, sign: str = "", decimals: int = 2) -> str:
+    """Fixed decimals, or a power of ten for a model that ran away on footage it was not fitted to."""
+    return f"{value:{sign}{width}.{decimals}f}" if abs(value) < 1e5 else f"{value:{sign}{width}.1e}"
+
+
+def _pct(value: float, width: int = 0) -> str:
+    return _num(value, width, "+", 1)
 
 
 def verdict_json(verdict: Verdict, written: bool) -> dict[str, Any]:
