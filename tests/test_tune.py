@@ -181,13 +181,13 @@ def test_the_refusal_names_the_loss_the_free_constants_and_a_late_best() -> None
         Spread("friction_mu", 0.3, 0.4),
         Spread("slack_strain", 0, 0.01),
     )
-    verdict = Verdict((lost,), best_trial=38, trials=40, good_designs=7, spread=spread)
+    verdict = Verdict((lost,), best_trial=38, trials=40, good_fitness_px=(30.0, 31.0, 32.0), spread=spread)
     assert not verdict.generalises
     assert [s.name for s in verdict.free] == ["slack_strain", "stretch_k_n_m"]
     text = format_verdict(verdict)
     assert "lining-c: 40.00 px (trial 38 of 'tune') against the start's 25.00 px (+60.0 %)" in text
     assert "5.48 → 9.55 mm" in text
-    assert "7 of 40 within 10 %" in text
+    assert "the 3 best designs of 40 (fitness 30.00 … 32.00 px, +6.7 %)" in text
     assert "stretch_k_n_m (50x)" in text and "ill-posed" in text
     assert "friction_mu (" not in text.split("best.yaml not written")[1]
     assert "still improving" in text
@@ -204,7 +204,7 @@ def test_a_model_that_ran_away_on_held_out_footage_reads_as_a_power_of_ten() -> 
         SequenceScore(15.0, 16.0, 9.2),
         SequenceScore(6.2e18, 0.0, 1e17),
     )
-    text = format_verdict(Verdict((ran_away,), best_trial=14, trials=20, good_designs=1, spread=()))
+    text = format_verdict(Verdict((ran_away,), best_trial=14, trials=20, good_fitness_px=(20.0,), spread=()))
     assert (
         "shear: 6.2e+18 px (trial 14 of 'tune without 1') against the start's 47.00 px (+1.3e+19 %)" in text
     )
@@ -231,7 +231,7 @@ def test_a_fold_may_lose_where_its_recording_shows_what_the_others_do_not() -> N
             SequenceScore(40.0, 53.0, 47.2),
         ),
     )
-    verdict = Verdict(folds, best_trial=120, trials=200, good_designs=6, spread=())
+    verdict = Verdict(folds, best_trial=120, trials=200, good_fitness_px=(20.0,), spread=())
     assert verdict.generalises and verdict.ratio == pytest.approx(math.sqrt(0.15 * 1.46))
     text = format_verdict(verdict)
     assert "held-out footage: -53.2 % (geometric mean over 2 folds)" in text

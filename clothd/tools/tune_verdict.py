@@ -34,8 +34,8 @@ if TYPE_CHECKING:
     from clothd.tools.tune import Search
 
 VERDICT_JSON = "verdict.json"
-# Designs within this share of the best fitness count as equally good on the training footage.
-GOOD_SHARE = 0.10
+# The good designs whose spread is reported: the best few, as the printed Table 2 shows them.
+GOOD_DESIGNS = 5
 # A constant that differs more than this (max / min) among the good designs is not pinned down.
 FREE_RATIO = 10.0
 # A best found in the last fifth of a study's trials: the search was still improving.
@@ -82,8 +82,8 @@ class Verdict:
     held_out: tuple[HeldOut, ...]
     best_trial: int  # of the study whose best is written
     trials: int  # completed in that study
-    good_designs: int  # within GOOD_SHARE of its best fitness
-    spread: tuple[Spread, ...]
+    good_fitness_px: tuple[float, ...]  # its GOOD_DESIGNS best fitness values, best first
+    spread: tuple[Spread, ...]  # each constant's range among those designs
 
     @property
     def ratio(self) -> float:
@@ -128,12 +128,12 @@ def judge(
     designs = population(studies[-1], base)
     if not designs:
         raise ClothdError(f"study {studies[-1].study_name!r} has no completed trial yet")
-    good = [d for d in designs if d.fitness_px <= designs[0].fitness_px * (1.0 + GOOD_SHARE)]
+    good = designs[:GOOD_DESIGNS]
     spread = tuple(
         Spread(name, min(d.physics[name] for d in good), max(d.physics[name] for d in good))
         for name in tune_space.TUNED_FIELDS
     )
-    return Verdict(held, designs[0].trial, len(designs), len(good), spread)
+    return Verdict(held, designs[0].trial, len(designs), tuple(d.fitness_px for d in good), spread)
 
 
 def _held_out(
@@ -165,9 +165,10 @@ def format_verdict(verdict: Verdict) -> str:
 
 
 def _format_spread(verdict: Verdict) -> list[str]:
+    best, last = verdict.good_fitness_px[0], verdict.good_fitness_px[-1]
     lines = [
-        f"the good designs: {verdict.good_designs} of {verdict.trials} within {100 * GOOD_SHARE:.0f} % of "
-        "the best fitness; each constant's range among them"
+        f"the {len(verdict.good_fitness_px)} best designs of {verdict.trials} (fitness {_num(best)} … "
+        f"{_num(last)} px, {_pct(100 * (last / best - 1))} %): each constant's range among them"
     ]
     for s in verdict.spread:
         ratio = "" if math.isinf(s.ratio) else f"{s.ratio:8.1f}x"
@@ -195,8 +196,8 @@ def _conclusion(verdict: Verdict) -> list[str]:
     if verdict.free:
         names = ", ".join(f"{s.name} ({s.ratio:.0f}x)" for s in verdict.free)
         lines.append(
-            f"  equally good designs differ widely in {names}: the training footage does not pin these down "
-            "(an ill-posed fit); record drives that move the cloth differently"
+            f"  designs about as good as the best differ widely in {names}: the training footage does not "
+            "pin these down (an ill-posed fit); record drives that move the cloth differently"
         )
     if verdict.found_late:
         lines.append(
@@ -244,7 +245,7 @@ def verdict_json(verdict: Verdict, written: bool) -> dict[str, Any]:
             }
             for h in verdict.held_out
         ],
-        "good_designs": verdict.good_designs,
+        "good_fitness_px": list(verdict.good_fitness_px),
         "spread": {s.name: [s.low, s.high] for s in verdict.spread},
     }
 
