@@ -599,7 +599,7 @@ def build_parser() -> argparse.ArgumentParser:
     ba.add_argument("--json", type=Path)
     ba.set_defaults(func=_cmd_bench_accuracy)
     brb = bsub.add_parser(
-        "robustness", help="issue 15's weaves (plain twill, side light, turns) and fast belts, graded"
+        "robustness", help="periodic weaves (plain twill, side light, turns) and fast belts, graded"
     )
     brb.add_argument("--sets", nargs="+", choices=["weaves", "fast"], default=["weaves", "fast"])
     brb.add_argument("--scenarios", nargs="+", help="these scenarios instead of the sets")

@@ -163,7 +163,7 @@ def weave_slopes(
     that the weft band (phase 0, where cloth_texture shows the weft) is the groove and relief_m the
     peak-to-peak depth. Under light from straight above a slope hardly changes the shading; under low
     side light one flank of each wale is lit and the other shaded, and how strongly depends on how the
-    wales lie to the light, so a patch's look changes as the cloth turns (issue 15)."""
+    wales lie to the light, so a patch's look changes as the cloth turns."""
     shape_px = _shape_px(size_m, texels_per_m)
     phase, _ = _twill_phase(kind, np.random.default_rng(seed), shape_px, texels_per_m)
     height = (0.5 * relief_m) * np.cos(2.0 * np.pi * phase + np.pi)

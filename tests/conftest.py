@@ -19,7 +19,7 @@ SHORT_DURATION_S = {
     "compress": 1.0,
     "occlude": 2.4,
     "random": 1.0,
-    # Issue 15's hard footage: a second of a plain twill turning under side light; the 200 mm/s run whole.
+    # Hard footage: a second of a plain twill turning under side light; the 200 mm/s run whole.
     "twill-turn-left": 1.0,
     "fast-200": 1.35,
     "gingham-fast": 1.0,  # the onset and 0.5 s at 4.5 px a frame

@@ -1,4 +1,4 @@
-"""clothd calibrate: the camera hwsim renders through is recovered within issue 12's bars, bad pictures
+"""clothd calibrate: the camera hwsim renders through is recovered within bench calibrate's bars, bad pictures
 get their reason, the command's interface works end to end and writes a camera.json the tracker loads,
 and live pictures come through the camera driver."""
 

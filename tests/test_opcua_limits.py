@@ -135,5 +135,3 @@ def test_a_pending_connection_is_closed_after_the_activation_timeout() -> None:
             client.disconnect_socket()
 
     asyncio.run(main())
-
-

@@ -1,4 +1,4 @@
-"""Issue 15 on short hwsim recordings: a plain twill under side light, and the fastest belts."""
+"""The tracker on short hard hwsim recordings: a plain twill under side light, and the fastest belts."""
 
 from collections.abc import Callable
 from pathlib import Path
@@ -40,7 +40,7 @@ def test_a_twill_is_told_from_denim_and_tracked_within_the_bars(short_recording:
     row = grade(twill, "twill-turn-left", "mesh", TrackerConfig()).row
     assert row.lost_frames == 0 and row.feat_mean_px <= 0.3 and row.feat_worst_px <= 1.5
     assert row.node_rmse_mm is not None and row.node_rmse_mm <= 2.0
-    # The tracker before issue 15 (no periodic path), and without the shape prior: the nodes wander
+    # The tracker with no periodic path, and without the shape prior: the nodes wander
     # along the stripes.
     for off in ({"features": {"periodic_ratio": 1e9}}, {"ekf": {"periodic_shape_sigma_m": 0.0}}):
         old = grade(

@@ -1,4 +1,4 @@
-"""Issue 15's hard footage in hwsim: the weave's relief under side light, and the scenarios that use it."""
+"""Hard footage in hwsim: the weave's relief under side light, and the scenarios that use it."""
 
 from __future__ import annotations
 

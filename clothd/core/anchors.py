@@ -1,7 +1,7 @@
 """Drift correction: each feature is held to its appearance in an anchor frame, not only to the last frame.
 
 Frame-to-frame LK adds a little error every frame, and nothing takes it back: on a still cloth the
-residual grew from 0.005 px to 0.9 px in 5 minutes (issue 15). Following Zinsser et al. (tracking
+residual grew from 0.005 px to 0.9 px in 5 minutes. Following Zinsser et al. (tracking
 features against a reference template, as the report's own smart-camera tracker does) and Matthews et
 al. 2004 ("The template update problem"), every frame-to-frame result is refined by one more LK pass from
 the feature's anchor, the frame and pixel where it was anchored, started at the frame-to-frame answer.

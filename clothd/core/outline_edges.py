@@ -1,6 +1,6 @@
 """The cloth's outline as a measurement: where its edge lies across the mesh's border, frame by frame.
 
-On a strictly periodic weave (hwsim's plain twill, issue 15) every patch inside the cloth is a piece of
+On a strictly periodic weave (hwsim's plain twill) every patch inside the cloth is a piece of
 the same stripes: LK measures each feature across the wales and hardly at all along them (the aperture
 problem), and nothing inside the cloth can tell a shift along the wales from none. The cloth's edges can:
 the border of the mesh is the cloth's outline, and against the belts it is a colour edge. So, as model-based

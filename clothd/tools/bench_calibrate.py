@@ -1,5 +1,5 @@
 """`clothd bench calibrate`: `clothd calibrate` on pictures hwsim renders through a camera it knows,
-graded against that camera on the bars of issue 12.
+graded against that camera on the bars below.
 
 - fx, fy, cx, cy: relative error, within 0.5 %.
 - Table points over the whole image: every STEP_PX-th pixel, edges included, is back-projected through

@@ -1,4 +1,4 @@
-"""`clothd bench drift`: does the live tracker drift over a shift? Judged by hwsim's truth (issue 15).
+"""`clothd bench drift`: does the live tracker drift over a shift? Judged by hwsim's truth.
 
 `clothd run --sim` runs as a separate process (as in `bench loop`). After a reset onto the cloth at rest:
 

@@ -1,4 +1,5 @@
-"""`clothd bench robustness`: the tracker on issue 15's hard footage, graded as bench accuracy grades.
+"""`clothd bench robustness`: the tracker on hard footage (periodic weaves, fast belts), graded as bench
+accuracy grades.
 
 Two sets of hwsim scenarios (docs/scenarios.md, "Weaves and fast belts"):
 - weaves: a strictly periodic plain twill with a relief, under low side light, turned both ways and
