@@ -180,7 +180,7 @@ def _children_cpu_s() -> float:
 def _output(stdout: str) -> str:
     """`clothd tune`'s printed Table 2 and verdict (the workers' Taichi banners left out)."""
     lines = [line for line in stdout.splitlines() if not line.startswith("[Taichi]")]
-    return "\n".join(lines).strip()
+    return "\n".join(lines).strip("\n")
 
 
 def _search_s(studies: list[optuna.Study]) -> float:

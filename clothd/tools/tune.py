@@ -47,6 +47,8 @@ from clothd.tools.tune_verdict import Verdict, judge
 MODELS = ("predict", "mesh")
 _POLL_S = 0.5  # how often the progress bar reads the studies
 BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+_RDB_TRIES = 3  # creating an RDB storage's tables, against a machine creating them at the same moment
+_RDB_RETRY_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -118,13 +120,26 @@ def storage_of(url: str) -> optuna.storages.BaseStorage:
     # SQLite serialises writers: workers wait their turn rather than fail on a locked database.
     connect = {"timeout": 60} if sqlite else {}
     try:
-        storage = optuna.storages.RDBStorage(url, engine_kwargs={"connect_args": connect})
+        storage = _rdb_storage(url, connect)
     except Exception as err:  # SQLAlchemy's many errors (bad URL, missing driver, unreachable server)
         raise ConfigError(f"--storage {url}: {err}") from None
     if sqlite:
         sqlalchemy.event.listen(storage.engine, "connect", _sqlite_wal)
         storage.engine.dispose()  # the connections made before the listener
     return storage
+
+
+def _rdb_storage(url: str, connect: dict[str, Any]) -> optuna.storages.RDBStorage:
+    """Optuna's RDB storage, which creates its tables on first use. Machines starting at once on a new
+    database race to create them (PostgreSQL: a duplicate key in alembic_version, or a table that exists
+    by the time it is created); the one that lost finds them made when it tries again."""
+    engine = {"connect_args": connect}
+    for _ in range(_RDB_TRIES - 1):
+        try:
+            return optuna.storages.RDBStorage(url, engine_kwargs=engine)
+        except (sqlalchemy.exc.IntegrityError, sqlalchemy.exc.ProgrammingError):
+            time.sleep(_RDB_RETRY_S)
+    return optuna.storages.RDBStorage(url, engine_kwargs=engine)  # the last try's error is the caller's
 
 
 def _sqlite_wal(connection: Any, _record: Any) -> None:
