@@ -22,6 +22,7 @@ from pathlib import Path
 import optuna
 import pytest
 import yaml
+from live_cell import wait
 from postgres_server import postgres_server
 
 from clothd.cli import main
@@ -348,15 +349,33 @@ def test_two_tunes_share_a_study_on_postgresql(
     assert not (tmp_path / "machine-0" / "study.db").exists()
 
 
-def test_machines_opening_a_new_postgresql_study_at_once_all_get_it() -> None:
+# Imports, says it is ready, waits for the go, then opens the storage: the six open it at the same moment.
+_OPEN_AT_ONCE = """
+import sys, time, pathlib
+from clothd.tools.tune import storage_of
+url, ready, go = sys.argv[1], pathlib.Path(sys.argv[2]), pathlib.Path(sys.argv[3])
+ready.touch()
+while not go.exists():
+    time.sleep(0.002)
+storage_of(url)
+"""
+
+
+def test_machines_opening_a_new_postgresql_study_at_once_all_get_it(tmp_path: Path) -> None:
     """Optuna creates its tables on first use, and processes doing so at once on one new database race
     (plain RDBStorage: 2-4 of 6 failed on a duplicate key, in each of 3 tries); the storage retries."""
-    code = "import sys; from clothd.tools.tune import storage_of; storage_of(sys.argv[1])"
+    go = tmp_path / "go"
     with postgres_server() as url:
         opening = [
-            subprocess.Popen([sys.executable, "-c", code, url], stderr=subprocess.PIPE, text=True)
-            for _ in range(6)
+            subprocess.Popen(
+                [sys.executable, "-c", _OPEN_AT_ONCE, url, str(tmp_path / f"ready-{k}"), str(go)],
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            for k in range(6)
         ]
+        wait(lambda: len(list(tmp_path.glob("ready-*"))) == 6, 120, "six processes ready")
+        go.touch()
         errors = [p.communicate(timeout=120)[1] for p in opening]
     assert [p.returncode for p in opening] == [0] * 6, errors
 
