@@ -318,7 +318,8 @@ def _cmd_tune(args: argparse.Namespace) -> int:
 def _cmd_bench_tune(args: argparse.Namespace) -> int:
     from clothd.tools.bench_tune import format_result, run_bench, write_json
 
-    result = run_bench(args.cache, args.out, args.trials, args.seed, args.fabric, tuple(args.workers))
+    workers, counts = tuple(args.workers), tuple(args.trial_counts)
+    result = run_bench(args.cache, args.out, args.trials, args.seed, args.fabric, workers, counts)
     print(format_result(result))
     if args.json:
         write_json(result, args.json)
@@ -702,6 +703,15 @@ def build_parser() -> argparse.ArgumentParser:
         nargs="+",
         default=[1, 2],
         help="a tune from scratch with each (default 1 2); the first one's design is graded",
+    )
+    btn.add_argument(
+        "--trial-counts",
+        type=_positive_int,
+        nargs="+",
+        default=[],
+        metavar="N",
+        help="also what tunes of N trials per search would have given, read from the first tune's "
+        "(--workers 1 first)",
     )
     btn.add_argument(
         "--cache", type=Path, default=Path("out/bench"), help="where the shirting scenarios are recorded"

@@ -30,6 +30,7 @@ from clothd.config import load_config, with_overrides
 from clothd.taichi_runtime import start_taichi
 from clothd.tools import tune, tune_space
 from clothd.tools.bench_accuracy import grade
+from clothd.tools.bench_tune_trials import trial_counts
 from clothd.tools.tune_fitness import ModelPredictor, SequenceScore, measure
 from clothd.tools.tune_report import SCORE_COLUMNS
 from clothd.tools.tune_verdict import HeldOut, Spread, Verdict, format_verdict
@@ -264,6 +265,13 @@ def test_three_recordings_are_cross_validated(
     final = optuna.load_study(study_name="tune", storage=storage)
     assert final.user_attrs["recordings"] == [str(r.resolve()) for r in recordings]
     assert len(_population(out)) == 2  # the population is the final search's
+    # bench tune --trial-counts reads fewer trials from the same studies; all of them are this tune
+    cfg = load_config(wrong_config)
+    recs = dict(zip(("shear", "twist", "squeeze"), recordings, strict=True))
+    [one, two] = trial_counts(recs, ("shear", "twist", "squeeze"), ("twist",), out, cfg, (1, 2), 0.4)
+    assert two["verdict_change_pct"] == pytest.approx(verdict["change_pct"])
+    assert one["verdict_change_pct"] == 0.0 and not one["written"]  # one trial: the start itself
+    assert one["held_out_change_pct"] == {"twist": 0.0}
 
 
 def test_best_yaml_loads_as_a_configuration(tuned: Path, wrong_config: Path) -> None:

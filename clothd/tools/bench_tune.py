@@ -44,6 +44,7 @@ from clothd.config import Config, load_config, with_overrides
 from clothd.errors import ClothdError
 from clothd.taichi_runtime import start_taichi
 from clothd.tools.bench_accuracy import grade
+from clothd.tools.bench_tune_trials import format_counts, trial_counts
 from clothd.tools.recordings import scenario_recording
 from clothd.tools.tune import plan, storage_of, storage_url
 from clothd.tools.tune_report import population
@@ -94,8 +95,16 @@ def run_bench(
     seed: int,
     fabric: str = "shirting",
     workers: tuple[int, ...] = WORKERS,
+    counts: tuple[int, ...] = (),
 ) -> dict[str, Any]:
+    """counts: also what tunes of these many trials per search would have given (bench_tune_trials; the
+    first tune must run on one worker)."""
     spec = FABRICS[fabric]
+    if counts and (workers[0] != 1 or max(counts) > trials):
+        raise ClothdError(
+            "--trial-counts reads the first tune's trials in order: its --workers must be 1, and "
+            f"no count above --trials ({trials})"
+        )
     defaults = load_config(None)
     start_taichi(defaults.taichi.arch)  # before hwsim records, so that the tracker's settings hold
     names = (*spec.train, *spec.held_out, *spec.beyond)
@@ -121,6 +130,11 @@ def run_bench(
         "graded": rows,
         "pass": passes,
     }
+    if counts:
+        out_1 = out / f"workers-{workers[0]}"
+        result["trial_counts"] = trial_counts(
+            recs, spec.train, spec.held_out, out_1, defaults, counts, PREDICT_CUT_BAR
+        )
     if "1" in runs and "2" in runs:
         result["speedup_workers_2"] = runs["1"]["wall_s"] / runs["2"]["wall_s"]
         result["search_speedup_workers_2"] = runs["1"]["search_s"] / runs["2"]["search_s"]
@@ -226,6 +240,9 @@ def format_result(result: dict[str, Any]) -> str:
         )
     for name, why in result["not_in_the_bar"].items():
         lines.append(f"{name} is not in the bar ({why})")
+    if "trial_counts" in result:
+        lines += ["", "what fewer trials per search would have given (held-out predict node RMSE change):"]
+        lines.append(format_counts(result["trial_counts"]))
     p = result["pass"]
     lines.append("")
     lines.append(f"the tune wrote best.yaml:               {_verdict(p['best_yaml_written'])}")
