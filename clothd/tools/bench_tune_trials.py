@@ -17,7 +17,7 @@ from clothd.config import Config
 from clothd.tools import tune_space
 from clothd.tools.tune import Scorer, plan, storage_of, storage_url
 from clothd.tools.tune_fitness import SequenceScore, measure
-from clothd.tools.tune_verdict import HeldOut, Verdict
+from clothd.tools.tune_verdict import HeldOut, Verdict, pct_text
 
 
 def trial_counts(
@@ -92,7 +92,7 @@ def format_counts(rows: list[dict[str, Any]]) -> str:
         cuts = " ".join(f"{r['held_out_change_pct'][n]:+19.1f}%" for n in names)
         written = "written" if r["written"] else "refused"
         lines.append(
-            f"{r['trials']:>6} {r['verdict_change_pct']:+9.1f}% {written:>9} {cuts}  "
+            f"{r['trials']:>6} {pct_text(r['verdict_change_pct'], 9)}% {written:>9} {cuts}  "
             f"{'met' if r['bar_met'] else '-'}"
         )
     return "\n".join(lines)

@@ -155,7 +155,7 @@ def format_verdict(verdict: Verdict) -> str:
     for h in verdict.held_out:
         row = (
             f"{h.recording.name:<24} {h.study_name:<18} {_num(h.start.cost_px, 7)}px "
-            f"{_num(h.best.cost_px, 7)}px {_pct(h.change_pct, 7)}%"
+            f"{_num(h.best.cost_px, 7)}px {pct_text(h.change_pct, 7)}%"
         )
         if h.start.node_rmse_mm is not None and h.best.node_rmse_mm is not None:
             row += f"  {_num(h.start.node_rmse_mm)} → {_num(h.best.node_rmse_mm)} mm"
@@ -168,7 +168,7 @@ def _format_spread(verdict: Verdict) -> list[str]:
     best, last = verdict.good_fitness_px[0], verdict.good_fitness_px[-1]
     lines = [
         f"the {len(verdict.good_fitness_px)} best designs of {verdict.trials} (fitness {_num(best)} … "
-        f"{_num(last)} px, {_pct(100 * (last / best - 1))} %): each constant's range among them"
+        f"{_num(last)} px, {pct_text(100 * (last / best - 1))} %): each constant's range among them"
     ]
     for s in verdict.spread:
         ratio = "" if math.isinf(s.ratio) else f"{s.ratio:8.1f}x"
@@ -179,7 +179,9 @@ def _format_spread(verdict: Verdict) -> list[str]:
 
 def _conclusion(verdict: Verdict) -> list[str]:
     folds = len(verdict.held_out)
-    mean = f"{_pct(verdict.change_pct)} %" + (f" (geometric mean over {folds} folds)" if folds > 1 else "")
+    mean = f"{pct_text(verdict.change_pct)} %" + (
+        f" (geometric mean over {folds} folds)" if folds > 1 else ""
+    )
     lost = [h for h in verdict.held_out if not h.beats_start]
     if verdict.generalises:
         lines = [f"the best designs beat the start on the held-out footage: {mean}"]
@@ -212,7 +214,7 @@ def _lost(h: HeldOut) -> str:
         return f"  {h.recording.name}: the search {h.study_name!r} found nothing better than the start"
     return (
         f"  {h.recording.name}: {_num(h.best.cost_px)} px (trial {h.best_trial} of {h.study_name!r}) against "
-        f"the start's {_num(h.start.cost_px)} px ({_pct(h.change_pct)} %)"
+        f"the start's {_num(h.start.cost_px)} px ({pct_text(h.change_pct)} %)"
     )
 
 
@@ -221,7 +223,8 @@ def _num(value: float, width: int = 0, sign: str = "", decimals: int = 2) -> str
     return f"{value:{sign}{width}.{decimals}f}" if abs(value) < 1e5 else f"{value:{sign}{width}.1e}"
 
 
-def _pct(value: float, width: int = 0) -> str:
+def pct_text(value: float, width: int = 0) -> str:
+    """A change in percent, signed, one decimal (a power of ten past 1e5)."""
     return _num(value, width, "+", 1)
 
 
