@@ -135,3 +135,21 @@ def test_a_pending_connection_is_closed_after_the_activation_timeout() -> None:
             client.disconnect_socket()
 
     asyncio.run(main())
+
+
+def test_a_peer_is_asyncuas_only_once_its_first_header_passed_and_a_silent_one_is_closed() -> None:
+    async def main() -> None:
+        async with _server(activation_timeout_s=0.5) as server:
+            bserver = server.server.bserver
+            assert bserver is not None
+            reader, writer = await asyncio.open_connection(*_address(server))
+            writer.write(b"HEL")  # less than a header
+            await asyncio.sleep(0.2)
+            assert bserver.clients == [], "no processor, no tasks for a peer that has said nothing yet"
+            assert await _closed_by_peer(reader), "closed after the activation timeout"
+            writer.close()
+            async with _user(server.cfg.endpoint) as user:  # a real client is handed over whole
+                assert len(bserver.clients) == 1
+                assert (await _call(user, "Reset")).StatusCode.is_good()
+
+    asyncio.run(main())

@@ -6,6 +6,8 @@ long enough to miss a quarter of the ticks. And its one `max_connections` is sha
 1,000 anonymous sessions locked the line controller's user out. Here:
 - a chunk's declared size is read from its header as soon as its 8 bytes are in, and a peer declaring
   more than the negotiated receive buffer is closed at once, before anything more of it is buffered;
+  a connection is handed to asyncua (its processor, its tasks: garbage for the collector, whose full
+  runs hold the tick) only once its first header has passed, so a flood of such peers costs an accept;
   a message is at most `opcua.max_message_bytes`, and each connection queues at most
   MAX_QUEUED_MESSAGES whole chunks;
 - connections are counted by class: activated anonymous sessions, activated user sessions, and pending
@@ -61,6 +63,7 @@ class SessionSlots:
     def __init__(self, cfg: OpcUaConfig) -> None:
         self.cfg = cfg
         self.connections: list[OPCUAProtocol] = []  # asyncua's BinaryServer.clients: it adds and removes
+        self.unopened: list[GuardedProtocol] = []  # accepted, their first header not yet in: not asyncua's
         self.caps = {UserRole.Anonymous: cfg.max_anonymous_sessions, UserRole.User: cfg.max_user_sessions}
 
     @property
@@ -79,11 +82,20 @@ class SessionSlots:
         raise ServiceError(ua.StatusCodes.BadTooManySessions)
 
     def make_room_for_one_pending(self) -> None:
-        """Before a new connection: past the pending cap, the oldest pending connection goes."""
-        pending = [c for c in self.connections if _role(c) is None and not _closing(c)]
-        if len(pending) >= self.cfg.max_pending_connections and pending[0].transport is not None:
-            pending[0].transport.abort()
-            self.connections.remove(pending[0])  # its slot is free now, not when asyncua hears of it
+        """Before a new connection: past the pending cap, the oldest pending connection goes (one not yet
+        handed to asyncua first: it has said least)."""
+        opened = [c for c in self.connections if _role(c) is None and not _closing(c)]
+        pending: list[OPCUAProtocol] = [*self.unopened, *opened]
+        if len(pending) < self.cfg.max_pending_connections:
+            return
+        oldest = pending[0]
+        if oldest.transport is not None:
+            oldest.transport.abort()
+        # Its slot is free now, not when asyncua hears of it.
+        if isinstance(oldest, GuardedProtocol) and oldest in self.unopened:
+            self.unopened.remove(oldest)
+        else:
+            self.connections.remove(oldest)
 
 
 def _role(conn: OPCUAProtocol) -> UserRole | None:
@@ -111,20 +123,54 @@ class GuardedProtocol(OPCUAProtocol):
     def __init__(self, *args: Any, slots: SessionSlots, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.slots = slots
+        self._accepted: asyncio.Transport | None = None  # until the first header passes
+        self._silent: asyncio.TimerHandle | None = None
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        assert isinstance(transport, asyncio.Transport)
         self.slots.make_room_for_one_pending()
-        token = _current.set(self)  # copied into the connection's message task that asyncua starts
-        try:
-            super().connection_made(transport)
-        finally:
-            _current.reset(token)
+        self._accepted = self.transport = transport
+        self.peer_name = transport.get_extra_info("peername")
+        self.slots.unopened.append(self)
+        timeout_s = self.slots.cfg.activation_timeout_s
+        self._silent = asyncio.get_running_loop().call_later(timeout_s, transport.abort)
+
+    def connection_lost(self, exc: BaseException | None) -> None:
+        if self._accepted is None:
+            super().connection_lost(exc)
+            return
+        self._leave_unopened()  # asyncua never knew it
 
     def data_received(self, data: bytes) -> None:
-        if self._too_large(self._buffer + data[:HEADER_BYTES]):
+        if self._accepted is not None:
+            if self._too_large(self._buffer + data[:HEADER_BYTES]):
+                return
+            if len(self._buffer) + len(data) < HEADER_BYTES:
+                self._buffer += data
+                return
+            data, self._buffer = self._buffer + data, b""
+            self._hand_over()
+        elif self._too_large(self._buffer + data[:HEADER_BYTES]):
             return
         super().data_received(data)
         self._too_large(self._buffer)  # the next chunk's header, when it came with this data
+
+    def _hand_over(self) -> None:
+        """The first header passed: now asyncua's connection (its processor, its message task)."""
+        transport = self._accepted
+        self._leave_unopened()
+        token = _current.set(self)  # copied into the connection's message task that asyncua starts
+        try:
+            super().connection_made(transport)  # type: ignore[arg-type]
+        finally:
+            _current.reset(token)
+
+    def _leave_unopened(self) -> None:
+        self._accepted = None
+        if self._silent is not None:
+            self._silent.cancel()
+        if self in self.slots.unopened:
+            self.slots.unopened.remove(self)
 
     def close_soon(self) -> None:
         if self.transport is not None:

@@ -328,6 +328,7 @@ def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float, tok
         "connections_held": getattr(flood, "n", None),
         "connections_opened": flood.opened,
         "estop_failed": len(failures),
+        "estop_failures": sorted(set(failures)),  # how they failed: which connection, what error
     }
     if isinstance(flood, OpcDeclaredFlood):
         row["streamed_mb"] = flood.streamed_bytes / 2**20
@@ -426,7 +427,8 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
         fds = f"fds {r['fds_before']} -> {r['fds_during']} -> {r['fds_after']}"
         grew = 100.0 * (r["rss_after_mb"] / r["rss_before_mb"] - 1.0)
         rss = f"RSS {r['rss_before_mb']:.1f} -> {r['rss_after_mb']:.1f} MB ({grew:+.1f} %)"
-        out.append(f"  {'':<{w}} {r['estop_failed']} e-stops failed; {fds}; {rss}")
+        failed = f" ({', '.join(r['estop_failures'])})" if r["estop_failed"] else ""
+        out.append(f"  {'':<{w}} {r['estop_failed']} e-stops failed{failed}; {fds}; {rss}")
         out.append(
             f"  {'':<{w}} longest full garbage collection in the daemon so far {_ms(r['gc_full_max_ms'])}"
         )
