@@ -219,8 +219,6 @@ class LoopConfig(_Strict):
     # A loaded PC: the loop and the compute before other programs, the API after the loop
     # (clothd/priority.py, docs/deploy.md "A loaded cell PC").
     nice: int = Field(-10, ge=-20, le=0, description="the loop's thread and the compute, where permitted")
-    # Not below other programs: one preempting the API's thread while it holds the GIL would hold the tick.
-    api_nice: int = Field(0, ge=0, le=19, description="the API's thread (HTTP, WebSocket, OPC UA)")
 
     @model_validator(mode="after")
     def _frame_wait_leaves_time_to_compute(self) -> LoopConfig:

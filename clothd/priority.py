@@ -2,13 +2,13 @@
 
 On a 2-core PC a starting browser (many processes, page faults, disk) delayed the daemon enough for the
 stepper link to time out and a move to be cancelled. What Linux offers, and what clothd takes:
-- nice values per thread (Linux's setpriority on a thread id): the daemon's loop thread (tick and
-  stepper link) and the compute process run at `loop.nice` (-10), so that the scheduler gives them ten
-  times the CPU share of a program at 0 whenever both want it; the API's thread lowers itself to
-  `loop.api_nice` (0), so that requests, however heavy, come after the tick. Not lower than other
-  programs: the API's thread shares the GIL with the tick, and a program that preempted it while it
-  held the GIL would hold the tick too. Raising a priority needs root, CAP_SYS_NICE or the systemd
-  unit's `Nice=`; lowering one never does.
+- nice values (Linux's setpriority, per thread): the daemon's loop thread (tick and stepper link), the
+  threads it starts and the compute process run at `loop.nice` (-10), so that the scheduler gives them
+  ten times the CPU share of a program at 0 whenever both want it. The API's thread among them: it
+  shares the GIL with the tick, and a thread preempted while it holds the GIL holds the tick too. At
+  nice 0 beside two busy programs and a starting browser, it did (`clothd bench loop --hog 2`: 6 links
+  lost, 2 of 10 moves arrived; at -10: 2 and 8). Raising a priority needs root, CAP_SYS_NICE or the
+  systemd unit's `Nice=`; lowering one never does.
 Not `mlockall`: it locks every mapped page, and Taichi maps a 1 GB arena, so the daemon's locked
 memory went from 0 to 1.1 GB (VmLck) and its resident memory from 0.3 to 0.9 GB for pages that a cell PC
 with room to spare never swaps out anyway.

@@ -220,15 +220,12 @@ class ApiThread(threading.Thread):
     """The HTTP API and the OPC UA server on a thread and event loop of their own (api/bridge.py); an
     error that ends them is kept for the main thread to raise."""
 
-    def __init__(
-        self, server: uvicorn.Server, listener: socket.socket, opcua: OpcUaServer | None, nice: int
-    ) -> None:
+    def __init__(self, server: uvicorn.Server, listener: socket.socket, opcua: OpcUaServer | None) -> None:
         super().__init__(name="api")
-        self.server, self.listener, self.opcua, self.nice = server, listener, opcua, nice
+        self.server, self.listener, self.opcua = server, listener, opcua
         self.error: BaseException | None = None
 
     def run(self) -> None:
-        set_thread_nice(self.nice, "the API's thread")  # after the loop, whatever its requests cost
         try:
             asyncio.run(self._serve())
         except BaseException as err:  # handed to the main thread, which stops the daemon first
@@ -303,7 +300,7 @@ async def serve(
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, _stop)
     # The APIs on a thread and event loop of their own: their work never delays a tick (api/bridge.py).
-    api = ApiThread(server, listener, opcua, cfg.loop.api_nice)
+    api = ApiThread(server, listener, opcua)
     api.start()
     api_done = loop.run_in_executor(None, api.join)
     while not server.started and api.is_alive():
