@@ -42,23 +42,13 @@ from clothd.errors import ClothdError, ConfigError, InputError
 from clothd.taichi_runtime import start_taichi
 from clothd.tools import tune_space
 from clothd.tools.tune_fitness import ModelPredictor, Sequence, SequenceScore, measure, track_score
-from clothd.tools.tune_verdict import Verdict, judge
+from clothd.tools.tune_verdict import Search, Verdict, judge
 
 MODELS = ("predict", "mesh")
 _POLL_S = 0.5  # how often the progress bar reads the studies
 BLAS_THREAD_VARS = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 _RDB_TRIES = 3  # creating an RDB storage's tables, against a machine creating them at the same moment
 _RDB_RETRY_S = 0.5
-
-
-@dataclass(frozen=True)
-class Search:
-    """One study of a tune: the recordings it searches on, and the one it never sees, which judges its best
-    design (None: the search on every recording, judged by the folds of a cross-validation)."""
-
-    study_name: str
-    train: tuple[int, ...]  # indices into the recordings as given
-    held_out: int | None
 
 
 def plan(n_recordings: int, study_name: str) -> tuple[Search, ...]:

@@ -20,7 +20,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import optuna
 
@@ -29,9 +29,6 @@ from clothd.errors import ClothdError
 from clothd.tools import tune_space
 from clothd.tools.tune_fitness import Sequence, SequenceScore
 from clothd.tools.tune_report import population
-
-if TYPE_CHECKING:
-    from clothd.tools.tune import Search
 
 VERDICT_JSON = "verdict.json"
 # The good designs whose spread is reported: the best few, as the printed Table 2 shows them.
@@ -42,6 +39,16 @@ FREE_RATIO = 10.0
 LATE_SHARE = 0.8
 
 Scoring = Callable[[Sequence, dict[str, float]], SequenceScore]
+
+
+@dataclass(frozen=True)
+class Search:
+    """One study of a tune: the recordings it searches on, and the one it never sees, which judges its best
+    design (None: the search on every recording, judged by the folds of a cross-validation)."""
+
+    study_name: str
+    train: tuple[int, ...]  # indices into the recordings as given
+    held_out: int | None
 
 
 @dataclass(frozen=True)
