@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import subprocess
 from pathlib import Path
 
@@ -24,7 +25,14 @@ def test_the_readmes_recordings_stay_out_of_git() -> None:
 
 @pytest.mark.parametrize(("make_args", "flags"), [(["PORT=8081"], " --port 8081"), ([], "")])
 def test_make_run_takes_a_port(make_args: list[str], flags: str) -> None:
+    # Run from `make test`, a nested make would print its directory and inherit the outer one's flags.
+    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MAKELEVEL", "MFLAGS")}
     done = subprocess.run(
-        ["make", "-n", "run", *make_args], cwd=ROOT, capture_output=True, text=True, check=True
+        ["make", "--no-print-directory", "-n", "run", *make_args],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=True,
+        env=env,
     )
     assert done.stdout.splitlines()[-1].rstrip() == f".venv/bin/clothd run --sim --config config.yaml{flags}"
