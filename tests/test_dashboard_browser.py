@@ -5,9 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 import shutil
-import signal
 import subprocess
 import sys
 import threading
@@ -22,6 +20,7 @@ from live_cell import wait
 from playwright.sync_api import Browser, Page, sync_playwright
 
 from clothd.tools.bench_loop import DaemonProcess, free_port
+from clothd.tools.procfs import stop_group
 from hwsim.firmware import Firmware
 from hwsim.scenario import TableSpec
 from hwsim.table import Table
@@ -244,12 +243,7 @@ def _daemon_before_its_controller(tmp_path: Path) -> Iterator[tuple[str, Path]]:
         wait(lambda: _answers(f"{base}/api/v1/status"), 60, "clothd run serving")
         yield base, port
     finally:
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+        stop_group(proc)
 
 
 def _answers(url: str) -> bool:

@@ -19,8 +19,6 @@ import contextlib
 import json
 import math
 import multiprocessing
-import os
-import signal
 import socket
 import subprocess
 import sys
@@ -34,6 +32,7 @@ import websockets
 from tqdm import tqdm
 
 from clothd.tools.opcua_load import subscriber_process
+from clothd.tools.procfs import stop_group
 
 POS_TOL_M = 0.005
 ANGLE_TOL_RAD = math.radians(1.0)
@@ -76,13 +75,7 @@ class DaemonProcess:
             raise RuntimeError("clothd run --sim did not report its URLs in time")
 
     def stop(self) -> None:
-        if self.proc.poll() is None:
-            os.killpg(self.proc.pid, signal.SIGTERM)
-            try:
-                self.proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.proc.pid, signal.SIGKILL)
-                self.proc.wait()
+        stop_group(self.proc)
 
 
 def pose_error(truth: list[float], target: tuple[float, float, float]) -> tuple[float, float]:

@@ -1,9 +1,27 @@
-"""What a process holds, read from /proc (Linux): the benchmarks' memory and descriptor figures."""
+"""What a process holds, read from /proc (Linux): the benchmarks' memory and descriptor figures; and
+stopping a process group the benches and tests started."""
 
 from __future__ import annotations
 
 import os
+import signal
+import subprocess
 from pathlib import Path
+
+STOP_WAIT_S = 20.0  # clothd run stops the modules, then its compute process and hwsim, in this time
+
+
+def stop_group(proc: subprocess.Popen[bytes] | subprocess.Popen[str]) -> None:
+    """SIGTERM to the process group `proc` leads (started with start_new_session), SIGKILL if it is not
+    gone within STOP_WAIT_S."""
+    if proc.poll() is not None:
+        return
+    os.killpg(proc.pid, signal.SIGTERM)
+    try:
+        proc.wait(timeout=STOP_WAIT_S)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
 
 
 def rss_mb(pid: int | str = "self") -> float:

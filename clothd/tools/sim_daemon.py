@@ -4,8 +4,6 @@ OPC UA ports, recordings in a directory of its own, and ready once it tracks the
 from __future__ import annotations
 
 import contextlib
-import os
-import signal
 import socket
 import subprocess
 import sys
@@ -17,6 +15,7 @@ import httpx
 import yaml
 
 from clothd.errors import HardwareError
+from clothd.tools.procfs import stop_group
 
 READY_TIMEOUT_S = 180.0
 
@@ -48,13 +47,7 @@ def sim_daemon(scenario: str, workdir: Path) -> Iterator[str]:
         _wait_ready(url, proc)
         yield url
     finally:
-        if proc.poll() is None:
-            os.killpg(proc.pid, signal.SIGTERM)
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                os.killpg(proc.pid, signal.SIGKILL)
-                proc.wait()
+        stop_group(proc)
 
 
 def _wait_ready(url: str, proc: subprocess.Popen[bytes]) -> None:
