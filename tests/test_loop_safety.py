@@ -201,11 +201,14 @@ def test_no_restart_after_a_fault_until_a_new_setpoint(fault: str, expected: str
                 "camera_lost": "the camera is lost",
                 "tracking_lost": "the cloth is not tracked",
             }.get(fault, f"the compute failed ({fault})")
+        before_unix_s = time.time()
         await _ticks(daemon, 3)
+        after_unix_s = time.time()
         assert daemon.setpoint.mode == "idle"
         assert daemon.halt_reason is not None and expected in daemon.halt_reason
         assert daemon.status is not None and daemon.status.halt_reason == daemon.halt_reason
-        assert daemon.status.halt_t_unix_s is not None and abs(daemon.status.halt_t_unix_s - time.time()) < 5
+        halt_t = daemon.status.halt_t_unix_s  # stamped by one of these ticks
+        assert halt_t is not None and before_unix_s <= halt_t <= after_unix_s
         # The fault goes away: the camera is back, the link reconnects. Nothing moves by itself.
         link.state, compute.state, compute.halt_reason = "connected", "tracking", None
         link.sent.clear()
