@@ -24,7 +24,9 @@ import struct
 import threading
 import time
 import tty
+from collections.abc import Callable
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 
@@ -40,6 +42,17 @@ NACK_ESTOPPED, NACK_BAD_LENGTH, NACK_UNKNOWN_TYPE, NACK_BAD_VERSION = 1, 2, 3, 4
 FAULT_WATCHDOG = 1
 FLAG_ESTOP, FLAG_WATCHDOG = 0x01, 0x02
 _UNIT = 1e-4  # speed (m/s) and heading (rad) per int16 step
+# The firmware's counters, as hwsim's truth reports them.
+COUNTERS = (
+    "estopped",
+    "estop_t_mono_s",
+    "commands_applied",
+    "commands_at_estop",
+    "watchdog_tripped",
+    "frames_ok",
+    "frames_bad",
+)
+Counters = dict[str, float | int | bool | None]
 
 
 def _crc_ccitt(data: bytes) -> int:
@@ -76,17 +89,56 @@ def _cobs_decode(data: bytes) -> bytes | None:
     return bytes(out)
 
 
+class Drives(Protocol):
+    """The module drives as the firmware commands them."""
+
+    n_modules: int
+
+    def command(self, speed_m_s: np.ndarray, heading_rad: np.ndarray) -> None:
+        """Every module's target speed (>= 0) and heading."""
+
+    def stop_all(self) -> None:
+        """A controlled stop: every target speed zero, reached at the acceleration limit."""
+
+    def cut(self) -> None:
+        """Drivers disabled: every module stops at once."""
+
+
+class TableDrives:
+    """The drives of a table in this process; every access holds `lock`, shared with whoever steps it."""
+
+    def __init__(self, table: Table, lock: threading.Lock | None = None) -> None:
+        self.table = table
+        self.n_modules = table.n_modules
+        self.lock = lock or threading.Lock()
+
+    def command(self, speed_m_s: np.ndarray, heading_rad: np.ndarray) -> None:
+        with self.lock:
+            self.table.command(np.arange(self.n_modules), speed_m_s, heading_rad)
+
+    def stop_all(self) -> None:
+        with self.lock:
+            self.table.stop_all()
+
+    def cut(self) -> None:
+        with self.lock:
+            self.table.stop_all()
+            self.table.speed_m_s[:] = 0.0
+
+
 def frame(msg_type: int, seq: int, payload: bytes = b"") -> bytes:
     body = struct.pack("<BH", msg_type, seq) + payload
     return _cobs_encode(body + struct.pack("<H", _crc_ccitt(body))) + b"\x00"
 
 
 class Firmware:
-    """Drives `table` from the frames the host sends; all table access holds `lock`."""
+    """Drives the modules from the frames the host sends."""
 
-    def __init__(self, table: Table, lock: threading.Lock, link_path: Path) -> None:
-        self.table = table
-        self.lock = lock
+    def __init__(
+        self, drives: Drives, link_path: Path, on_change: Callable[[Counters], None] | None = None
+    ) -> None:
+        self.drives = drives
+        self.on_change = on_change  # told the counters whenever a frame or the watchdog changed them
         self.link_path = link_path
         self.estopped = False
         self.estop_t_mono_s: float | None = None  # when the drives were last cut, host monotonic clock
@@ -167,6 +219,13 @@ class Firmware:
                 self._receive(data)
             self._check_watchdog()
 
+    def counters(self) -> Counters:
+        return {name: getattr(self, name) for name in COUNTERS}
+
+    def _changed(self) -> None:
+        if self.on_change is not None:
+            self.on_change(self.counters())
+
     def _receive(self, data: bytes) -> None:
         self._buf += data
         *packets, rest = self._buf.split(b"\x00")
@@ -174,6 +233,7 @@ class Firmware:
         for packet in packets:
             if packet:
                 self._handle(bytes(packet))
+        self._changed()
 
     def _handle(self, packet: bytes) -> None:
         raw = _cobs_decode(packet)
@@ -188,17 +248,15 @@ class Firmware:
             if not payload or payload[0] != _VERSION:
                 self._send(frame(NACK, seq, bytes([NACK_BAD_VERSION])))
                 return
-            hello = struct.pack("<BH", _VERSION, self.table.n_modules) + FIRMWARE.encode()
+            hello = struct.pack("<BH", _VERSION, self.drives.n_modules) + FIRMWARE.encode()
             self._send(frame(HELLO_ACK, seq, hello))
         elif msg_type == COMMAND:
             self._command(seq, payload)
         elif msg_type == ESTOP:
-            with self.lock:
-                self.estopped = True
-                self.table.stop_all()
-                self.table.speed_m_s[:] = 0.0  # drivers disabled: no ramp
-                self.estop_t_mono_s = time.monotonic()
-                self.commands_at_estop = self.commands_applied
+            self.drives.cut()
+            self.estopped = True
+            self.estop_t_mono_s = time.monotonic()
+            self.commands_at_estop = self.commands_applied
             self._ack(seq)
         elif msg_type == ESTOP_CLEAR:
             self.estopped = False
@@ -209,7 +267,7 @@ class Firmware:
             self._send(frame(NACK, seq, bytes([NACK_UNKNOWN_TYPE])))
 
     def _command(self, seq: int, payload: bytes) -> None:
-        n = self.table.n_modules
+        n = self.drives.n_modules
         if len(payload) != 2 + 4 * n or struct.unpack("<H", payload[:2])[0] != n:
             self._send(frame(NACK, seq, bytes([NACK_BAD_LENGTH])))
             return
@@ -221,8 +279,7 @@ class Firmware:
             speed, heading = values[:, 0], values[:, 1]
             # A negative speed is the same motion with the belt turned half round.
             heading = np.where(speed < 0, heading + math.pi, heading)
-            with self.lock:
-                self.table.command(np.arange(n), np.abs(speed), heading)
+            self.drives.command(np.abs(speed), heading)
             self.watchdog_tripped = False
             self._last_seq = seq
             self.commands_applied += 1
@@ -234,9 +291,9 @@ class Firmware:
         if self.last_host_s is None or not self.commands_applied or self.watchdog_tripped:
             return
         if time.monotonic() - self.last_host_s > WATCHDOG_S:
-            with self.lock:
-                self.table.stop_all()
+            self.drives.stop_all()
             self.watchdog_tripped = True
+            self._changed()
             self.report_fault(FAULT_WATCHDOG, 0xFFFF, "host silent: all modules stopped")
 
     def _flags(self) -> int:

@@ -1,6 +1,7 @@
 """`hwsim serve`: the simulated cell as hardware, in real time.
 
-- The stepper controller's firmware on a pty, behind the symlink STATE_DIR/ttyCELL.
+- The stepper controller's firmware in a process of its own (hwsim.firmware_process), on a pty behind
+  the symlink STATE_DIR/ttyCELL.
 - The camera as MJPEG over HTTP on 127.0.0.1 (GET /video.mjpg), which OpenCV's FFmpeg backend reads.
 - Ground truth and module states at GET /truth (JSON), for tests and the truth overlay.
 - Test hooks: POST /unplug?seconds=S (serial cable), POST /camera/drop?seconds=S (video stream),
@@ -30,13 +31,14 @@ import cv2
 import numpy as np
 
 from hwsim.camera import Camera
-from hwsim.firmware import Firmware
+from hwsim.firmware_process import FirmwareProcess
 from hwsim.recording import render_frame, write_table
 from hwsim.renderer import Renderer
 from hwsim.scenario import Pose, Push, Scenario
 from hwsim.taichi_runtime import ensure_taichi
 from hwsim.world import World
 
+MAX_CATCH_UP_S = 1.0  # further behind, the world gives up the time rather than run ever faster
 _NOISE_BANK = 8  # sensor-noise frames drawn once and cycled: per-frame draws cost more than rendering
 _JPEG_QUALITY = 90
 
@@ -62,8 +64,10 @@ class Cell:
         self.camera = Camera.from_spec(scenario.camera)
         self.renderer = Renderer(scenario, self.camera, self.world.cloth.grid)
         self.camera_every = max(1, round(scenario.fps / camera_fps))
-        self.lock = threading.Lock()  # the table, between the firmware and the world
-        self.firmware = Firmware(self.world.table, self.lock, state_dir / "ttyCELL")
+        self.lock = threading.Lock()  # the world, between its thread and the HTTP handlers
+        self.firmware = FirmwareProcess(
+            self.world.table.n_modules, state_dir / "ttyCELL", state_dir / "drives.bin"
+        )
         self.camera.save(state_dir / "camera.json")
         write_table(self.world, state_dir / "table.json")
         rng = np.random.default_rng(scenario.noise.seed)
@@ -73,7 +77,8 @@ class Cell:
         self.frame: VideoFrame | None = None
         self.video_dropped_until = 0.0
         self.video_generation = 0  # bumped by a drop: streaming clients hang up
-        self.late_steps = 0
+        self.camera_frames_dropped = 0  # frames not rendered while the world caught up with real time
+        self.behind_real_time_s = 0.0  # time the world fell behind real time for good
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="world", daemon=True)
         self._truth_cache: dict[str, Any] = {}
@@ -81,7 +86,6 @@ class Cell:
     def start(self) -> None:
         self._update_truth()  # /truth answers in full from the first request on
         self._publish_frame()
-        self.firmware.start()
         self._thread.start()
 
     def stop(self) -> None:
@@ -116,20 +120,30 @@ class Cell:
         return out
 
     def _run(self) -> None:
+        """Step at absolute deadlines. A world held up (a loaded PC) catches up by stepping without
+        rendering, as a real cloth keeps moving while a camera drops frames, though never two frames in a
+        row: a camera does not fall silent. Only a world more than MAX_CATCH_UP_S behind gives up that
+        time for good, counted in `behind_real_time_s`."""
         dt = self.world.dt_s
         next_t = time.monotonic()
+        dropped_last = False
         while not self._stop.is_set():
             next_t += dt
             with self.lock:
+                self.firmware.bus.apply_to(self.world.table)
                 self.world.step()
                 self._update_truth()
+            behind_s = time.monotonic() - next_t
             if self.world.frame_index % self.camera_every == 0:
-                self._publish_frame()
-            delay = next_t - time.monotonic()
-            if delay > 0:
-                self._stop.wait(delay)
-            elif delay < -dt:  # too slow for real time: count it and carry on from now
-                self.late_steps += 1
+                dropped_last = behind_s >= dt and not dropped_last
+                if dropped_last:
+                    self.camera_frames_dropped += 1
+                else:
+                    self._publish_frame()
+            if behind_s < 0:
+                self._stop.wait(-behind_s)
+            elif behind_s > MAX_CATCH_UP_S:
+                self.behind_real_time_s += behind_s
                 next_t = time.monotonic()
 
     def _update_truth(self) -> None:
@@ -140,14 +154,9 @@ class Cell:
             "module_speed_m_s": t.speed_m_s.tolist(),
             "module_heading_rad": t.heading_rad.tolist(),
             "module_cmd_speed_m_s": t.cmd_speed_m_s.tolist(),
-            "estopped": self.firmware.estopped,
-            "estop_t_mono_s": self.firmware.estop_t_mono_s,
-            "commands_applied": self.firmware.commands_applied,
-            "commands_at_estop": self.firmware.commands_at_estop,
-            "watchdog_tripped": self.firmware.watchdog_tripped,
-            "frames_ok": self.firmware.frames_ok,
-            "frames_bad": self.firmware.frames_bad,
-            "late_steps": self.late_steps,
+            **self.firmware.counters(),
+            "camera_frames_dropped": self.camera_frames_dropped,
+            "behind_real_time_s": self.behind_real_time_s,
             **self.world.sheet_measures(),
         }
 

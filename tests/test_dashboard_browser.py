@@ -8,7 +8,6 @@ import math
 import shutil
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -21,7 +20,7 @@ from playwright.sync_api import Browser, Page, sync_playwright
 
 from clothd.tools.bench_loop import DaemonProcess, free_port
 from clothd.tools.procfs import stop_group
-from hwsim.firmware import Firmware
+from hwsim.firmware import Firmware, TableDrives
 from hwsim.scenario import TableSpec
 from hwsim.table import Table
 
@@ -267,7 +266,7 @@ def test_start_up_shows_as_starting_not_as_a_fault(browser: Browser, tmp_path: P
             pg.wait_for_function(
                 "document.getElementById('message').textContent === 'starting'", timeout=5000
             )
-            fw = Firmware(Table(TableSpec()), threading.Lock(), port)  # the controller is plugged in
+            fw = Firmware(TableDrives(Table(TableSpec())), port)  # the controller is plugged in
             fw.start()
             try:
                 pg.wait_for_function("document.getElementById('link').className === 'pill ok'", timeout=20000)

@@ -20,7 +20,7 @@ from clothd.core.messages import ModuleCommands
 from clothd.drivers import wire
 from clothd.drivers.stepper_link import StepperLink
 from clothd.tools.pty_relay import PtyRelay
-from hwsim.firmware import FAULT_WATCHDOG, WATCHDOG_S, Firmware
+from hwsim.firmware import FAULT_WATCHDOG, WATCHDOG_S, Firmware, TableDrives
 from hwsim.scenario import TableSpec
 from hwsim.table import Table
 
@@ -53,7 +53,7 @@ Body = Callable[[Firmware, Table], Awaitable[None]]
 def _with_firmware(tmp_path: Path, body: Body) -> None:
     """Run body against hwsim's firmware on a fresh pty, driving a table of N modules."""
     table = Table(TableSpec())
-    fw = Firmware(table, threading.Lock(), tmp_path / "ttyCELL")
+    fw = Firmware(TableDrives(table), tmp_path / "ttyCELL")
     fw.start()
     try:
         asyncio.run(asyncio.wait_for(body(fw, table), 20))
