@@ -42,6 +42,7 @@ from clothd.drivers.ports import CameraFrame, FrameSource, FrameSourceHealth
 from clothd.errors import ClothdError
 from clothd.foxglove_live import LiveFoxglove
 from clothd.logs import configure_logging
+from clothd.priority import leave_realtime
 from clothd.recorder import Recorder, RecordingStatus
 from clothd.taichi_runtime import start_taichi
 from clothd.view import ViewRenderer
@@ -406,6 +407,7 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
     # (a terminal's Ctrl-C or systemd's stop reach the whole process group).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    leave_realtime()  # before its threads start: they inherit the class (clothd/priority.py)
     configure_logging()
     start_taichi(spec.taichi_arch)
     cv2.setNumThreads(spec.opencv_threads)

@@ -219,6 +219,9 @@ class LoopConfig(_Strict):
     # A loaded PC: the loop and the compute before other programs, the API after the loop
     # (clothd/priority.py, docs/deploy.md "A loaded cell PC").
     nice: int = Field(-10, ge=-20, le=0, description="the loop's thread and the compute, where permitted")
+    realtime_priority: int = Field(
+        20, ge=0, le=98, description="SCHED_FIFO priority of the loop's thread; 0: normal class"
+    )
 
     @model_validator(mode="after")
     def _frame_wait_leaves_time_to_compute(self) -> LoopConfig:

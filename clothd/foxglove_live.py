@@ -39,6 +39,7 @@ from clothd.config import FoxgloveConfig
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.errors import ConfigError
 from clothd.foxglove_channels import CellChannels, encode_jpeg, residual_mean_px
+from clothd.priority import leave_realtime
 from clothd.recorder import RecordingStatus
 
 log = logging.getLogger(__name__)
@@ -261,6 +262,7 @@ class LiveFoxglove:
     # -- the writer thread ---------------------------------------------------------------------------
 
     def _run(self) -> None:
+        leave_realtime()  # a writer, not the tick: it must not take a core from the loop
         while True:
             with self._lock:
                 while not self._items:

@@ -1,19 +1,25 @@
 """The loop's share of a loaded cell PC's CPU.
 
-On a 2-core PC a starting browser (many processes, page faults, disk) delayed the daemon enough for the
-stepper link to time out and a move to be cancelled. What Linux offers, and what clothd takes:
-- nice values (Linux's setpriority, per thread): the daemon's loop thread (tick and stepper link), the
-  threads it starts and the compute process run at `loop.nice` (-10), so that the scheduler gives them
-  ten times the CPU share of a program at 0 whenever both want it. The API's thread among them: it
-  shares the GIL with the tick, and a thread preempted while it holds the GIL holds the tick too. At
-  nice 0 beside two busy programs and a starting browser, it did (`clothd bench loop --hog 2`: 6 links
-  lost, 2 of 10 moves arrived; at -10: 2 and 8). Raising a priority needs root, CAP_SYS_NICE or the
-  systemd unit's `Nice=`; lowering one never does.
+On a 2-core PC two busy programs and a starting browser delayed the daemon enough for the stepper link
+to time out, a move to be cancelled and the tracked angle to lag the cloth's. What Linux offers, and
+what clothd takes (docs/deploy.md, "A loaded cell PC", has the figures):
+- The real-time class (SCHED_FIFO at `loop.realtime_priority`) for the loop's thread: the tick, the
+  stepper link's reads, writes and retransmits, and the thread that takes the compute's replies. No
+  program in the normal class can delay them, however busy; they wait most of each tick, and the
+  kernel's real-time throttle (95 % of each second) still bounds a fault that spins.
+- Not for the compute process, nor threads that serve people (the API and OPC UA, the Foxglove writer):
+  they leave the class as they start. The compute keeps a core busy for much of each tick, and the
+  serial port's bytes pass through a kernel worker in the normal class (a pty's and a USB port's
+  alike): a compute above that worker starved it, and the link timed out with no other program busy.
+  A flood of requests must not take a core from the loop either. They all keep the loop's nice value.
+- nice values (Linux's setpriority, per thread): `loop.nice` (-10), ten times the CPU share of a
+  program at 0, for the loop's threads, the compute and the API's thread: the API shares the GIL with
+  the tick, and a thread preempted while it holds the GIL holds the tick too.
+Raising a priority or entering the real-time class needs root, CAP_SYS_NICE or the systemd unit's
+`Nice=`/`CPUSchedulingPolicy=`; lowering one never does.
 Not `mlockall`: it locks every mapped page, and Taichi maps a 1 GB arena, so the daemon's locked
 memory went from 0 to 1.1 GB (VmLck) and its resident memory from 0.3 to 0.9 GB for pages that a cell PC
 with room to spare never swaps out anyway.
-Real-time scheduling (SCHED_FIFO) is not used: the compute runs for most of each tick, and a FIFO
-thread that keeps a core busy starves everything else on it, the camera's driver threads included.
 Each step that is not permitted is reported once, in words, and the daemon runs on.
 """
 
@@ -41,3 +47,27 @@ def set_thread_nice(nice: int, what: str) -> bool:
         )
         return False
     return True
+
+
+def claim_realtime(priority: int, what: str) -> bool:
+    """Put the calling thread (only it) in the real-time class at `priority`; the threads and processes it
+    starts afterwards inherit it. False, and a log line, when not permitted; False at priority 0."""
+    if priority == 0:
+        return False
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+    except PermissionError:
+        log.warning(
+            "%s stays in the normal class: SCHED_FIFO needs root, CAP_SYS_NICE or the unit's "
+            "CPUSchedulingPolicy= (docs/deploy.md)",
+            what,
+        )
+        return False
+    return True
+
+
+def leave_realtime() -> None:
+    """Put the calling thread in the normal class, at the nice value it already has (a thread inherits
+    its starter's): for a thread that serves people and was started by the loop's."""
+    if os.sched_getscheduler(0) != os.SCHED_OTHER:
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))

@@ -47,7 +47,7 @@ from clothd.drivers.camera import VideoCaptureSource, redact_source
 from clothd.drivers.stepper_link import StepperLink
 from clothd.errors import ConfigError, HardwareError
 from clothd.formats import read_camera, read_module_calibration
-from clothd.priority import set_thread_nice
+from clothd.priority import claim_realtime, leave_realtime, set_thread_nice
 
 SIM_START_TIMEOUT_S = 120.0
 GIL_SWITCH_S = 0.001
@@ -226,6 +226,7 @@ class ApiThread(threading.Thread):
         self.error: BaseException | None = None
 
     def run(self) -> None:
+        leave_realtime()  # requests, however many, must not take a core from the loop (clothd/priority.py)
         try:
             asyncio.run(self._serve())
         except BaseException as err:  # handed to the main thread, which stops the daemon first
@@ -342,12 +343,13 @@ def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -
     except ConfigError:
         listener.close()
         raise
-    # This thread runs the tick and the stepper link; the compute process started from it inherits its
-    # priority, and so does hwsim: a simulated controller at the loop's priority, as a microcontroller
-    # is, which nothing on the PC starves.
+    # This thread runs the tick and the stepper link; the threads and the compute process started from it
+    # inherit its priority (clothd/priority.py). hwsim inherits the nice value, not the real-time class:
+    # it runs its firmware, the stand-in for a microcontroller, in that class itself.
     set_thread_nice(cfg.loop.nice, "the loop")
     sim = start_sim(sim_scenario) if sim_scenario is not None else None
     try:
+        claim_realtime(cfg.loop.realtime_priority, "the loop")
         if sim is not None:
             cfg = sim_config(cfg, sim.ready)
         base = f"http://{cfg.api.host}:{cfg.api.port}"

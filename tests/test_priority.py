@@ -1,5 +1,6 @@
-"""Nice values are per thread (Linux): the API's thread lowers itself without touching the loop's, and a
-priority that is not permitted is reported, not fatal."""
+"""Nice values and scheduling classes are per thread (Linux): the API's thread lowers itself without
+touching the loop's, a thread started by the real-time loop can leave its class, and a priority that is
+not permitted is reported, not fatal."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import threading
 
 import pytest
 
-from clothd.priority import set_thread_nice
+from clothd.priority import claim_realtime, leave_realtime, set_thread_nice
 
 
 def test_a_thread_lowers_only_its_own_priority() -> None:
@@ -37,3 +38,45 @@ def test_a_priority_not_permitted_is_reported_and_the_thread_runs_on(
     with caplog.at_level(logging.WARNING):
         assert not set_thread_nice(-10, "the loop")
     assert "the loop stays at nice" in caplog.text and "CAP_SYS_NICE" in caplog.text
+
+
+def test_the_loop_claims_the_realtime_class_and_a_thread_it_starts_leaves_it_at_its_nice() -> None:
+    seen: dict[str, object] = {}
+
+    def served() -> None:  # as the API's thread does
+        seen["inherited"] = os.sched_getscheduler(0)
+        leave_realtime()
+        seen["left"] = os.sched_getscheduler(0)
+        seen["nice"] = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    def loop() -> None:  # a thread of its own: the test's thread stays as it is
+        assert set_thread_nice(-5, "the loop") and claim_realtime(3, "the loop")
+        seen["loop"] = (os.sched_getscheduler(0), os.sched_getparam(0).sched_priority)
+        t = threading.Thread(target=served)
+        t.start()
+        t.join()
+        leave_realtime()
+
+    t = threading.Thread(target=loop)
+    t.start()
+    t.join()
+    assert seen == {
+        "loop": (os.SCHED_FIFO, 3),
+        "inherited": os.SCHED_FIFO,
+        "left": os.SCHED_OTHER,
+        "nice": -5,
+    }
+    assert os.sched_getscheduler(0) == os.SCHED_OTHER
+
+
+def test_the_realtime_class_not_permitted_is_reported_and_priority_0_turns_it_off(
+    monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    def refuse(pid: int, policy: int, param: os.sched_param) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    assert not claim_realtime(0, "the loop") and not caplog.text  # off: not even tried
+    with caplog.at_level(logging.WARNING):
+        assert not claim_realtime(20, "the loop")
+    assert "the loop stays in the normal class" in caplog.text and "CPUSchedulingPolicy" in caplog.text

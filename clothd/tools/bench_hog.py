@@ -6,10 +6,11 @@ dashboard) is started BROWSER_STARTS times during the moves: many processes, mem
 what cancelled moves on a 2-core cell PC. Counted: the stepper link's losses, the moves cancelled (a
 halt before the move arrived), the moves that arrived, and the missed ticks.
 
-Twice, because on a real cell the stepper controller is a microcontroller that no program on the PC
-can starve, while hwsim's firmware is a process on the PC: first with hwsim at the loop's priority
-(`loop.nice`), the stand-in for that microcontroller, which is what the bars are judged on; then with
-hwsim at normal priority, beside the hogs, which shows what of the result is the simulator's.
+Twice, because on a real cell the stepper controller is a microcontroller and the cloth and camera are
+not programs, while hwsim runs all three on the PC. First with hwsim as `clothd run --sim` starts it:
+its firmware in the real-time class (the microcontroller that nothing on the PC starves) and its world
+(cloth and camera) at the loop's nice value; this is what the bars are judged on. Then with every
+thread of hwsim in the normal class at nice 0, beside the hogs: what of the result is the simulator's.
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ BROWSER_STARTS = 3
 TARGETS = ((0.05, 0.03, 0.2), (-0.05, -0.03, -0.2))
 MOVE_TIMEOUT_S = 20.0
 HOG_LIMIT_S = 600.0  # a hog ends by itself even if the bench is killed
-SIM_NICE = -10  # hwsim as the microcontroller: at the loop's priority
 BROWSER_FLAGS = (
     "--headless",
     "--no-sandbox",
@@ -70,20 +70,35 @@ def start_browser(url: str, profile: Path) -> subprocess.Popen[bytes] | None:
     return subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
 
 
-def set_process_nice(pid: int, nice: int) -> None:
-    """Every thread of the process (Linux's nice is per thread) to this nice value."""
+def children(pid: int) -> list[int]:
+    return [
+        int(child)
+        for tid in os.listdir(f"/proc/{pid}/task")
+        for child in Path(f"/proc/{pid}/task/{tid}/children").read_text().split()
+    ]
+
+
+def hwsim_processes(daemon_pid: int) -> list[int]:
+    """The `hwsim serve` child of `clothd run --sim` and its firmware's process."""
+    for child in children(daemon_pid):
+        if "hwsim.cli" in Path(f"/proc/{child}/cmdline").read_text():
+            return [child, *children(child)]
+    raise RuntimeError("clothd run --sim has no hwsim serve child")
+
+
+def to_normal_class(pid: int) -> None:
+    """Every thread of the process (Linux's scheduling is per thread) in the normal class at nice 0."""
     for tid in os.listdir(f"/proc/{pid}/task"):
         with contextlib.suppress(ProcessLookupError):
-            os.setpriority(os.PRIO_PROCESS, int(tid), nice)
+            os.sched_setscheduler(int(tid), os.SCHED_OTHER, os.sched_param(0))
+            os.setpriority(os.PRIO_PROCESS, int(tid), 0)
 
 
-def hwsim_pid(daemon_pid: int) -> int:
-    """The `hwsim serve` child of `clothd run --sim`."""
-    for tid in os.listdir(f"/proc/{daemon_pid}/task"):
-        for child in Path(f"/proc/{daemon_pid}/task/{tid}/children").read_text().split():
-            if "hwsim.cli" in Path(f"/proc/{child}/cmdline").read_text():
-                return int(child)
-    raise RuntimeError("clothd run --sim has no hwsim serve child")
+def scheduling_of(pid: int) -> str:
+    """'SCHED_FIFO 40' or 'nice -10', for the process's main thread."""
+    if os.sched_getscheduler(pid) == os.SCHED_FIFO:
+        return f"SCHED_FIFO {os.sched_getparam(pid).sched_priority}"
+    return f"nice {os.getpriority(os.PRIO_PROCESS, pid)}"
 
 
 def _status(d: DaemonProcess) -> dict[str, Any]:
@@ -119,15 +134,19 @@ def run_move(d: DaemonProcess, target: tuple[float, float, float]) -> str:
     return "timed out"
 
 
-def measure_phase(d: DaemonProcess, n_hogs: int, sim_nice: int) -> dict[str, Any]:
-    set_process_nice(hwsim_pid(d.proc.pid), sim_nice)
+def measure_phase(d: DaemonProcess, n_hogs: int, sim_at_normal_priority: bool) -> dict[str, Any]:
+    world, firmware = hwsim_processes(d.proc.pid)
+    if sim_at_normal_priority:
+        for pid in (world, firmware):
+            to_normal_class(pid)
+    hwsim = f"world {scheduling_of(world)}, firmware {scheduling_of(firmware)}"
     before = _status(d)
     outcomes: list[str] = []
     browsers: list[subprocess.Popen[bytes]] = []
     start_at = {round(MOVES * (k + 0.5) / BROWSER_STARTS) for k in range(BROWSER_STARTS)}
     profiles_dir = tempfile.TemporaryDirectory(prefix="clothd-hog-browser-", ignore_cleanup_errors=True)
     with profiles_dir as profiles, hogs(n_hogs):
-        for i in tqdm(range(MOVES), desc=f"moves, hwsim at nice {sim_nice}", disable=None, leave=False):
+        for i in tqdm(range(MOVES), desc=f"moves, hwsim {hwsim}", disable=None, leave=False):
             if i in start_at:
                 browser = start_browser(f"{d.base}/", Path(profiles) / str(i))
                 if browser is not None:
@@ -143,7 +162,7 @@ def measure_phase(d: DaemonProcess, n_hogs: int, sim_nice: int) -> dict[str, Any
     ticks = after["timing"]["ticks"] - before["timing"]["ticks"]
     missed = after["timing"]["missed_ticks"] - before["timing"]["missed_ticks"]
     return {
-        "hwsim_nice": sim_nice,
+        "hwsim": hwsim,
         "hogs": n_hogs,
         "browser_starts": len(browsers),
         "moves": len(outcomes),
@@ -164,16 +183,12 @@ def run_bench(n_hogs: int, config: Path | None = None) -> dict[str, Any]:
         d.wait_ready()
         wait_ready(d, 120)
         time.sleep(2.0)
-        result = measure_phase(d, n_hogs, SIM_NICE)
-        result["hwsim_at_normal_priority"] = measure_phase(d, n_hogs, 0)
-        result["daemon_nice"] = _nice_of(d.proc.pid)
+        result = measure_phase(d, n_hogs, sim_at_normal_priority=False)
+        result["hwsim_at_normal_priority"] = measure_phase(d, n_hogs, sim_at_normal_priority=True)
+        result["daemon"] = scheduling_of(d.proc.pid)
         return result
     finally:
         d.stop()
-
-
-def _nice_of(pid: int) -> int:
-    return int(Path(f"/proc/{pid}/stat").read_text().rsplit(") ", 1)[1].split()[16])
 
 
 def format_result(r: dict[str, Any]) -> str:
@@ -190,8 +205,8 @@ def format_result(r: dict[str, Any]) -> str:
     bars = "bars: 0 links lost, 0 moves cancelled, missed ticks <= 0.5 %"
     return "\n".join(
         [
-            f"clothd bench loop --hog {r['hogs']} (the daemon's loop at nice {r['daemon_nice']}; {bars})",
-            *phase(r, "hwsim at nice -10, as the controller's microcontroller"),
+            f"clothd bench loop --hog {r['hogs']} (the daemon's loop at {r['daemon']}; {bars})",
+            *phase(r, f"hwsim as clothd run --sim starts it ({r['hwsim']})"),
             *phase(r["hwsim_at_normal_priority"], "hwsim at nice 0, beside the hogs (the simulator's share)"),
         ]
     )
