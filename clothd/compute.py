@@ -36,6 +36,7 @@ from clothd.core.conveyor import ConveyorLayout
 from clothd.core.flatness import Flatness, FlatnessMonitor
 from clothd.core.flattening import FlatteningRegulator
 from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.modes import LoopState, Mode
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
 from clothd.drivers.ports import CameraFrame, FrameSource, FrameSourceHealth
@@ -76,7 +77,7 @@ class InForce:
 
 @dataclass(frozen=True)
 class TickReply:
-    state: str  # tracking | tracking_lost | camera_lost | fault
+    state: LoopState
     estimate: Estimate | None
     commands: ModuleCommands
     new_frame: bool
@@ -181,7 +182,7 @@ class Compute:
             self.foxglove.close("daemon stopped")
         self.frames.stop()
 
-    def stop_reply(self, state: str) -> TickReply:
+    def stop_reply(self, state: LoopState) -> TickReply:
         return TickReply(
             state,
             None,
@@ -231,7 +232,7 @@ class Compute:
         ahead, self._ahead = self._ahead, None
         if self._after_failed:
             self._after_failed = False
-            return self.stop_reply("fault")
+            return self.stop_reply(LoopState.FAULT)
         if reset:
             ahead = None  # tracked on the state the reset discards: the frame is tracked afresh below
         timing, self._late_timing = self._late_timing, {}
@@ -371,34 +372,34 @@ class Compute:
 
     def _control(
         self, have_frame: bool, est: Estimate | None, sp: Setpoint, flatness: Flatness | None
-    ) -> tuple[str, ModuleCommands, str | None]:
+    ) -> tuple[LoopState, ModuleCommands, str | None]:
         """The state, the commands, and why they stop a hold or move (None when they do not)."""
         if not have_frame:
-            return "camera_lost", self.controller.stop(), "the camera is lost"
+            return LoopState.CAMERA_LOST, self.controller.stop(), "the camera is lost"
         if est is None or not est.tracking:
-            return "tracking_lost", self.controller.stop(), "the cloth is not tracked"
+            return LoopState.TRACKING_LOST, self.controller.stop(), "the cloth is not tracked"
         if sp.drive is not None and est.outline_m is not None:  # a drive script, stopped as a move is
             off_limits = self.spec.workspace.leaves(est.outline_m)
             if off_limits is not None:
-                return "tracking", self.controller.stop(), f"at the workspace's edge: {off_limits}"
-            return "tracking", sp.drive.commands_at(time.monotonic() - sp.drive_start_mono_s), None
-        if sp.mode == "idle" or sp.pose is None or est.outline_m is None:
-            return "tracking", self.controller.stop(), None
+                return LoopState.TRACKING, self.controller.stop(), f"at the workspace's edge: {off_limits}"
+            return LoopState.TRACKING, sp.drive.commands_at(time.monotonic() - sp.drive_start_mono_s), None
+        if sp.mode == Mode.IDLE or sp.pose is None or est.outline_m is None:
+            return LoopState.TRACKING, self.controller.stop(), None
         twist = self.controller.plan_twist(est.pose, sp.pose, self.spec.period_s)
         space = self.spec.workspace
         off_limits = space.leaves(est.outline_m)
         period_s = self.spec.period_s
         if off_limits is not None and not space.comes_back(est.outline_m, est.pose, twist, period_s):
-            return "tracking", self.controller.stop(), f"at the workspace's edge: {off_limits}"
+            return LoopState.TRACKING, self.controller.stop(), f"at the workspace's edge: {off_limits}"
         under = self.controller.modules_under(est.outline_m)
         shaping = None
         # Past the edge only the rigid motion that brings the cloth back runs: shaping pulls outwards too.
-        flattens = off_limits is None and (sp.mode == "flatten" or self.spec.control.flatten)
+        flattens = off_limits is None and (sp.mode == Mode.FLATTEN or self.spec.control.flatten)
         if flattens and flatness is not None and est.nodes_m is not None and est.cloth_size_m is not None:
             shaping = self.regulator.velocities(
                 flatness, est.nodes_m, est.cloth_size_m, under, est.pose, est.frame_t_s
             )
-        return "tracking", self.controller.module_commands(est.pose, twist, under, shaping), None
+        return LoopState.TRACKING, self.controller.module_commands(est.pose, twist, under, shaping), None
 
 
 def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
@@ -438,7 +439,7 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
                 reply = compute.tick(req)
             except Exception:  # a bug in a stage must not take the loop, or the modules, with it
                 log.exception("tick failed; stopping the modules")
-                reply = compute.stop_reply("fault")
+                reply = compute.stop_reply(LoopState.FAULT)
             conn.send(reply)
             compute.after_reply()
     finally:

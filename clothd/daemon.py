@@ -28,10 +28,11 @@ import numpy as np
 from clothd.compute import InForce, TickReply, TickRequest
 from clothd.compute_process import ComputeProcess
 from clothd.config import CellConfig
-from clothd.core.control import Mode, Setpoint
+from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.drive_script import DrivePlan, DriveScript, cloth_reach_m, swept_box_m
 from clothd.core.messages import ModuleCommands
+from clothd.core.modes import LoopState, Mode
 from clothd.core.module_calibration import ModuleCalibration
 from clothd.core.workspace import Workspace, cloth_corners_m
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
@@ -103,10 +104,10 @@ class Daemon:
             if settings.frame_lock
             else None
         )
-        self.setpoint = Setpoint("idle", None)
+        self.setpoint = Setpoint(Mode.IDLE, None)
         self.halt_reason: str | None = None  # why a move last stopped by itself; cleared by a new setpoint
         self.halt_t_unix_s: float | None = None  # when it stopped, wall clock
-        self.state = "starting"
+        self.state = LoopState.STARTING
         self.camera = FrameSourceHealth("connecting", False, None, 0)
         self.latest: TickReply | None = None
         self.status: Status | None = None
@@ -139,31 +140,31 @@ class Daemon:
         link up and the cloth tracked; a move's target, and wherever a drive script could carry the cloth,
         must keep the whole cloth inside the workspace; flatten needs a tracker that follows the cloth's
         shape."""
-        if mode == "flatten" and not self.settings.estimates_shape:
+        if mode == Mode.FLATTEN and not self.settings.estimates_shape:
             raise RequestError(
                 "flatten needs the cloth's shape: run the mesh tracker (tracker.model mesh), not a rigid one"
             )
-        if mode != "idle":
+        if mode != Mode.IDLE:
             self._check_can_move()
         est = self.latest.estimate if self.latest else None
-        if mode == "move":
+        if mode == Mode.MOVE:
             if pose is None:
                 raise RequestError("move needs x_m, y_m and theta_rad")
             assert est is not None and est.cloth_size_m is not None  # tracked: _check_can_move
             reason = self.settings.workspace.leaves(cloth_corners_m(pose, est.cloth_size_m))
             if reason is not None:
                 raise UnreachableTargetError(f"target x_m {pose[0]:g}, y_m {pose[1]:g}: {reason}")
-        if mode in ("hold", "flatten"):
+        if mode in (Mode.HOLD, Mode.FLATTEN):
             assert est is not None
             pose = est.pose.copy()
-        if mode == "drive":
+        if mode == Mode.DRIVE:
             if script is None:
                 raise RequestError("drive needs a script")
             assert est is not None and est.outline_m is not None  # tracked: _check_can_move
             plan = self._drive_plan(script, est.outline_m)
-            self.setpoint = Setpoint("drive", None, plan, time.monotonic())
+            self.setpoint = Setpoint(Mode.DRIVE, None, plan, time.monotonic())
         else:
-            self.setpoint = Setpoint(mode, None if mode == "idle" else pose)
+            self.setpoint = Setpoint(mode, None if mode == Mode.IDLE else pose)
         self.halt_reason = self.halt_t_unix_s = None
         self.publish()
 
@@ -186,13 +187,13 @@ class Daemon:
         if not self.link.connected:
             raise RequestError("the stepper link is not connected: the modules cannot be moved now")
         est = self.latest.estimate if self.latest else None
-        if self.state != "tracking" or est is None or not est.tracking:
+        if self.state != LoopState.TRACKING or est is None or not est.tracking:
             raise RequestError(f"the cloth is not tracked now (state {self.state}): nothing to move")
 
     def estop(self) -> None:
         """Stop every module now, bypassing the loop; latched until estop_clear."""
         self.link.estop()
-        self.setpoint = Setpoint("idle", None)
+        self.setpoint = Setpoint(Mode.IDLE, None)
         log.warning("emergency stop")
         self.publish()
 
@@ -236,7 +237,7 @@ class Daemon:
     def reset(self) -> None:
         """Re-initialise tracking on the next frame; the modules stop meanwhile (setpoint idle)."""
         self._reset_requested = True
-        self.setpoint = Setpoint("idle", None)
+        self.setpoint = Setpoint(Mode.IDLE, None)
 
     # -- lifecycle ------------------------------------------------------------------------------------
 
@@ -332,7 +333,7 @@ class Daemon:
         plan = self.setpoint.drive
         if plan is not None and now - self.setpoint.drive_start_mono_s >= plan.duration_s:
             log.info("drive script played to its end (%.1f s); idle", plan.duration_s)
-            self.setpoint = Setpoint("idle", None)
+            self.setpoint = Setpoint(Mode.IDLE, None)
 
     def _request(self, now: float) -> asyncio.Future[TickReply]:
         want_view = self.viewers > 0 and now - self._last_view_s >= self.settings.view_period_s
@@ -350,7 +351,7 @@ class Daemon:
     def _compute_died(self, err: BaseException) -> NoReturn:
         """Stop the modules, say so, and end the loop (systemd restarts the service)."""
         self.link.send_commands(ModuleCommands.all_stop(self.settings.n_modules))
-        self.state = "fault"
+        self.state = LoopState.FAULT
         self.publish()
         raise HardwareError(
             f"the compute process died ({err or type(err).__name__}); modules stopped"
@@ -392,10 +393,10 @@ class Daemon:
     def _halt(self, reason: str) -> None:
         """A fault stopped the modules: drop the move, so that nothing restarts until a supervisor sends a
         new setpoint (no unexpected start-up, IEC 60204-1)."""
-        if self.setpoint.mode == "idle":
+        if self.setpoint.mode == Mode.IDLE:
             return
         log.warning("%s stopped: %s; idle until a new setpoint", self.setpoint.mode, reason)
-        self.setpoint = Setpoint("idle", None)
+        self.setpoint = Setpoint(Mode.IDLE, None)
         self.halt_reason, self.halt_t_unix_s = reason, time.time()
 
     # -- publishing ------------------------------------------------------------------------------------
@@ -422,7 +423,7 @@ class Daemon:
             self.on_status(self.status)
 
     def _notify_systemd(self, now_s: float, result: TickReply) -> None:
-        healthy = result.state == "tracking" and self.link.connected
+        healthy = result.state == LoopState.TRACKING and self.link.connected
         if healthy and not self._ready_sent:
             self.notifier.ready()
             self._ready_sent = True

@@ -16,6 +16,7 @@ from pydantic import BaseModel, Field
 from clothd.core.control import Setpoint
 from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.modes import LoopState, Mode
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
 from clothd.recorder import RecordingStatus
 
@@ -194,8 +195,8 @@ class FlatnessState(BaseModel):
 
 class Status(BaseModel):
     t_unix_s: float
-    state: str = Field(description="starting | tracking | tracking_lost | camera_lost | fault")
-    mode: Literal["idle", "hold", "move", "flatten", "drive"]
+    state: LoopState
+    mode: Mode
     setpoint: Pose | None
     halt_reason: str | None = Field(
         description="why the last hold or move stopped by itself (a fault); null after a new setpoint"

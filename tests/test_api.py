@@ -4,6 +4,7 @@ real but not started: no camera, no serial port."""
 
 from __future__ import annotations
 
+import re
 import socket
 import subprocess
 import sys
@@ -22,6 +23,7 @@ from clothd.api.app import create_app
 from clothd.api.stream import Subscriber
 from clothd.config import ApiConfig, CameraSourceConfig, Config, RecordingConfig, TrackerConfig, parse_config
 from clothd.core.camera_model import CameraModel
+from clothd.core.modes import LoopState, Mode
 from clothd.drivers.camera import redact_source
 from clothd.errors import ConfigError
 from clothd.run import build
@@ -72,6 +74,7 @@ def test_setpoint_validation_gives_reasons(client: TestClient) -> None:
     assert "y_m" in r.text and "theta_rad" in r.text and "missing" in r.text
     r = client.put("/api/v1/setpoint", json={"mode": "spin"})
     assert r.status_code == 422
+    assert "mode 'spin' is none of: idle, hold, move, flatten, drive" in r.json()["detail"]
     r = client.put("/api/v1/setpoint", json={"mode": "move", "x_m": 0.1, "y_m": 0, "theta_rad": 9})
     assert r.status_code == 422 and "theta_rad" in r.text
 
@@ -126,6 +129,9 @@ def test_binding_off_loopback_needs_a_token() -> None:
 def test_metrics_and_health(client: TestClient) -> None:
     text = client.get("/metrics").text
     assert "clothd_missed_ticks_total" in text and "clothd_link_up 0.0" in text
+    gauges = [line for line in text.splitlines() if line.startswith("clothd_state{")]
+    state_gauge = {line.split('"')[1]: line.rsplit(" ", 1)[1] for line in gauges}
+    assert state_gauge == {s.value: "1.0" if s == LoopState.STARTING else "0.0" for s in LoopState}
     r = client.get("/healthz")
     assert r.status_code == 503 and set(r.json()["problems"]) == {"camera", "stepper link"}
 
@@ -305,3 +311,16 @@ def test_cors_only_for_configured_origins() -> None:
     # Without the setting there is no CORS at all.
     r = TestClient(_app(), base_url=BASE).options("/api/v1/estop", headers={"Origin": hmi, **preflight})
     assert "access-control-allow-origin" not in r.headers
+
+
+def test_the_dashboard_names_only_the_modes_and_states_the_api_has() -> None:
+    """The page compares with the words; they are clothd/core/modes.py's, and it offers every mode a
+    person can pick without a script."""
+    static = Path(__file__).parent.parent / "clothd" / "api" / "static"
+    js = (static / "app.js").read_text()
+    states = set(re.findall(r's\.state === "(\w+)"', js))
+    modes = set(re.findall(r'mode === "(\w+)"', js))
+    offered = set(re.findall(r'<option value="(\w+)">', (static / "index.html").read_text()))
+    assert states and states <= set(LoopState)
+    assert modes and modes <= set(Mode)
+    assert offered == set(Mode) - {Mode.DRIVE}

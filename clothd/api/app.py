@@ -31,6 +31,7 @@ from clothd.api.schemas import CameraInfo, ErrorResponse, Ok, RecordStart, Setpo
 from clothd.api.stream import StreamHub
 from clothd.config import ApiConfig
 from clothd.core.camera_model import CameraModel
+from clothd.core.modes import LoopState
 from clothd.daemon import Daemon
 from clothd.errors import ClothdError, HardwareError, InvalidRequestError, RequestError, StorageError
 from clothd.recorder import recording_path
@@ -202,7 +203,7 @@ def create_app(
             problems.append("camera")
         if s.link.state != "connected":
             problems.append("stepper link")
-        if s.state == "fault":
+        if s.state == LoopState.FAULT:
             problems.append("loop fault")
         body = {"ok": not problems, "state": s.state, "problems": problems}
         return JSONResponse(body, status_code=503 if problems else 200)

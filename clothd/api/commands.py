@@ -8,6 +8,7 @@ possible as given: 422). Each API maps those to its own codes.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from typing import Any
 
@@ -24,7 +25,16 @@ def describe_invalid(errors: Sequence[Any]) -> str:
     """pydantic's errors as one line: where and what, never the input (it may be huge, or not even
     serialisable: NaN, a lone surrogate)."""
     where = (".".join(str(part) for part in e["loc"]) for e in errors)
-    return "; ".join(f"{w}: {e['msg']} ({e['type']})" for w, e in zip(where, errors, strict=True))
+    return "; ".join(f"{w}: {_message(e)} ({e['type']})" for w, e in zip(where, errors, strict=True))
+
+
+def _message(error: Any) -> str:
+    if error["type"] == "union_tag_invalid":  # pydantic names the tags by their repr: say the words
+        ctx = error["ctx"]
+        tags = ", ".join(re.findall(r"'([^']*)'", ctx["expected_tags"]))
+        field = ctx["discriminator"].strip("'")
+        return f"{field} {ctx['tag']!r} is none of: {tags}"
+    return str(error["msg"])
 
 
 class Commands:

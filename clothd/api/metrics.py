@@ -10,8 +10,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector, CollectorRegistry
 
 from clothd.api.stream import StreamHub
-
-STATES = ("starting", "tracking", "tracking_lost", "camera_lost", "fault")
+from clothd.core.modes import LoopState
 
 
 class StatusCollector(Collector):
@@ -45,8 +44,8 @@ class StatusCollector(Collector):
                 value=t.frame_to_command.p50_ms / 1e3,
             )
         state = GaugeMetricFamily("clothd_state", "1 for the daemon's current state", labels=["state"])
-        for name in STATES:
-            state.add_metric([name], 1.0 if s.state == name else 0.0)
+        for name in LoopState:
+            state.add_metric([name.value], 1.0 if s.state == name else 0.0)
         yield state
         yield GaugeMetricFamily("clothd_estop", "Emergency stop latched", value=float(s.estop))
         yield GaugeMetricFamily(

@@ -25,6 +25,7 @@ from typing import Any
 from asyncua import Node, Server, ua
 from pydantic import BaseModel
 
+from clothd.core.modes import LoopState, Mode
 from clothd.status import Status
 
 NAMESPACE_URI = "urn:clothd:cell"
@@ -33,7 +34,7 @@ D, S, B = ua.VariantType.Double, ua.VariantType.String, ua.VariantType.Boolean
 N = ua.VariantType.Int64  # counts
 
 # The cell's modes as OperationMode's states (MachineryItemState's are OPC 40001-1's: machinery_state).
-MODE_STATES = {"idle": "Idle", "hold": "Hold", "move": "Move", "flatten": "Flatten", "drive": "Drive"}
+MODE_STATES = {mode: mode.value.capitalize() for mode in Mode}
 
 
 def _num(value: float | None) -> float:
@@ -134,11 +135,11 @@ VARIABLES: tuple[Var, ...] = (
 def machinery_state(s: Status) -> str:
     """MachineryItemState from the status: out of service while e-stopped or faulted, executing while it
     drives the cloth."""
-    if s.estop or s.state == "fault":
+    if s.estop or s.state == LoopState.FAULT:
         return "OutOfService"
-    if s.state == "starting":
+    if s.state == LoopState.STARTING:
         return "NotAvailable"
-    return "Executing" if s.mode != "idle" and s.state == "tracking" else "NotExecuting"
+    return "Executing" if s.mode != Mode.IDLE and s.state == LoopState.TRACKING else "NotExecuting"
 
 
 def _same(a: Any, b: Any) -> bool:

@@ -29,6 +29,7 @@ from clothd.api.opcua_security import CellRules, DiscoveryOnly, TokenUsers, serv
 from clothd.api.schemas import FlattenSetpoint, HoldSetpoint, IdleSetpoint
 from clothd.api.stream import StreamHub
 from clothd.config import OPCUA_SIGN_AND_ENCRYPT, OpcUaConfig, is_loopback, opcua_host_port
+from clothd.core.modes import Mode
 from clothd.errors import (
     ClothdError,
     ConfigError,
@@ -175,9 +176,9 @@ class OpcUaServer:
         c = self.commands
         methods: dict[str, tuple[Callable[..., Awaitable[str]], list[ua.Argument]]] = {
             "Move": (c.move, MOVE_ARGS),
-            "Hold": (lambda: c.setpoint(HoldSetpoint(mode="hold")), []),
-            "Idle": (lambda: c.setpoint(IdleSetpoint(mode="idle")), []),
-            "Flatten": (lambda: c.setpoint(FlattenSetpoint(mode="flatten")), []),
+            "Hold": (lambda: c.setpoint(HoldSetpoint(mode=Mode.HOLD)), []),
+            "Idle": (lambda: c.setpoint(IdleSetpoint(mode=Mode.IDLE)), []),
+            "Flatten": (lambda: c.setpoint(FlattenSetpoint(mode=Mode.FLATTEN)), []),
             "EStop": (c.estop, []),
             "ClearEStop": (c.estop_clear, []),
             "Reset": (c.reset, []),

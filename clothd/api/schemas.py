@@ -9,6 +9,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from clothd.core.drive_script import DriveScript
+from clothd.core.modes import Mode
 
 
 class _Strict(BaseModel):
@@ -19,19 +20,19 @@ class _Strict(BaseModel):
 class IdleSetpoint(_Strict):
     """Stop every module."""
 
-    mode: Literal["idle"]
+    mode: Literal[Mode.IDLE]
 
 
 class HoldSetpoint(_Strict):
     """Keep the pose the cloth has now."""
 
-    mode: Literal["hold"]
+    mode: Literal[Mode.HOLD]
 
 
 class MoveSetpoint(_Strict):
     """Move the cloth to this pose (world frame, the table plane) within the speed limits."""
 
-    mode: Literal["move"]
+    mode: Literal[Mode.MOVE]
     x_m: float = Field(ge=-5, le=5, allow_inf_nan=False)
     y_m: float = Field(ge=-5, le=5, allow_inf_nan=False)
     theta_rad: float = Field(ge=-math.pi, le=math.pi, allow_inf_nan=False)
@@ -40,13 +41,13 @@ class MoveSetpoint(_Strict):
 class FlattenSetpoint(_Strict):
     """Flatten the cloth where it lies, holding its pose (needs the mesh tracker)."""
 
-    mode: Literal["flatten"]
+    mode: Literal[Mode.FLATTEN]
 
 
 class DriveSetpoint(_Strict):
     """Play a drive script: chosen modules driven over time (docs/api.md, "Drive scripts")."""
 
-    mode: Literal["drive"]
+    mode: Literal[Mode.DRIVE]
     script: DriveScript
 
 

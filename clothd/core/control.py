@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 import cv2
 import numpy as np
@@ -29,8 +28,8 @@ import numpy as np
 from clothd.config import CellConfig, ControlConfig
 from clothd.core.drive_script import DrivePlan
 from clothd.core.messages import ModuleCommands
+from clothd.core.modes import Mode
 
-Mode = Literal["idle", "hold", "move", "flatten", "drive"]
 STILL_SPEED_M_S = 1e-6  # slower than this a module is stopped and keeps its heading
 
 

@@ -1,0 +1,28 @@
+"""The cell's modes and the loop's states, named once for the daemon, the API, OPC UA and the metrics.
+
+String enums: they compare equal to, and serialise as, the words the API and docs/api.md use.
+"""
+
+from __future__ import annotations
+
+from enum import StrEnum
+
+
+class Mode(StrEnum):
+    """What the cell is asked to do (the setpoint's mode)."""
+
+    IDLE = "idle"  # every module stopped
+    HOLD = "hold"  # keep the pose the cloth had when it began
+    MOVE = "move"  # bring the cloth to a pose
+    FLATTEN = "flatten"  # hold, and take the slack out (the mesh tracker)
+    DRIVE = "drive"  # play a drive script
+
+
+class LoopState(StrEnum):
+    """What the loop can do now."""
+
+    STARTING = "starting"  # no frame tracked yet since the start
+    TRACKING = "tracking"
+    TRACKING_LOST = "tracking_lost"  # frames arrive, the cloth is not tracked in them
+    CAMERA_LOST = "camera_lost"  # no frame for camera.stale_after_s
+    FAULT = "fault"  # the compute failed, or the loop stopped on a fault
