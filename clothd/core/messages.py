@@ -92,11 +92,6 @@ class Estimate:
         return self.status == "tracking"
 
     @property
-    def mesh_shape(self) -> tuple[int, int] | None:
-        """(ny, nx) of the mesh, when there is one."""
-        return None if self.nodes_m is None else (self.nodes_m.shape[0], self.nodes_m.shape[1])
-
-    @property
     def residual_px(self) -> np.ndarray:
         ok = ~np.isnan(self.meas_px[:, 0])
         return np.asarray(np.linalg.norm(self.meas_px[ok] - self.pred_px[ok], axis=1))

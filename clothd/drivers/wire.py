@@ -34,20 +34,6 @@ class MsgType(IntEnum):
     FAULT = 0x90
 
 
-class NackReason(IntEnum):
-    ESTOPPED = 1
-    BAD_LENGTH = 2
-    UNKNOWN_TYPE = 3
-    BAD_VERSION = 4
-
-
-class FaultCode(IntEnum):
-    WATCHDOG = 1  # the host was silent past the watchdog: every module stopped
-    STALL = 2  # a module could not follow its command
-    OVERTEMP = 3
-    ESTOP_INPUT = 4  # the cell's hardware e-stop chain opened
-
-
 # Controller status flags carried in every ACK.
 FLAG_ESTOP = 0x01
 FLAG_WATCHDOG = 0x02
