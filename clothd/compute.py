@@ -31,12 +31,12 @@ import cv2
 
 from clothd.config import CellConfig, ControlConfig, FoxgloveConfig, TrackerConfig
 from clothd.core.camera_model import CameraModel
-from clothd.core.control import PoseController, Setpoint
+from clothd.core.cell_controller import CellController
+from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
-from clothd.core.flatness import Flatness, FlatnessMonitor
-from clothd.core.flattening import FlatteningRegulator
+from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands
-from clothd.core.modes import LoopState, Mode
+from clothd.core.modes import LoopState
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
 from clothd.drivers.ports import CameraFrame, FrameSource, FrameSourceHealth
@@ -150,15 +150,16 @@ class Compute:
         needs_live = serves or spec.recording_format == "mcap"
         self.foxglove = LiveFoxglove(spec.foxglove) if needs_live else None
         self.tracker = Tracker(spec.tracker, spec.camera_model, spec.layout, clock=time.perf_counter)
-        self.controller = PoseController(spec.control, spec.cell, spec.layout.centres_m)
-        self.view = ViewRenderer(spec.camera_model)
-        self.flatness_monitor = FlatnessMonitor(spec.control.flatness)
-        self.regulator = FlatteningRegulator(
-            spec.control.flattening,
-            spec.layout.centres_m,
-            spec.layout.module_size_m,
+        self.cell = CellController(
+            spec.control,
+            spec.cell,
+            spec.layout,
+            spec.workspace,
+            spec.period_s,
             spec.tracker.physics.strain_limit,
+            spec.tracker.estimates_shape,
         )
+        self.view = ViewRenderer(spec.camera_model)
         self._estimate: Estimate | None = None
         self._flatness: Flatness | None = None  # of _estimate: read once per frame, kept between frames
         self._last_frame_index = -1
@@ -186,7 +187,7 @@ class Compute:
         return TickReply(
             state,
             None,
-            self.controller.stop(),
+            self.cell.stop(),
             False,
             None,
             self.frames.health(),
@@ -215,7 +216,7 @@ class Compute:
         began_mono_s = time.monotonic()
         try:
             est = self.tracker.track(frame.image, frame.t_mono_s, self._in_force)
-            flatness = self._read_flatness(est)
+            flatness = self.cell.read_flatness(est)
         except Exception:  # as in a tick: a bug must not take the loop with it
             self._failed_between_ticks("tracking a frame ahead of its tick")
             return
@@ -243,9 +244,7 @@ class Compute:
         t0, began_mono_s = time.perf_counter(), time.monotonic()
         if reset:
             self.tracker.reset()
-            self.controller.reset()
-            self.flatness_monitor.reset()
-            self.regulator.reset()
+            self.cell.reset()
             self._estimate = None
             self._flatness = None
         self._record_requests(req)
@@ -259,29 +258,29 @@ class Compute:
             tracked_with, began_mono_s = ahead.commands_in_force, ahead.began_mono_s
         elif frame is not None and new_frame:
             est = tracked = self.tracker.track(frame.image, frame.t_mono_s, req.commands_in_force)
-            self._flatness = self._read_flatness(est)
+            self._flatness = self.cell.read_flatness(est)
         if tracked is not None and frame is not None:
             self._estimate = tracked
             self._last_frame_index = frame.index
             timing.update({f"tracker_{k}": v for k, v in tracked.timing_s.items()})
         t1 = time.perf_counter()
         flatness = self._flatness
-        state, commands, halt = self._control(frame is not None, est, req.setpoint, flatness)
+        step = self.cell.step(frame is not None, est, req.setpoint, flatness, time.monotonic())
         timing["control"] = time.perf_counter() - t1
         timing["compute"] = time.perf_counter() - t0
         self._after = _AfterReply(req, frame, tracked_with, tracked, est, flatness)
         view, self._late_view = self._late_view, None
         return TickReply(
-            state,
+            step.state,
             est,
-            commands,
+            step.commands,
             new_frame,
             frame.t_mono_s if frame is not None else None,
             self.frames.health(),
             timing,
             view,
             self._recording_status(),
-            halt,
+            step.halt_reason,
             flatness,
             (began_mono_s, time.monotonic()),
             silent_s * 1e3 if starved else None,
@@ -335,14 +334,6 @@ class Compute:
         timing["frame_wait"] = time.perf_counter() - t_wait
         return frame
 
-    def _read_flatness(self, est: Estimate) -> Flatness | None:
-        """The flatness of a new estimate; None when its model does not follow the shape or it is lost."""
-        if not self.spec.tracker.estimates_shape or not est.tracking:
-            return None
-        if est.nodes_m is None or est.cloth_size_m is None:
-            return None
-        return self.flatness_monitor.update(est.nodes_m, est.cloth_size_m, est.quad_seen)
-
     def _recording_status(self) -> RecordingStatus | None:
         if self.recorder is not None:
             return self.recorder.status()
@@ -369,37 +360,6 @@ class Compute:
                 )
             except OSError as err:
                 log.warning("cannot start recording in %s: %s", req.record_start, err)
-
-    def _control(
-        self, have_frame: bool, est: Estimate | None, sp: Setpoint, flatness: Flatness | None
-    ) -> tuple[LoopState, ModuleCommands, str | None]:
-        """The state, the commands, and why they stop a hold or move (None when they do not)."""
-        if not have_frame:
-            return LoopState.CAMERA_LOST, self.controller.stop(), "the camera is lost"
-        if est is None or not est.tracking:
-            return LoopState.TRACKING_LOST, self.controller.stop(), "the cloth is not tracked"
-        if sp.drive is not None and est.outline_m is not None:  # a drive script, stopped as a move is
-            off_limits = self.spec.workspace.leaves(est.outline_m)
-            if off_limits is not None:
-                return LoopState.TRACKING, self.controller.stop(), f"at the workspace's edge: {off_limits}"
-            return LoopState.TRACKING, sp.drive.commands_at(time.monotonic() - sp.drive_start_mono_s), None
-        if sp.mode == Mode.IDLE or sp.pose is None or est.outline_m is None:
-            return LoopState.TRACKING, self.controller.stop(), None
-        twist = self.controller.plan_twist(est.pose, sp.pose, self.spec.period_s)
-        space = self.spec.workspace
-        off_limits = space.leaves(est.outline_m)
-        period_s = self.spec.period_s
-        if off_limits is not None and not space.comes_back(est.outline_m, est.pose, twist, period_s):
-            return LoopState.TRACKING, self.controller.stop(), f"at the workspace's edge: {off_limits}"
-        under = self.controller.modules_under(est.outline_m)
-        shaping = None
-        # Past the edge only the rigid motion that brings the cloth back runs: shaping pulls outwards too.
-        flattens = off_limits is None and (sp.mode == Mode.FLATTEN or self.spec.control.flatten)
-        if flattens and flatness is not None and est.nodes_m is not None and est.cloth_size_m is not None:
-            shaping = self.regulator.velocities(
-                flatness, est.nodes_m, est.cloth_size_m, under, est.pose, est.frame_t_s
-            )
-        return LoopState.TRACKING, self.controller.module_commands(est.pose, twist, under, shaping), None
 
 
 def serve_compute(conn: Connection, spec: ComputeSpec) -> None:

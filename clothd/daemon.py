@@ -164,7 +164,8 @@ class Daemon:
             plan = self._drive_plan(script, est.outline_m)
             self.setpoint = Setpoint(Mode.DRIVE, None, plan, time.monotonic())
         else:
-            self.setpoint = Setpoint(mode, None if mode == Mode.IDLE else pose)
+            target = None if mode == Mode.IDLE else pose
+            self.setpoint = Setpoint(mode, target, started_mono_s=time.monotonic())
         self.halt_reason = self.halt_t_unix_s = None
         self.publish()
 
@@ -331,7 +332,7 @@ class Daemon:
     def _end_played_drive(self, now: float) -> None:
         """A drive script played to its end leaves the daemon idle (its modules already stopped)."""
         plan = self.setpoint.drive
-        if plan is not None and now - self.setpoint.drive_start_mono_s >= plan.duration_s:
+        if plan is not None and now - self.setpoint.started_mono_s >= plan.duration_s:
             log.info("drive script played to its end (%.1f s); idle", plan.duration_s)
             self.setpoint = Setpoint(Mode.IDLE, None)
 

@@ -38,7 +38,7 @@ class Setpoint:
     mode: Mode
     pose: np.ndarray | None  # (3,) target [X_m, Y_m, theta_rad] for move and hold
     drive: DrivePlan | None = None  # the script a drive plays (core/drive_script.py)
-    drive_start_mono_s: float = 0.0  # when it began, on the host's monotonic clock (both processes')
+    started_mono_s: float = 0.0  # when it was set, on the host's monotonic clock (both processes')
 
 
 def _approach_speed(distance: float, v_max: float, a_max: float, gain: float) -> float:
