@@ -47,7 +47,9 @@ def _cmd_bench_loop(args: argparse.Namespace) -> int:
 def _cmd_bench_flatten(args: argparse.Namespace) -> int:
     from clothd.tools.bench_flatten import format_result, run_bench, write_json
 
-    result = run_bench(starts=args.starts, seed=args.seed, flatten_s=args.flatten_seconds)
+    result = run_bench(
+        starts=args.starts, seed=args.seed, flatten_s=args.flatten_seconds, lockstep=args.lockstep
+    )
     print(format_result(result))
     if args.json:
         write_json(result, args.json)
@@ -639,6 +641,11 @@ def build_parser() -> argparse.ArgumentParser:
     bfl.add_argument("--seed", type=int, default=0)
     bfl.add_argument(
         "--flatten-seconds", type=float, default=10.0, help="a start succeeds when flat within this"
+    )
+    bfl.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="hwsim and the tracker and controller in one process, tick by tick, as fast as the CPU allows",
     )
     bfl.add_argument("--json", type=Path, help="also write the figures and every run as JSON")
     bfl.set_defaults(func=_cmd_bench_flatten)

@@ -89,6 +89,12 @@ def _cobs_decode(data: bytes) -> bytes | None:
     return bytes(out)
 
 
+def drive_targets(speed_m_s: np.ndarray, heading_rad: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A COMMAND's signed speeds and headings as the drives' targets: a negative speed is the same motion
+    with the belt turned half round."""
+    return np.abs(speed_m_s), np.where(speed_m_s < 0, heading_rad + math.pi, heading_rad)
+
+
 class Drives(Protocol):
     """The module drives as the firmware commands them."""
 
@@ -276,10 +282,7 @@ class Firmware:
             return
         if seq != self._last_seq:  # a retransmit of what was applied is only acknowledged again
             values = np.frombuffer(payload[2:], dtype="<i2").reshape(n, 2).astype(float) * _UNIT
-            speed, heading = values[:, 0], values[:, 1]
-            # A negative speed is the same motion with the belt turned half round.
-            heading = np.where(speed < 0, heading + math.pi, heading)
-            self.drives.command(np.abs(speed), heading)
+            self.drives.command(*drive_targets(values[:, 0], values[:, 1]))
             self.watchdog_tripped = False
             self._last_seq = seq
             self.commands_applied += 1

@@ -27,20 +27,17 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import parse_qs, urlparse
 
-import cv2
 import numpy as np
 
 from hwsim.camera import Camera
 from hwsim.firmware_process import FirmwareProcess
-from hwsim.recording import render_frame, write_table
-from hwsim.renderer import Renderer
+from hwsim.recording import write_table
 from hwsim.scenario import Pose, Push, Scenario
+from hwsim.sensor import Sensor
 from hwsim.taichi_runtime import ensure_taichi
 from hwsim.world import World
 
 MAX_CATCH_UP_S = 1.0  # further behind, the world gives up the time rather than run ever faster
-_NOISE_BANK = 8  # sensor-noise frames drawn once and cycled: per-frame draws cost more than rendering
-_JPEG_QUALITY = 90
 
 
 @dataclass
@@ -62,7 +59,7 @@ class Cell:
         ensure_taichi(arch, cpu_threads=1)
         self.world = World(scenario, arch, log_commands=False)
         self.camera = Camera.from_spec(scenario.camera)
-        self.renderer = Renderer(scenario, self.camera, self.world.cloth.grid)
+        self.sensor = Sensor(scenario, self.camera, self.world.cloth.grid)
         self.camera_every = max(1, round(scenario.fps / camera_fps))
         self.lock = threading.Lock()  # the world, between its thread and the HTTP handlers
         self.firmware = FirmwareProcess(
@@ -70,9 +67,6 @@ class Cell:
         )
         self.camera.save(state_dir / "camera.json")
         write_table(self.world, state_dir / "table.json")
-        rng = np.random.default_rng(scenario.noise.seed)
-        shape = (self.camera.height, self.camera.width, 3)
-        self._noise = rng.standard_normal((_NOISE_BANK, *shape), dtype=np.float32) * scenario.noise.sigma
         self.frame_cond = threading.Condition()
         self.frame: VideoFrame | None = None
         self.video_dropped_until = 0.0
@@ -161,15 +155,10 @@ class Cell:
         }
 
     def _publish_frame(self) -> None:
-        image, _ = render_frame(self.world, self.renderer)
         k = self.world.frame_index // self.camera_every
-        level = image * 255.0 + self._noise[k % _NOISE_BANK]
-        bgr = np.clip(level + 0.5, 0, 255).astype(np.uint8)
-        ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, _JPEG_QUALITY])
-        if not ok:
-            return
+        jpeg = self.sensor.jpeg(self.world, k)
         with self.frame_cond:
-            self.frame = VideoFrame(k, jpeg.tobytes(), self.world.t_s)
+            self.frame = VideoFrame(k, jpeg, self.world.t_s)
             self.frame_cond.notify_all()
 
 

@@ -23,14 +23,16 @@ import math
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import httpx
 import numpy as np
 from tqdm import tqdm
 
+from clothd.config import load_config, with_overrides
 from clothd.tools.bench_loop import ANGLE_TOL_RAD, POS_TOL_M, DaemonProcess, free_port, pose_error
 from clothd.tools.flatten_starts import draw_start
+from clothd.tools.lockstep import LockstepCell
 
 FLAT_HEIGHT_M = 0.001
 FLAT_AREA_RATIO = 0.995
@@ -57,13 +59,31 @@ def _world_push(pose: list[float], push: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-class _Cell:
-    """The daemon's API and hwsim's hooks and truth."""
+class Cell(Protocol):
+    """What a start asks of the cell: live (LiveCell) or in lockstep (clothd/tools/lockstep.py)."""
+
+    def now(self) -> float: ...
+    def sleep(self, seconds: float) -> None: ...
+    def status(self) -> dict[str, Any]: ...
+    def truth(self) -> dict[str, Any]: ...
+    def setpoint_request(self, body: dict[str, Any]) -> None: ...
+    def lay(self, pose: list[float]) -> None: ...
+    def push(self, push: dict[str, Any], then_s: float) -> None: ...
+
+
+class LiveCell:
+    """The daemon's API and hwsim's hooks and truth, in real time."""
 
     def __init__(self, d: DaemonProcess) -> None:
         self.d = d
         self.hwsim = d.truth_url.removesuffix("/truth")
         self.http = httpx.Client(timeout=10)
+
+    def now(self) -> float:
+        return time.monotonic()
+
+    def sleep(self, seconds: float) -> None:
+        time.sleep(seconds)
 
     def status(self) -> dict[str, Any]:
         return dict(self.http.get(f"{self.d.base}/api/v1/status").json())
@@ -71,7 +91,7 @@ class _Cell:
     def truth(self) -> dict[str, Any]:
         return dict(self.http.get(self.d.truth_url).json())
 
-    def setpoint(self, body: dict[str, Any]) -> None:
+    def setpoint_request(self, body: dict[str, Any]) -> None:
         r = self.http.put(f"{self.d.base}/api/v1/setpoint", json=body)
         if r.status_code != 200:
             raise RuntimeError(f"setpoint {body}: {r.status_code} {r.text}")
@@ -84,7 +104,7 @@ class _Cell:
             time.sleep(POLL_S)
 
     def lay(self, pose: list[float]) -> None:
-        self.setpoint({"mode": "idle"})
+        self.setpoint_request({"mode": "idle"})
         self.wait(lambda: not any(self.truth()["module_speed_m_s"]), 5, "belts stopped")
         r = self.http.post(f"{self.hwsim}/cloth", json={"x_m": pose[0], "y_m": pose[1], "theta_rad": pose[2]})
         r.raise_for_status()
@@ -96,20 +116,20 @@ class _Cell:
             "tracking again",
         )
 
-    def push(self, push: dict[str, Any]) -> None:
+    def push(self, push: dict[str, Any], then_s: float) -> None:
         self.http.post(f"{self.hwsim}/cloth/push", json=push).raise_for_status()
-        time.sleep(PUSH_S + LET_GO_WAIT_S)
+        time.sleep(then_s)
 
 
-def _wrinkle(cell: _Cell, start: dict[str, Any]) -> dict[str, Any]:
+def _wrinkle(cell: Cell, start: dict[str, Any]) -> dict[str, Any]:
     """Lay the cloth, push its ridges in, and check that the cloth keeps them while the belts stand still.
     A ridge that slides out by itself is no start to flatten: hwsim's cloth keeps one only with enough
     cloth beside it along its whole length (docs/hwsim.md, "Holding a wrinkle")."""
     cell.lay(start["pose"])
     for push in start["pushes"]:
-        cell.push(_world_push(start["pose"], push))
+        cell.push(_world_push(start["pose"], push), PUSH_S + LET_GO_WAIT_S)
     pushed_m = cell.truth()["max_height_m"]
-    time.sleep(KEPT_S)
+    cell.sleep(KEPT_S)
     kept_m = cell.truth()["max_height_m"]
     return {
         "wrinkled": pushed_m >= WRINKLED_M and kept_m >= KEPT_RATIO * pushed_m,
@@ -119,30 +139,30 @@ def _wrinkle(cell: _Cell, start: dict[str, Any]) -> dict[str, Any]:
 
 
 def _run_start(
-    cell: _Cell, start: dict[str, Any], mode: str, flatten_s: float, move_s: float
+    cell: Cell, start: dict[str, Any], mode: str, flatten_s: float, move_s: float
 ) -> dict[str, Any]:
     wrinkle = _wrinkle(cell, start)
     if not wrinkle["wrinkled"]:
         return wrinkle
     before = cell.truth()
-    cell.setpoint({"mode": mode})
-    t0 = time.monotonic()
+    cell.setpoint_request({"mode": mode})
+    t0 = cell.now()
     time_to_flat = None
     strain_flatten = 0.0
-    while time.monotonic() - t0 < flatten_s:
+    while cell.now() - t0 < flatten_s:
         t = cell.truth()
         strain_flatten = max(strain_flatten, t["max_strain"])
         if t["max_height_m"] <= FLAT_HEIGHT_M and t["area_ratio"] >= FLAT_AREA_RATIO:
-            time_to_flat = time.monotonic() - t0
+            time_to_flat = cell.now() - t0
             break
-        time.sleep(POLL_S)
+        cell.sleep(POLL_S)
     flat_truth = cell.truth()
     target = start["target"]
     # The tracker frames a cloth by its outline, so its angle may be the truth's plus pi (a rectangle's
     # symmetry): the turn is asked of the estimate, the result judged against the truth.
     estimate = cell.status()["pose"] or {"theta_rad": flat_truth["pose"][2]}  # none: tracking was lost
     turn_rad = math.remainder(target[2] - flat_truth["pose"][2], 2 * math.pi)
-    cell.setpoint(
+    cell.setpoint_request(
         {
             "mode": "move",
             "x_m": target[0],
@@ -150,20 +170,20 @@ def _run_start(
             "theta_rad": math.remainder(estimate["theta_rad"] + turn_rad, 2 * math.pi),
         }
     )
-    t1 = time.monotonic()
+    t1 = cell.now()
     entered = None
     err = (math.inf, math.inf)
     strain_move = 0.0
-    while time.monotonic() - t1 < move_s:
+    while cell.now() - t1 < move_s:
         t = cell.truth()
         strain_move = max(strain_move, t["max_strain"])
         err = pose_error(t["pose"], (target[0], target[1], target[2]))
         inside = err[0] <= POS_TOL_M and err[1] <= ANGLE_TOL_RAD
-        now = time.monotonic() - t1
+        now = cell.now() - t1
         entered = (entered if entered is not None else now) if inside else None
         if entered is not None and now - entered >= HOLD_S:
             break
-        time.sleep(POLL_S)
+        cell.sleep(POLL_S)
     end = cell.truth()
     status = cell.status()
     return {
@@ -209,32 +229,56 @@ def _summary(runs: list[dict[str, Any]], flatten_s: float) -> dict[str, Any]:
     }
 
 
+def _run_starts(
+    cell: Cell,
+    plan: list[dict[str, Any]],
+    starts: int,
+    variant: str,
+    mode: str,
+    flatten_s: float,
+    move_s: float,
+) -> list[dict[str, Any]]:
+    rows: list[dict[str, Any]] = []
+    with tqdm(total=starts, desc=f"flatten bench ({variant})", unit="start") as bar:
+        for start in plan:
+            rows.append(_run_start(cell, start, mode, flatten_s, move_s))
+            bar.update(int(rows[-1]["wrinkled"]))
+            bar.set_postfix(drawn=len(rows))
+            if bar.n == starts:
+                break
+    return rows
+
+
 def run_bench(
-    starts: int = 20, seed: int = 0, flatten_s: float = 10.0, move_s: float = 15.0
+    starts: int = 20, seed: int = 0, flatten_s: float = 10.0, move_s: float = 15.0, lockstep: bool = False
 ) -> dict[str, Any]:
     """Each controller runs the same seeded sequence of starts until `starts` of them were wrinkled (or
-    MAX_DRAWS_PER_START x starts were drawn)."""
+    MAX_DRAWS_PER_START x starts were drawn). In lockstep, `realtime_factor` is the simulated seconds
+    per wall second over both controllers."""
     plan = [draw_start(np.random.default_rng([seed, k])) for k in range(MAX_DRAWS_PER_START * starts)]
     result: dict[str, Any] = {"starts": plan}
+    simulated_s = wall_s = 0.0
     for variant, mode, flatten in (("flatten", "flatten", True), ("rigid", "hold", False)):
-        with tempfile.TemporaryDirectory(prefix="clothd-bench-flatten-") as tmp:
-            config = Path(tmp) / "clothd.yaml"
-            config.write_text(f"control:\n  flatten: {'true' if flatten else 'false'}\n")
-            d = DaemonProcess(config, free_port())
-            try:
-                d.wait_ready()
-                cell = _Cell(d)
-                rows: list[dict[str, Any]] = []
-                with tqdm(total=starts, desc=f"flatten bench ({variant})", unit="start") as bar:
-                    for start in plan:
-                        rows.append(_run_start(cell, start, mode, flatten_s, move_s))
-                        bar.update(int(rows[-1]["wrinkled"]))
-                        bar.set_postfix(drawn=len(rows))
-                        if bar.n == starts:
-                            break
-            finally:
-                d.stop()
+        if lockstep:
+            cfg = with_overrides(load_config(None), {"control": {"flatten": flatten}})
+            t_wall = time.perf_counter()
+            twin = LockstepCell(cfg)
+            rows = _run_starts(twin, plan, starts, variant, mode, flatten_s, move_s)
+            wall_s += time.perf_counter() - t_wall
+            simulated_s += twin.now()
+        else:
+            with tempfile.TemporaryDirectory(prefix="clothd-bench-flatten-") as tmp:
+                config = Path(tmp) / "clothd.yaml"
+                config.write_text(f"control:\n  flatten: {'true' if flatten else 'false'}\n")
+                d = DaemonProcess(config, free_port())
+                try:
+                    d.wait_ready()
+                    rows = _run_starts(LiveCell(d), plan, starts, variant, mode, flatten_s, move_s)
+                finally:
+                    d.stop()
         result[variant] = {"summary": _summary(rows, flatten_s), "runs": rows}
+    if lockstep:
+        result["realtime_factor"] = simulated_s / wall_s
     return result
 
 

@@ -1,0 +1,180 @@
+"""The closed loop in lockstep: hwsim's cell and clothd's tracker and cell controller in one process,
+tick by tick, as fast as the CPU allows.
+
+No clock, no threads, no sleeps: time is the world's, and it advances one tick of `loop.tick_hz` at a
+time. Each tick the controller's last commands reach the drives (hwsim's firmware semantics), the world
+steps, the camera delivers a frame when one is due (rendered, sensor noise and JPEG, as `hwsim serve`
+streams it), the tracker tracks it with the commands that were in force, and the cell controller
+answers. The same seed gives the same run on any machine under any load. What it leaves out is the
+real-time path (the stepper link, the video stream, the compute process, the tick's timing), which the
+integration tests and `clothd bench loop` cover. The files between them are the real ones: hwsim
+writes camera.json and clothd reads it.
+
+The daemon's own rules for a setpoint are kept to what the benches use: hold and flatten hold the pose
+the cloth has when they are set, a move needs the cloth tracked, and a fault (a halt reason) drops the
+setpoint to idle until the next one.
+"""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from clothd.config import Config
+from clothd.core.cell_controller import CellController
+from clothd.core.control import Setpoint
+from clothd.core.conveyor import ConveyorLayout
+from clothd.core.flatness import Flatness
+from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.modes import LoopState, Mode
+from clothd.core.tracker import Tracker
+from clothd.core.workspace import Workspace
+from clothd.formats import read_camera
+from clothd.taichi_runtime import start_taichi
+from hwsim import scenario as scenarios
+from hwsim.camera import Camera
+from hwsim.firmware import drive_targets
+from hwsim.scenario import Pose, Push
+from hwsim.sensor import Sensor
+from hwsim.world import World
+
+CAMERA_FPS = 15.0  # as `hwsim serve` streams it
+
+
+class LockstepCell:
+    """hwsim's scenario and clothd's loop, advanced together by `sleep`."""
+
+    def __init__(self, cfg: Config, scenario: str = "cell") -> None:
+        start_taichi(cfg.taichi.arch)
+        sc = scenarios.load(scenario)
+        self.world = World(sc, log_commands=False)
+        self.period_s = cfg.loop.period_s
+        if not math.isclose(self.world.dt_s, self.period_s):
+            raise ValueError(f"lockstep needs the world's step ({self.world.dt_s:g} s) to be the tick")
+        camera = Camera.from_spec(sc.camera)
+        self.sensor = Sensor(sc, camera, self.world.cloth.grid)
+        self.camera_every = max(1, round(sc.fps / CAMERA_FPS))
+        with tempfile.TemporaryDirectory(prefix="clothd-lockstep-") as tmp:
+            camera.save(Path(tmp) / "camera.json")  # the interface between them, as live
+            camera_model = read_camera(Path(tmp) / "camera.json")
+        layout = ConveyorLayout.of_cell(cfg.cell)
+        self.tracker = Tracker(cfg.tracker, camera_model, layout)
+        self.cell = CellController(
+            cfg.control,
+            cfg.cell,
+            layout,
+            Workspace.of_cell(cfg.cell),
+            self.period_s,
+            cfg.tracker.physics.strain_limit,
+            cfg.tracker.estimates_shape,
+        )
+        self.commands = ModuleCommands.all_stop(layout.n_modules)
+        self.setpoint = Setpoint(Mode.IDLE, None)
+        self.state = LoopState.STARTING
+        self.halt_reason: str | None = None
+        self.estimate: Estimate | None = None
+        self.flatness: Flatness | None = None
+        self.ticks = 0
+
+    # -- time ----------------------------------------------------------------------------------------
+
+    def now(self) -> float:
+        return self.world.t_s
+
+    def sleep(self, seconds: float) -> None:
+        for _ in range(max(1, round(seconds / self.period_s))):
+            self._tick()
+
+    def wait(self, check: Any, timeout_s: float, what: str) -> None:
+        deadline = self.now() + timeout_s
+        while not check():
+            if self.now() > deadline:
+                raise RuntimeError(f"{what}: not within {timeout_s} s")
+            self._tick()
+
+    # -- what the benches ask of a cell ----------------------------------------------------------------
+
+    def status(self) -> dict[str, Any]:
+        est = self.estimate
+        pose = None
+        if est is not None and est.tracking:
+            pose = {"x_m": est.pose[0], "y_m": est.pose[1], "theta_rad": est.pose[2]}
+        return {
+            "state": self.state.value,
+            "mode": self.setpoint.mode.value,
+            "link": {"state": "connected"},
+            "pose": pose,
+            "halt_reason": self.halt_reason,
+        }
+
+    def truth(self) -> dict[str, Any]:
+        return {
+            "t_s": self.world.t_s,
+            "pose": self.world.cloth_pose().tolist(),
+            "module_speed_m_s": self.world.table.speed_m_s.tolist(),
+            **self.world.sheet_measures(),
+        }
+
+    def setpoint_request(self, body: dict[str, Any]) -> None:
+        mode = Mode(body["mode"])
+        est = self.estimate
+        if mode != Mode.IDLE and (self.state != LoopState.TRACKING or est is None or not est.tracking):
+            raise RuntimeError(f"setpoint {body}: the cloth is not tracked (state {self.state})")
+        if mode == Mode.MOVE:
+            target: np.ndarray | None = np.array([body["x_m"], body["y_m"], body["theta_rad"]])
+        elif mode in (Mode.HOLD, Mode.FLATTEN):
+            assert est is not None
+            target = est.pose.copy()
+        elif mode == Mode.IDLE:
+            target = None
+        else:
+            raise ValueError(f"lockstep does not play {mode} setpoints")
+        self.setpoint = Setpoint(mode, target, started_mono_s=self.now())
+        self.halt_reason = None
+
+    def lay(self, pose: list[float]) -> None:
+        """hwsim's POST /cloth, then a reset of tracking onto it, as the benches do it live."""
+        self.setpoint_request({"mode": "idle"})
+        self.wait(lambda: not self.world.table.speed_m_s.any(), 5, "belts stopped")
+        self.world.lay(Pose(x_m=pose[0], y_m=pose[1], theta_rad=pose[2]))
+        self.reset()
+        self.wait(lambda: self.state == LoopState.TRACKING, 30, "tracking again")
+
+    def push(self, push: dict[str, Any], then_s: float) -> None:
+        self.world.push(Push.model_validate(push))
+        self.sleep(then_s)
+
+    def reset(self) -> None:
+        self.tracker.reset()
+        self.cell.reset()
+        self.estimate = self.flatness = None
+
+    # -- one tick ------------------------------------------------------------------------------------
+
+    def _tick(self) -> None:
+        self.world.table.command(
+            np.arange(self.world.table.n_modules),
+            *drive_targets(self.commands.speed_m_s, self.commands.heading_rad),
+        )
+        in_force = self.commands
+        self.world.step()
+        self.ticks += 1
+        if self.world.frame_index % self.camera_every == 0:
+            k = self.world.frame_index // self.camera_every
+            jpeg = np.frombuffer(self.sensor.jpeg(self.world, k), np.uint8)
+            image = cv2.imdecode(jpeg, cv2.IMREAD_COLOR)
+            assert image is not None  # hwsim's own JPEG
+            self.estimate = self.tracker.track(image, self.world.t_s, in_force)
+            self.flatness = self.cell.read_flatness(self.estimate)
+        have_frame = self.world.frame_index >= self.camera_every
+        step = self.cell.step(have_frame, self.estimate, self.setpoint, self.flatness, self.now())
+        self.state = step.state
+        self.commands = step.commands
+        if step.halt_reason is not None and self.setpoint.mode != Mode.IDLE:
+            self.setpoint = Setpoint(Mode.IDLE, None)
+            self.halt_reason = step.halt_reason

@@ -1,0 +1,57 @@
+"""The closed loop in lockstep (clothd/tools/lockstep.py): hwsim's cell and clothd's tracker and cell
+controller in one process, tick by tick, judged by hwsim's truth, with no clock and no machine load in
+the result."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from clothd.config import load_config
+from clothd.tools.bench_flatten import FLAT_AREA_RATIO, FLAT_HEIGHT_M, PUSH_REACH_M, PUSH_S
+from clothd.tools.lockstep import LockstepCell
+
+PUSH = {
+    "at_m": [0.01, 0.0],
+    "direction_rad": 1.2,
+    "slack_m": 0.008,
+    "duration_s": PUSH_S,
+    "reach_m": PUSH_REACH_M,
+}
+
+
+@pytest.fixture(scope="module")
+def cell() -> LockstepCell:
+    return LockstepCell(load_config(None))
+
+
+def test_flatten_takes_out_a_ridge_pushed_in_after_tracking_began(cell: LockstepCell) -> None:
+    cell.lay([0.0, 0.0, 0.3])
+    cell.push(PUSH, then_s=2.0)
+    assert cell.truth()["max_height_m"] > 0.003  # the hands left a ridge
+    cell.setpoint_request({"mode": "flatten"})
+    started_s = cell.now()
+
+    def flat() -> bool:
+        t = cell.truth()
+        return bool(t["max_height_m"] <= FLAT_HEIGHT_M and t["area_ratio"] >= FLAT_AREA_RATIO)
+
+    while not flat() and cell.now() - started_s < 10.0:
+        cell.sleep(0.1)
+    assert flat(), cell.truth()
+    assert cell.status()["state"] == "tracking" and cell.status()["halt_reason"] is None
+
+
+def test_a_move_ends_where_the_truth_says_and_the_same_run_gives_the_same_numbers() -> None:
+    """Two cells, the same requests: the same estimate, bit for bit (no clock, no threads' timing)."""
+    poses = []
+    for _ in range(2):
+        twin = LockstepCell(load_config(None))
+        twin.lay([0.0, 0.0, 0.0])
+        twin.setpoint_request({"mode": "move", "x_m": 0.03, "y_m": -0.02, "theta_rad": 0.1})
+        twin.sleep(3.0)
+        status = twin.status()
+        poses.append([status["pose"][k] for k in ("x_m", "y_m", "theta_rad")])
+        truth = twin.truth()["pose"]
+        assert np.hypot(truth[0] - 0.03, truth[1] + 0.02) < 0.005 and abs(truth[2] - 0.1) < np.radians(1.0)
+    assert poses[0] == poses[1]
