@@ -259,7 +259,7 @@ def _add_tune(sub: Subparsers) -> None:
     tn = sub.add_parser(
         "tune",
         help="fit the cloth model's constants to recorded footage (the report's Table 2)",
-        description="Searches the mass-spring constants (tracker.physics, within config.py's bounds) with "
+        description="Searches the mass-spring constants (tracker.physics, within its bounds) with "
         "Optuna's CMA-ES for the least mean + 2 x worst feature pixel error of the model's prediction. "
         "With two recordings it searches on the first and keeps the second out; with three or more it "
         "cross-validates. Writes DIR/best.yaml (a config fragment for --config) only when the best design "

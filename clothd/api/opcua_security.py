@@ -1,7 +1,7 @@
 """Who may do what on the OPC UA server, and its certificate.
 
 - On loopback, reads (browse, read, subscribe) are anonymous. Off loopback nobody is anonymous: the
-  configuration then needs api.token (clothd/config.py).
+  configuration then needs api.token (clothd/config/).
 - With api.token set, method calls need user `clothd` with the token as password; without one (loopback
   only) anyone who can reach loopback may call, as with the REST API (docs/api.md says why).
 - Off loopback the only policy is Basic256Sha256 SignAndEncrypt, with a self-signed certificate made on

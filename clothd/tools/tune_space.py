@@ -1,4 +1,4 @@
-"""What `clothd tune` searches: the tracker's mass–spring constants, within the bounds config.py declares.
+"""What `clothd tune` searches: the tracker's mass–spring constants, within the bounds clothd/config declares.
 
 The bounds are read from PhysicsConfig's Field metadata, so the search can never propose a value the
 configuration would refuse. Where a bound is open at zero (gt=0, ge=0) the search stops FLOOR_DECADES
