@@ -19,7 +19,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
-from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from starlette.websockets import WebSocketDisconnect
 
 from clothd.api.bridge import DaemonBridge
@@ -105,6 +105,18 @@ def create_app(
         app.add_exception_handler(error, _detail_response(status_code))
 
     api = APIRouter(prefix="/api/v1")
+    _add_control_routes(api, daemon, hub, commands, bridge)
+    _add_view_routes(api, daemon, hub, streams, camera_model, sim_truth_url)
+    app.include_router(api)
+    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+    _add_page_routes(app, hub, registry)
+    return app
+
+
+def _add_control_routes(
+    api: APIRouter, daemon: Daemon, hub: StreamHub, commands: Commands, bridge: DaemonBridge
+) -> None:
+    """The status, and what changes the cell: setpoints, the e-stop, a reset, recordings."""
 
     @api.get("/status", responses=STATUS_DOC, response_model=None)
     async def status() -> Response:
@@ -144,6 +156,17 @@ def create_app(
         await bridge.call(daemon.stop_recording)
         what = "the .mcap file's summary" if daemon.settings.recording_format == "mcap" else "estimates.npz"
         return Ok(detail=f"recording stops; {what} is written")
+
+
+def _add_view_routes(
+    api: APIRouter,
+    daemon: Daemon,
+    hub: StreamHub,
+    streams: StreamSlots,
+    camera_model: CameraModel,
+    sim_truth_url: str | None,
+) -> None:
+    """What shows the cell: the camera's geometry, hwsim's truth, the annotated view and the stream."""
 
     @api.get("/camera", response_model=CameraInfo)
     async def camera() -> CameraInfo:
@@ -185,8 +208,9 @@ def create_app(
         finally:
             streams.give_back()
 
-    app.include_router(api)
-    app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
+
+def _add_page_routes(app: FastAPI, hub: StreamHub, registry: CollectorRegistry) -> None:
+    """The dashboard, the health check and the metrics."""
 
     @app.get("/", response_class=FileResponse, include_in_schema=False)
     async def dashboard() -> FileResponse:
@@ -211,8 +235,6 @@ def create_app(
     @app.get("/metrics", response_class=PlainTextResponse)
     async def metrics() -> Response:
         return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
-
-    return app
 
 
 def _streams_full(streams: StreamSlots) -> JSONResponse:
