@@ -29,7 +29,7 @@ from pathlib import Path
 
 import cv2
 
-from clothd.config import CellConfig, ControlConfig, FoxgloveConfig, TrackerConfig
+from clothd.config import CellConfig, ControlConfig, FoxgloveConfig, RecordingFormat, TrackerConfig
 from clothd.core.camera_model import CameraModel
 from clothd.core.cell_controller import CellController
 from clothd.core.control import Setpoint
@@ -44,7 +44,7 @@ from clothd.errors import ClothdError
 from clothd.foxglove_live import LiveFoxglove
 from clothd.logs import configure_logging
 from clothd.priority import leave_realtime
-from clothd.recorder import Recorder, RecordingStatus
+from clothd.recorder import FrameSink, Recorder, RecordingStatus
 from clothd.taichi_runtime import start_taichi
 from clothd.view import ViewRenderer
 
@@ -107,7 +107,7 @@ class ComputeSpec:
     taichi_arch: str
     max_record_bytes: int
     frame_source: Callable[[], FrameSource]
-    recording_format: str = "directory"  # recording.format
+    recording_format: RecordingFormat = RecordingFormat.DIRECTORY
     foxglove: FoxgloveConfig | None = None  # the live server's section (None: off)
     track_ahead: bool = True  # loop.track_ahead: track a frame as it arrives, not when its tick asks
     opencv_threads: int = 2  # loop.compute_threads
@@ -147,7 +147,7 @@ class Compute:
         self.recorder: Recorder | None = None  # a directory recording
         # The live Foxglove output: the server, and MCAP recordings (format mcap) instead of Recorder.
         serves = spec.foxglove is not None and spec.foxglove.enabled
-        needs_live = serves or spec.recording_format == "mcap"
+        needs_live = serves or spec.recording_format == RecordingFormat.MCAP
         self.foxglove = LiveFoxglove(spec.foxglove) if needs_live else None
         self.tracker = Tracker(spec.tracker, spec.camera_model, spec.layout, clock=time.perf_counter)
         self.cell = CellController(
@@ -311,14 +311,13 @@ class Compute:
         if upkeep_s is not None:
             timing["tracker_resample"] = upkeep_s
         frame, req = after.frame, after.req
-        if after.tracked is not None and frame is not None:
-            if self.recorder is not None:
-                t_rec = time.perf_counter()
+        sinks: list[FrameSink] = [s for s in (self.recorder, self.foxglove) if s is not None]
+        if after.tracked is not None and frame is not None and sinks:
+            t_rec = time.perf_counter()
+            for sink in sinks:
                 # The commands in force while this frame was captured: replay feeds them back the same way.
-                self.recorder.add(frame.image, frame.t_mono_s, after.commands_in_force, after.tracked)
-                timing["record"] = time.perf_counter() - t_rec
-            if self.foxglove is not None:  # queued only: the writer thread encodes and writes
-                self.foxglove.add(frame.image, frame.t_mono_s, after.commands_in_force, after.tracked)
+                sink.add(frame.image, frame.t_mono_s, after.commands_in_force, after.tracked)
+            timing["record"] = time.perf_counter() - t_rec
         if req.want_view and frame is not None:
             t_view = time.perf_counter()
             self._late_view = self.view.render(frame.image, after.estimate, req.setpoint, after.flatness)
@@ -347,7 +346,7 @@ class Compute:
         if (
             req.record_start is not None
             and self.foxglove is not None
-            and self.spec.recording_format == "mcap"
+            and self.spec.recording_format == RecordingFormat.MCAP
         ):
             self.foxglove.start_recording(req.record_start, self.spec.max_record_bytes)
         elif req.record_start is not None:

@@ -27,7 +27,7 @@ import numpy as np
 
 from clothd.compute import InForce, TickReply, TickRequest
 from clothd.compute_process import ComputeProcess
-from clothd.config import CellConfig
+from clothd.config import CellConfig, RecordingFormat
 from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.drive_script import DrivePlan, DriveScript, cloth_reach_m, swept_box_m
@@ -66,7 +66,7 @@ class DaemonSettings:
     camera_source: str  # as shown in the status
     link_port: str
     estimates_shape: bool  # the tracker's model follows the cloth's shape: flatten is possible
-    recording_format: str = "directory"  # recording.format: directory or mcap
+    recording_format: RecordingFormat = RecordingFormat.DIRECTORY
     frame_lock: bool = False  # loop.frame_lock: the tick's phase follows the camera (clothd/frame_phase.py)
     frame_lead_s: float = 0.001
     frame_wait_s: float = 0.012
@@ -211,18 +211,17 @@ class Daemon:
             raise RequestError(f"already recording into {rec.dir}: stop it first")
         if self._recording_starting is not None:  # two requests at once: the first one wins
             raise RequestError(f"a recording is starting in {self._recording_starting}: stop it first")
-        mcap = self.settings.recording_format == "mcap"
-        if mcap and out.suffix != ".mcap":
-            out = out.with_name(out.name + ".mcap")
+        form = self.settings.recording_format
+        if out.suffix != form.suffix:
+            out = out.with_name(out.name + form.suffix)
         try:
-            if mcap:
+            if form == RecordingFormat.MCAP:
                 out.parent.mkdir(parents=True, exist_ok=True)
                 out.touch(exist_ok=False)  # O_EXCL: neither an existing file nor a symlink is reused
             else:
                 out.mkdir(parents=True)
         except FileExistsError:
-            what = "file" if mcap else "directory"
-            raise RequestError(f"{out} exists: a recording needs a new {what}") from None
+            raise RequestError(f"{out} exists: a recording needs a new {form.noun}") from None
         except OSError as err:  # a full disk is the daemon's trouble (507); anything else is the place's
             error = StorageError if err.errno in (errno.ENOSPC, errno.EDQUOT) else InvalidRequestError
             raise error(f"cannot create {out}: {err.strerror or err}") from None

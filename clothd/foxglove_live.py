@@ -35,7 +35,7 @@ import foxglove
 import numpy as np
 from foxglove.mcap import MCAPWriteOptions, MCAPWriter
 
-from clothd.config import FoxgloveConfig
+from clothd.config import FoxgloveConfig, RecordingFormat
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.errors import ConfigError
 from clothd.foxglove_channels import CellChannels, encode_jpeg, residual_mean_px
@@ -130,7 +130,7 @@ class _Session:
             self.bytes,
             self.max_bytes,
             self.stopped_reason,
-            format="mcap",
+            format=RecordingFormat.MCAP,
             dropped_frames=self.dropped_frames,
         )
 

@@ -24,10 +24,12 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import cv2
 import numpy as np
 
+from clothd.config import RecordingFormat
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import Estimate, ModuleCommands
@@ -38,6 +40,14 @@ log = logging.getLogger(__name__)
 _PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
 
 
+class FrameSink(Protocol):
+    """Where each tracked frame goes after its tick's reply: a directory recording (Recorder), and the live
+    Foxglove server and its MCAP recordings (foxglove_live.LiveFoxglove), which only queue it."""
+
+    def add(self, image: np.ndarray, t_mono_s: float, commands: ModuleCommands, est: Estimate | None) -> None:
+        """The frame, when it was captured, the commands in force meanwhile, and its estimate."""
+
+
 @dataclass(frozen=True)
 class RecordingStatus:
     active: bool
@@ -46,7 +56,7 @@ class RecordingStatus:
     bytes: int
     max_bytes: int
     stopped_reason: str | None
-    format: str = "directory"  # recording.format
+    format: RecordingFormat = RecordingFormat.DIRECTORY
     dropped_frames: int = 0  # frames an MCAP recording's writer was too far behind to take
 
 

@@ -13,6 +13,7 @@ from typing import Literal
 import numpy as np
 from pydantic import BaseModel, Field
 
+from clothd.config import RecordingFormat
 from clothd.core.control import Setpoint
 from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands
@@ -141,7 +142,7 @@ class Recording(BaseModel):
     bytes: int
     max_bytes: int
     stopped_reason: str | None = Field(description="why it stopped: a request, the size limit, a full disk")
-    format: Literal["directory", "mcap"] = Field(description="recording.format")
+    format: RecordingFormat = Field(description="recording.format")
     dropped_frames: int = Field(
         description="new frames left out because the MCAP writer was behind (always 0 for directory)"
     )

@@ -146,7 +146,7 @@ def _add_control_routes(
     async def record_start(body: RecordStart | None = None) -> Ok:
         """Record the session (frames, commands, estimates) in the format `clothd replay` reads, or with
         recording.format mcap as one .mcap file (NAME.mcap) for Foxglove."""
-        suffix = ".mcap" if daemon.settings.recording_format == "mcap" else ""
+        suffix = daemon.settings.recording_format.suffix
         where = recording_path(daemon.settings.recording_dir, body.dir if body else None, suffix)
         path = await bridge.call(daemon.start_recording, where)
         return Ok(detail=f"recording into {path}")
@@ -154,8 +154,7 @@ def _add_control_routes(
     @api.post("/record/stop", responses=ERROR_DOC)
     async def record_stop() -> Ok:
         await bridge.call(daemon.stop_recording)
-        what = "the .mcap file's summary" if daemon.settings.recording_format == "mcap" else "estimates.npz"
-        return Ok(detail=f"recording stops; {what} is written")
+        return Ok(detail=f"recording stops; {daemon.settings.recording_format.finished_by} is written")
 
 
 def _add_view_routes(

@@ -7,6 +7,7 @@ names the key and the bound it broke.
 from __future__ import annotations
 
 import ipaddress
+from enum import StrEnum
 from pathlib import Path
 from typing import Any, Literal
 from urllib.parse import urlsplit
@@ -317,11 +318,32 @@ class OpcUaConfig(Strict):
         return self
 
 
+class RecordingFormat(StrEnum):
+    """How a recording is written; named once for the config, the daemon, the compute and the status."""
+
+    DIRECTORY = "directory"  # frames and CSVs that clothd replay reads
+    MCAP = "mcap"  # one .mcap file for Foxglove
+
+    @property
+    def suffix(self) -> str:
+        """What a recording's name ends with."""
+        return ".mcap" if self is RecordingFormat.MCAP else ""
+
+    @property
+    def noun(self) -> str:
+        return "file" if self is RecordingFormat.MCAP else "directory"
+
+    @property
+    def finished_by(self) -> str:
+        """What stopping a recording writes last."""
+        return "the .mcap file's summary" if self is RecordingFormat.MCAP else "estimates.npz"
+
+
 class RecordingConfig(Strict):
     dir: Path = Field(Path("recordings"), description="where POST /record/start puts sessions by default")
     max_bytes: int = Field(2_000_000_000, ge=100_000, le=10**13, description="a recording stops at this size")
-    format: Literal["directory", "mcap"] = Field(
-        "directory",
+    format: RecordingFormat = Field(
+        RecordingFormat.DIRECTORY,
         description="directory: frames and CSVs that clothd replay reads; mcap: one .mcap file for Foxglove",
     )
 
