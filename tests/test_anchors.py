@@ -43,13 +43,13 @@ def _still_cloth_error_px(anchor: bool, frames: int) -> list[float]:
     prev = _frame(engine, tex, 0)
     features = _features(engine, prev, 200)
     born = features.px.copy()
-    anchors = AnchorFrames(cfg, engine)
+    anchors = AnchorFrames(cfg)
     anchors.adopt(prev, features)
     errors = []
     for k in range(1, frames + 1):
         cur = _frame(engine, tex, k)
         result = engine.track(prev, cur, features.px)
-        measured = anchors.refine(cur, features, result.px, result.ok)[0] if anchor else result.px
+        measured = anchors.refine(engine, cur, features, result.px, result.ok)[0] if anchor else result.px
         features.keep(result.ok, measured)
         anchors.adopt(cur, features)
         prev = cur
@@ -72,16 +72,16 @@ def test_an_anchor_that_no_longer_looks_like_its_feature_is_released() -> None:
     engine = FeatureEngine(cfg)
     first = _frame(engine, _texture(0), 0)
     features = _features(engine, first, 100)
-    anchors = AnchorFrames(cfg, engine)
+    anchors = AnchorFrames(cfg)
     anchors.adopt(first, features)
     assert (features.anchor_frame != NO_ANCHOR).all()
     # The same texture: every anchor agrees with the frame-to-frame answer.
     same = _frame(engine, _texture(0), 1)
-    _, stats = anchors.refine(same, features, features.px, np.ones(len(features), bool))
+    _, stats = anchors.refine(engine, same, features, features.px, np.ones(len(features), bool))
     assert stats.anchored == len(features) and stats.released == 0
     # Another texture where the frame-to-frame tracker claims the points still are: no anchor agrees.
     other = _frame(engine, _texture(5), 2)
-    measured, stats = anchors.refine(other, features, features.px, np.ones(len(features), bool))
+    measured, stats = anchors.refine(engine, other, features, features.px, np.ones(len(features), bool))
     assert stats.released > 0.9 * len(features)
     released = features.anchor_frame == NO_ANCHOR
     np.testing.assert_array_equal(measured[released], features.px[released])
@@ -93,12 +93,12 @@ def test_a_feature_the_cloth_carried_off_its_anchor_is_released_untouched() -> N
     tex = _texture(0)
     first = _frame(engine, tex, 0)
     features = _features(engine, first, 100)
-    anchors = AnchorFrames(cfg, engine)
+    anchors = AnchorFrames(cfg)
     anchors.adopt(first, features)
     shifted = np.roll(tex, 2, axis=1)  # the cloth moved 2 px right, and the tracker followed it
     carried = features.px + np.float32([2.0, 0.0])
     measured, stats = anchors.refine(
-        _frame(engine, shifted, 1), features, carried, np.ones(len(features), bool)
+        engine, _frame(engine, shifted, 1), features, carried, np.ones(len(features), bool)
     )
     assert stats.released == len(features) and stats.anchored == 0
     np.testing.assert_array_equal(measured, carried)
@@ -111,7 +111,7 @@ def test_loose_features_are_anchored_together_and_too_many_frames_start_afresh()
     tex = _texture(0)
     frame = _frame(engine, tex, 0)
     features = _features(engine, frame, 60)
-    anchors = AnchorFrames(cfg, engine)
+    anchors = AnchorFrames(cfg)
     anchors.adopt(frame, features)  # no anchor frame yet: at once
     assert len(anchors.frames) == 1
     for k in range(1, 3):  # loose features wait for anchor_adopt_frames frames

@@ -43,9 +43,8 @@ class AnchorStats:
 class AnchorFrames:
     """The anchor frames in use, by id, and when features were last anchored."""
 
-    def __init__(self, cfg: FeatureConfig, engine: FeatureEngine) -> None:
+    def __init__(self, cfg: FeatureConfig) -> None:
         self.cfg = cfg
-        self.engine = engine
         self.frames: dict[int, GrayFrame] = {}
         self._next_id = 0
         self._since_adopt = 0
@@ -55,10 +54,16 @@ class AnchorFrames:
         self._since_adopt = 0
 
     def refine(
-        self, cur: GrayFrame, features: FeatureSet, tracked_px: np.ndarray, ok: np.ndarray
+        self,
+        engine: FeatureEngine,
+        cur: GrayFrame,
+        features: FeatureSet,
+        tracked_px: np.ndarray,
+        ok: np.ndarray,
     ) -> tuple[np.ndarray, AnchorStats]:
         """The measurements (n, 2) float32: tracked_px (the frame-to-frame answer), replaced by the anchored
-        position where it agrees. Features whose anchor disagrees are released (their anchor dropped)."""
+        position where it agrees, refined with the tracker's engine (it changes with the weave). Features
+        whose anchor disagrees are released (their anchor dropped)."""
         px = np.array(tracked_px, np.float32, copy=True)
         anchored = released = 0
         for frame_id, anchor in self.frames.items():
@@ -72,7 +77,7 @@ class AnchorFrames:
             members = members[~moved]
             if len(members) == 0:
                 continue
-            refined, agrees = self.engine.refine_to_anchor(
+            refined, agrees = engine.refine_to_anchor(
                 anchor, cur, features.anchor_px[members], px[members], self.cfg.anchor_max_px
             )
             px[members[agrees]] = refined[agrees]

@@ -92,7 +92,7 @@ class Tracker:
         # A repeating pattern's look-alikes blur together on a coarser level.
         self._engine_repetitive = FeatureEngine(f.model_copy(update={"lk_levels": f.repetitive_lk_levels}))
         self.engine = self._engine_default
-        self.anchors = AnchorFrames(cfg.features, self.engine)
+        self.anchors = AnchorFrames(cfg.features)
         self.estimator = make_estimator(cfg, camera_model)
         # The modules keep moving whatever the tracker believes, so their model survives a reset.
         limits = cfg.modules
@@ -121,7 +121,6 @@ class Tracker:
         # The cloth is a repeating pattern with corners, a check (FeatureConfig.repetitive_ncc).
         self.repetitive = False
         self.engine = self._engine_default
-        self.anchors.engine = self.engine
         self.anchors.reset()
         self._upkeep_frame: GrayFrame | None = None  # the tracked frame whose upkeep is still to do
         self._detected: list[Detections] = []  # features detected since the last estimate
@@ -167,7 +166,7 @@ class Tracker:
         result = self.engine.track(self.prev, frame, features.px, guess_px=guess)
         measured = result.px
         if self.cfg.features.anchor:
-            measured, _ = self.anchors.refine(frame, features, result.px, result.ok)
+            measured, _ = self.anchors.refine(self.engine, frame, features, result.px, result.ok)
         t3 = self.clock()
         keep = result.ok
         ambiguous = np.zeros(len(keep), bool)
@@ -273,7 +272,6 @@ class Tracker:
         )
         if self.periodic:
             self.engine = self._engine_periodic
-            self.anchors.engine = self.engine
         else:
             similar = self_similarity(frame.gray, px[:SELF_SIMILARITY_SAMPLE], f.lk_window_px)
             self.repetitive = (
@@ -281,7 +279,6 @@ class Tracker:
             )
             if self.repetitive:
                 self.engine = self._engine_repetitive
-                self.anchors.engine = self.engine
         state = self.estimator.estimate()
         if (
             self.periodic
