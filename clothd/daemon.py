@@ -47,6 +47,7 @@ from clothd.frame_phase import FramePhaseLock
 from clothd.loop_stats import LoopStats
 from clothd.notify import SystemdNotifier
 from clothd.status import Status, build_status
+from clothd.view import ViewBoard
 
 log = logging.getLogger(__name__)
 
@@ -111,9 +112,7 @@ class Daemon:
         self.camera = FrameSourceHealth("connecting", False, None, 0)
         self.latest: TickReply | None = None
         self.status: Status | None = None
-        self.viewers = 0
-        self.view_jpeg: bytes | None = None
-        self.view_index = 0
+        self.view = ViewBoard()
         self._last_view_s = -np.inf
         self._pending: asyncio.Future[TickReply] | None = None  # the compute in flight
         self._stale_ticks = 0  # ticks in a row the compute has not answered in time
@@ -336,7 +335,7 @@ class Daemon:
             self.setpoint = Setpoint(Mode.IDLE, None)
 
     def _request(self, now: float) -> asyncio.Future[TickReply]:
-        want_view = self.viewers > 0 and now - self._last_view_s >= self.settings.view_period_s
+        want_view = self.view.watched and now - self._last_view_s >= self.settings.view_period_s
         reset, self._reset_requested = self._reset_requested, False
         start, self._record_start = self._record_start, None
         self._start_in_flight = start is not None
@@ -372,7 +371,8 @@ class Daemon:
                 self.phase.frame_arrived(reply.frame_t_mono_s)
         self.stats.add_stages(reply.timing_s)
         if reply.view_jpeg is not None:
-            self.view_jpeg, self.view_index, self._last_view_s = reply.view_jpeg, self.view_index + 1, asked_s
+            self.view.post(reply.view_jpeg)
+            self._last_view_s = asked_s
         if reply.state != self.state:
             log.info("state: %s -> %s", self.state, reply.state)
         self.state = reply.state

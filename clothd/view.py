@@ -10,8 +10,11 @@ drawn in the compute process, only on ticks when someone watches, at `api.view_f
 
 from __future__ import annotations
 
+import contextlib
 import math
+import threading
 import time
+from collections.abc import Iterator
 
 import cv2
 import numpy as np
@@ -149,3 +152,39 @@ class ViewRenderer:
     def _ghost(self, img: np.ndarray, pose: np.ndarray, size_m: tuple[float, float]) -> None:
         px = self._project(cloth_corners_m(pose, size_m)).round().astype(np.int32)
         cv2.polylines(img, [px.reshape(-1, 1, 2)], True, GHOST_BGR, 2, cv2.LINE_AA)
+
+
+class ViewBoard:
+    """The annotated view between the loop's thread, which asks the compute to draw it only while someone
+    watches and posts each one, and the API's thread, which streams it. The one piece of the daemon the
+    API's thread touches directly: three values behind a lock, never held for more than a copy."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._watchers = 0
+        self._jpeg: bytes | None = None
+        self._index = 0
+
+    @contextlib.contextmanager
+    def watching(self) -> Iterator[None]:
+        with self._lock:
+            self._watchers += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._watchers -= 1
+
+    @property
+    def watched(self) -> bool:
+        with self._lock:
+            return self._watchers > 0
+
+    def post(self, jpeg: bytes) -> None:
+        with self._lock:
+            self._jpeg, self._index = jpeg, self._index + 1
+
+    def latest(self) -> tuple[bytes | None, int]:
+        """The newest view and its number (0 before the first)."""
+        with self._lock:
+            return self._jpeg, self._index

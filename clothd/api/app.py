@@ -262,17 +262,16 @@ async def _serve_stream(ws: WebSocket, hub: StreamHub, hz: float | None) -> None
 async def _mjpeg(daemon: Daemon, streams: StreamSlots) -> AsyncIterator[bytes]:
     """Frames as the compute process draws them; it draws only while someone watches. The stream's slot
     was taken by the handler and is given back here, however the stream ends."""
-    daemon.viewers += 1
-    last = -1
+    last = 0
     try:
-        while True:
-            jpeg, index = daemon.view_jpeg, daemon.view_index
-            if jpeg is None or index == last:
-                await asyncio.sleep(daemon.settings.view_period_s / 2)
-                continue
-            last = index
-            head = f"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n"
-            yield head.encode() + jpeg + b"\r\n"
+        with daemon.view.watching():
+            while True:
+                jpeg, index = daemon.view.latest()
+                if jpeg is None or index == last:
+                    await asyncio.sleep(daemon.settings.view_period_s / 2)
+                    continue
+                last = index
+                head = f"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n"
+                yield head.encode() + jpeg + b"\r\n"
     finally:
-        daemon.viewers -= 1
         streams.give_back()
