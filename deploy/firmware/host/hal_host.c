@@ -1,0 +1,83 @@
+#define _POSIX_C_SOURCE 200809L
+
+#include "hal_host.h"
+
+#include <errno.h>
+#include <time.h>
+#include <unistd.h>
+
+#include "hal.h"
+
+static int serial_fd = -1;
+static int32_t drive_steps_per_s[FW_MAX_MODULES];
+static int32_t steer_steps_per_s[FW_MAX_MODULES];
+static bool drivers_enabled;
+
+void hal_host_init(int fd)
+{
+    serial_fd = fd;
+}
+
+uint32_t hal_now_ms(void)
+{
+    struct timespec ts;
+    clock_gettime(CLOCK_MONOTONIC, &ts);
+    /* Truncated to 32 bits on purpose: the core only subtracts, so the wrap is harmless. */
+    return (uint32_t)((uint64_t)ts.tv_sec * 1000u + (uint64_t)ts.tv_nsec / 1000000u);
+}
+
+size_t hal_serial_read(uint8_t *buf, size_t max_len)
+{
+    ssize_t n = read(serial_fd, buf, max_len);
+    /* EAGAIN: nothing waiting; EIO: no one has the slave open (we hold it, so only transiently). */
+    return n > 0 ? (size_t)n : 0;
+}
+
+void hal_serial_write(const uint8_t *data, size_t len)
+{
+    while (len > 0) {
+        ssize_t n = write(serial_fd, data, len);
+        if (n < 0 && errno == EINTR) {
+            continue;
+        }
+        if (n <= 0) {
+            return; /* the pty's buffer is full (nobody reads): dropped, as on a real line */
+        }
+        data += n;
+        len -= (size_t)n;
+    }
+}
+
+void hal_drive_set_rate(uint16_t module, int32_t steps_per_s)
+{
+    if (module < FW_MAX_MODULES) {
+        drive_steps_per_s[module] = steps_per_s;
+    }
+}
+
+void hal_steer_set_rate(uint16_t module, int32_t steps_per_s)
+{
+    if (module < FW_MAX_MODULES) {
+        steer_steps_per_s[module] = steps_per_s;
+    }
+}
+
+void hal_drivers_enable(bool enabled)
+{
+    drivers_enabled = enabled;
+}
+
+int32_t hal_host_drive_rate(uint16_t module)
+{
+    return module < FW_MAX_MODULES ? drive_steps_per_s[module] : 0;
+}
+
+int32_t hal_host_steer_rate(uint16_t module)
+{
+    return module < FW_MAX_MODULES ? steer_steps_per_s[module] : 0;
+}
+
+bool hal_host_drivers_enabled(void)
+{
+    return drivers_enabled;
+}

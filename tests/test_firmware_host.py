@@ -1,0 +1,239 @@
+"""The C reference firmware (deploy/firmware/) against clothd's real stepper link, on a pseudo-terminal:
+handshake, acknowledged commands, the e-stop latch and its clearing, the watchdog's FAULT; and, frame by
+frame with clothd's wire encoder, the NACKs and flags docs/serial-protocol.md specifies.
+
+The build runs `make -C deploy/firmware host check` once per module: the C unit tests run with it."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import select
+import shutil
+import signal
+import struct
+import subprocess
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from clothd.config import StepperConfig
+from clothd.core.messages import ModuleCommands
+from clothd.drivers import wire
+from clothd.drivers.stepper_link import StepperLink
+
+ROOT = Path(__file__).resolve().parents[1]
+FIRMWARE_DIR = ROOT / "deploy" / "firmware"
+BINARY = FIRMWARE_DIR / "build" / "host" / "clothd-fw-host"
+N = 48
+WATCHDOG_S = 0.25  # docs/serial-protocol.md
+FAULT_WATCHDOG = 1
+BOARD = 0xFFFF
+NACK_ESTOPPED, NACK_BAD_LENGTH, NACK_UNKNOWN_TYPE, NACK_BAD_VERSION = 1, 2, 3, 4
+
+
+@pytest.fixture(scope="module")
+def firmware_binary() -> Path:
+    if shutil.which("gcc") is None or shutil.which("make") is None:
+        pytest.fail("the C firmware's host build needs gcc and make (Debian: apt-get install gcc make)")
+    # Run from `make test`, a nested make would inherit the outer one's flags.
+    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MAKELEVEL", "MFLAGS")}
+    done = subprocess.run(
+        ["make", "--no-print-directory", "-C", str(FIRMWARE_DIR), "host", "check"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
+    assert done.returncode == 0, f"make -C deploy/firmware host check failed:\n{done.stdout}\n{done.stderr}"
+    assert ", 0 failed" in done.stdout
+    return BINARY
+
+
+def _wait_for(check: Callable[[], bool], timeout_s: float = 3.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        time.sleep(0.01)
+
+
+@contextlib.contextmanager
+def _firmware(binary: Path, link: Path) -> Iterator[subprocess.Popen[bytes]]:
+    """clothd-fw-host on a fresh pty behind `link`; stopped with SIGTERM, which must exit cleanly."""
+    proc = subprocess.Popen(
+        [str(binary), "--link", str(link), "--modules", str(N), "--exit-on-stdin-eof"],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+    )
+    try:
+        _wait_for(lambda: link.exists() or proc.poll() is not None)
+        assert proc.poll() is None, proc.stderr.read().decode() if proc.stderr else ""
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=5)
+        err = proc.stderr.read().decode() if proc.stderr else ""
+    assert proc.returncode == 0, err
+    assert "clothd-fw-host: frames ok" in err  # the exit summary: it left its loop, not killed
+    assert not link.exists()  # the firmware removed its own symlink
+
+
+@pytest.fixture
+def firmware_link(firmware_binary: Path, tmp_path: Path) -> Iterator[Path]:
+    link = tmp_path / "ttyFW"
+    with _firmware(firmware_binary, link):
+        yield link
+
+
+# -- through clothd's stepper link ------------------------------------------------------------------
+
+
+def _forward(speed_m_s: float) -> ModuleCommands:
+    return ModuleCommands(np.full(N, speed_m_s), np.zeros(N))
+
+
+async def _until(check: Callable[[], bool], timeout_s: float = 3.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not check():
+        assert time.monotonic() < deadline, "condition not reached in time"
+        await asyncio.sleep(0.01)
+
+
+@contextlib.asynccontextmanager
+async def _running(port: Path) -> AsyncIterator[StepperLink]:
+    cfg = StepperConfig(port=str(port), reconnect_initial_s=0.05, reconnect_max_s=0.2)
+    link = StepperLink(cfg, N)
+    task = asyncio.create_task(link.run())
+    try:
+        await _until(lambda: link.connected)
+        yield link
+    finally:
+        await link.stop()
+        task.cancel()
+
+
+def _run(body: Awaitable[None]) -> None:
+    asyncio.run(asyncio.wait_for(body, 10))
+
+
+def test_link_comes_up_commands_are_acked_and_the_estop_latches_until_cleared(firmware_link: Path) -> None:
+    async def body() -> None:
+        async with _running(firmware_link) as link:
+            assert link.firmware and link.firmware.startswith("clothd-fw")
+            for _ in range(5):
+                assert link.send_commands(_forward(0.05))
+                await asyncio.sleep(1 / 30)
+            await _until(lambda: link.counters.acked >= 5)
+            assert link.counters.nacked == 0 and link.counters.invalid == 0
+            assert link.counters.snapshot()["rtt_p50_ms"] is not None
+
+            link.estop()
+            await _until(lambda: link.controller_estopped)
+            # The host holds back and PINGs each tick: the watchdog stays fed through a held e-stop.
+            held_until = time.monotonic() + 1.5 * WATCHDOG_S
+            while time.monotonic() < held_until:
+                assert not link.send_commands(_forward(0.05))
+                await asyncio.sleep(1 / 30)
+            assert link.controller_estopped and not link.faults and link.counters.nacked == 0
+
+            link.estop_clear()
+            await _until(lambda: not link.controller_estopped)
+            acked = link.counters.acked
+            assert link.send_commands(_forward(0.03))
+            await _until(lambda: link.counters.acked > acked)
+            assert link.counters.nacked == 0 and link.counters.losses == 0
+
+    _run(body())
+
+
+def test_the_watchdog_fault_reaches_the_link_when_the_host_falls_silent(firmware_link: Path) -> None:
+    async def body() -> None:
+        async with _running(firmware_link) as link:
+            # A host that has only said HELLO has driven nothing: its silence is no fault.
+            await asyncio.sleep(1.5 * WATCHDOG_S)
+            assert not link.faults
+            link.send_commands(_forward(0.1))
+            await _until(lambda: bool(link.faults), timeout_s=1.0)
+            fault = link.faults[0]
+            assert (fault.code, fault.module) == (FAULT_WATCHDOG, BOARD) and fault.text
+            assert link.counters.faults == 1 and link.connected
+
+    _run(body())
+
+
+# -- frame by frame ----------------------------------------------------------------------------------
+
+
+class _RawHost:
+    """The host side of the pty by hand: clothd's wire encoder out, its splitter and decoder in."""
+
+    def __init__(self, port: Path) -> None:
+        self.fd = os.open(port, os.O_RDWR | os.O_NOCTTY)
+        self.splitter = wire.FrameSplitter()
+        self.pending: list[wire.Message] = []
+
+    def close(self) -> None:
+        os.close(self.fd)
+
+    def send(self, msg_type: int, seq: int, payload: bytes = b"") -> None:
+        os.write(self.fd, wire.encode(msg_type, seq, payload))
+
+    def receive(self, timeout_s: float = 1.0) -> wire.Message:
+        deadline = time.monotonic() + timeout_s
+        while not self.pending:
+            left_s = deadline - time.monotonic()
+            assert left_s > 0, "no frame from the firmware"
+            ready, _, _ = select.select([self.fd], [], [], left_s)
+            if ready:
+                self.pending += [wire.decode(p) for p in self.splitter.feed(os.read(self.fd, 4096))]
+        return self.pending.pop(0)
+
+    def ask(self, msg_type: int, seq: int, payload: bytes = b"") -> tuple[int, int, bytes]:
+        self.send(msg_type, seq, payload)
+        reply = self.receive()
+        return reply.type, reply.seq, reply.payload
+
+
+def _command(speed_m_s: float, n: int = N) -> bytes:
+    return wire.command_payload(np.full(n, speed_m_s), np.zeros(n))
+
+
+def test_nacks_flags_and_the_watchdog_frame_by_frame(firmware_link: Path) -> None:
+    host = _RawHost(firmware_link)
+    try:
+        ack, nack, T = wire.MsgType.ACK, wire.MsgType.NACK, wire.MsgType
+        assert host.ask(T.HELLO, 1, bytes([2])) == (nack, 1, bytes([NACK_BAD_VERSION]))
+        kind, seq, payload = host.ask(T.HELLO, 2, wire.hello_payload())
+        hello = wire.parse_hello_ack(payload)
+        assert (kind, seq, hello.version, hello.n_modules) == (T.HELLO_ACK, 2, 1, N)
+        assert host.ask(T.COMMAND, 3, _command(0.1, n=N - 1)) == (nack, 3, bytes([NACK_BAD_LENGTH]))
+        assert host.ask(0x42, 4) == (nack, 4, bytes([NACK_UNKNOWN_TYPE]))
+        assert host.ask(T.ESTOP, 5) == (ack, 5, bytes([wire.FLAG_ESTOP]))
+        assert host.ask(T.COMMAND, 6, _command(0.1)) == (nack, 6, bytes([NACK_ESTOPPED]))
+        assert host.ask(T.ESTOP_CLEAR, 7) == (ack, 7, b"\x00")
+        assert host.ask(T.COMMAND, 8, _command(0.1)) == (ack, 8, b"\x00")
+        assert host.ask(T.COMMAND, 8, _command(0.1)) == (ack, 8, b"\x00")  # a retransmit: ACKed again
+        # Silent for the watchdog's 250 ms: FAULT(WATCHDOG) for the whole board, the flag in later ACKs.
+        sent_s = time.monotonic()
+        fault = host.receive(timeout_s=1.0)
+        assert fault.type == T.FAULT and time.monotonic() - sent_s >= WATCHDOG_S - 0.02
+        code, module = struct.unpack("<BH", fault.payload[:3])
+        assert (code, module) == (FAULT_WATCHDOG, BOARD)
+        assert host.ask(T.PING, 9) == (ack, 9, bytes([wire.FLAG_WATCHDOG]))
+        assert host.ask(T.COMMAND, 10, _command(0.0)) == (ack, 10, b"\x00")  # the next command clears it
+    finally:
+        host.close()
+
+
+def test_the_firmware_exits_when_its_stdin_closes(firmware_binary: Path, tmp_path: Path) -> None:
+    link = tmp_path / "ttyFW"
+    with _firmware(firmware_binary, link) as proc:
+        assert proc.stdin is not None
+        proc.stdin.close()
+        proc.wait(timeout=2)
