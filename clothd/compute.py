@@ -75,7 +75,7 @@ class InForce:
     sent_mono_s: float = field(default_factory=time.monotonic)  # when the daemon made it
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class TickReply:
     state: LoopState
     estimate: Estimate | None
@@ -185,12 +185,12 @@ class Compute:
 
     def stop_reply(self, state: LoopState) -> TickReply:
         return TickReply(
-            state,
-            None,
-            self.cell.stop(),
-            False,
-            None,
-            self.frames.health(),
+            state=state,
+            estimate=None,
+            commands=self.cell.stop(),
+            new_frame=False,
+            frame_t_mono_s=None,
+            camera=self.frames.health(),
             halt_reason=f"the compute failed ({state})",
         )
 
@@ -271,19 +271,19 @@ class Compute:
         self._after = _AfterReply(req, frame, tracked_with, tracked, est, flatness)
         view, self._late_view = self._late_view, None
         return TickReply(
-            step.state,
-            est,
-            step.commands,
-            new_frame,
-            frame.t_mono_s if frame is not None else None,
-            self.frames.health(),
-            timing,
-            view,
-            self._recording_status(),
-            step.halt_reason,
-            flatness,
-            (began_mono_s, time.monotonic()),
-            silent_s * 1e3 if starved else None,
+            state=step.state,
+            estimate=est,
+            commands=step.commands,
+            new_frame=new_frame,
+            frame_t_mono_s=frame.t_mono_s if frame is not None else None,
+            camera=self.frames.health(),
+            timing_s=timing,
+            view_jpeg=view,
+            recording=self._recording_status(),
+            halt_reason=step.halt_reason,
+            flatness=flatness,
+            compute_mono_s=(began_mono_s, time.monotonic()),
+            starved_ms=silent_s * 1e3 if starved else None,
         )
 
     def after_reply(self) -> None:

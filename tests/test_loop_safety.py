@@ -122,7 +122,15 @@ class FakeCompute:
         commands = MOVING if moving else ModuleCommands.all_stop(N)
         est = _estimate() if self.state == "tracking" else None
         camera = FrameSourceHealth("streaming", self.state != "camera_lost", None, 0)
-        return TickReply(self.state, est, commands, True, None, camera, halt_reason=self.halt_reason)
+        return TickReply(
+            state=self.state,
+            estimate=est,
+            commands=commands,
+            new_frame=True,
+            frame_t_mono_s=None,
+            camera=camera,
+            halt_reason=self.halt_reason,
+        )
 
 
 Scenario = Callable[[Daemon, FakeLink, FakeCompute], Awaitable[None]]

@@ -56,7 +56,7 @@ class Detections:
         return Detections(self.ids[keep], self.t_s[keep], self.px[keep])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Estimate:
     """What the tracker believes after one frame. Everything a consumer needs is here, so that nothing
     reaches into the tracker.

@@ -358,36 +358,36 @@ class Tracker:
             seen = self.colour.is_cloth(image, self.camera_model.project(centres.reshape(-1, 3)))
             quad_seen = seen.reshape(centres.shape[:2])
         return Estimate(
-            t_s,
-            "tracking",
-            state.pose,
-            state.pose_cov,
-            state.nodes_m,
-            state.outline_m,
-            (self.mesh.width_m, self.mesh.height_m),
-            self.features.ids.copy(),
-            meas,
-            self.features.px.astype(np.float64) if pred is None else pred,
-            stats,
-            timing,
-            quad_seen,
-            detected.subset(np.isin(detected.ids, self.features.ids)),  # the dropped never reach one
+            frame_t_s=t_s,
+            status="tracking",
+            pose=state.pose,
+            pose_cov=state.pose_cov,
+            nodes_m=state.nodes_m,
+            outline_m=state.outline_m,
+            cloth_size_m=(self.mesh.width_m, self.mesh.height_m),
+            feature_id=self.features.ids.copy(),
+            meas_px=meas,
+            pred_px=self.features.px.astype(np.float64) if pred is None else pred,
+            stats=stats,
+            timing_s=timing,
+            quad_seen=quad_seen,
+            detected=detected.subset(np.isin(detected.ids, self.features.ids)),  # the dropped never reach one
         )
 
 
 def _lost(t_s: float, timing: dict[str, float]) -> Estimate:
     empty = np.zeros((0, 2))
     return Estimate(
-        t_s,
-        "lost",
-        np.full(3, np.nan),
-        np.full((3, 3), np.nan),
-        None,
-        None,
-        None,
-        np.zeros(0, np.int64),
-        empty,
-        empty,
-        UpdateStats(0, 0, 0.0),
-        timing,
+        frame_t_s=t_s,
+        status="lost",
+        pose=np.full(3, np.nan),
+        pose_cov=np.full((3, 3), np.nan),
+        nodes_m=None,
+        outline_m=None,
+        cloth_size_m=None,
+        feature_id=np.zeros(0, np.int64),
+        meas_px=empty,
+        pred_px=empty,
+        stats=UpdateStats(0, 0, 0.0),
+        timing_s=timing,
     )
