@@ -12,6 +12,7 @@ from clothd.errors import ClothdError
 from clothd.tools.bench_cli import add_commands as add_bench_commands
 from clothd.tools.cli_args import TUNE_TRIALS, Subparsers, board_size, glue_signed_lists, positive_int, xy_m
 from clothd.tools.commissioning_cli import add_commands as add_commissioning_commands
+from clothd.tools.conformance_cli import add_commands as add_conformance_commands
 
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
@@ -314,6 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_run(sub)
     _add_replay(sub)
     add_commissioning_commands(sub)
+    add_conformance_commands(sub)
     _add_export(sub)
     _add_picture(sub)
     _add_calibrate(sub)
