@@ -77,17 +77,17 @@ def _estimate(pose: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> Estimate:
     outline = np.array([[-0.125, -0.1], [0.125, -0.1], [0.125, 0.1], [-0.125, 0.1]]) + p[:2]
     empty = np.zeros((0, 2))
     return Estimate(
-        0.0,
-        "tracking",
-        p,
-        np.eye(3) * 1e-8,
-        None,
-        outline,
-        (0.25, 0.2),
-        np.zeros(0, np.int64),
-        empty,
-        empty,
-        UpdateStats(0, 0, 0.0),
+        frame_t_s=0.0,
+        status="tracking",
+        pose=p,
+        pose_cov=np.eye(3) * 1e-8,
+        nodes_m=None,
+        outline_m=outline,
+        cloth_size_m=(0.25, 0.2),
+        feature_id=np.zeros(0, np.int64),
+        meas_px=empty,
+        pred_px=empty,
+        stats=UpdateStats(0, 0, 0.0),
     )
 
 
