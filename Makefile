@@ -10,7 +10,7 @@ UV_VERSION := $(shell sed -n 's/^uv==\([^ ]*\).*/\1/p' $(LOCK))
 COMPILE = $(BIN)/uv pip compile --quiet pyproject.toml --extra dev --universal --generate-hashes \
 	--python-version 3.11
 
-.PHONY: run test lint lock lock-check venv clean browser postgres
+.PHONY: run test lint lock lock-check venv clean browser postgres firmware
 
 venv: $(STAMP)
 
@@ -56,8 +56,17 @@ postgres:
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q postgresql; \
 	  else echo "make test: the shared-study test needs Debian's postgresql: sudo apt-get install postgresql"; exit 1; fi; }
 
-test: lock-check lint browser postgres
+# The reference stepper firmware (deploy/firmware/): its C unit tests, and the host build that
+# tests/test_firmware_host.py drives over a pty. Debian's gcc; CI runs as root and installs it.
+firmware:
+	@command -v gcc >/dev/null || { \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q gcc make; \
+	  else echo "make test: the firmware needs Debian's gcc: sudo apt-get install gcc"; exit 1; fi; }
+	$(MAKE) -C deploy/firmware host check
+
+test: lock-check lint browser postgres firmware
 	$(BIN)/pytest -q
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache out
+	$(MAKE) -C deploy/firmware clean

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import os
 import select
 import shutil
@@ -21,6 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from clothd.cli import main
 from clothd.config import StepperConfig
 from clothd.core.messages import ModuleCommands
 from clothd.drivers import wire
@@ -237,3 +239,12 @@ def test_the_firmware_exits_when_its_stdin_closes(firmware_binary: Path, tmp_pat
         assert proc.stdin is not None
         proc.stdin.close()
         proc.wait(timeout=2)
+
+
+def test_the_host_build_passes_the_conformance_kit(firmware_link: Path, tmp_path: Path) -> None:
+    """Every rule that shows on the wire passes; those only the drives show are not observable here."""
+    report = tmp_path / "conformance.json"
+    assert main(["conformance", "--port", str(firmware_link), "--json", str(report)]) == 0
+    rows = json.loads(report.read_text())["checks"]
+    assert not [r["name"] for r in rows if r["passed"] is False]
+    assert sum(r["passed"] is True for r in rows) >= 20
