@@ -1,6 +1,6 @@
 """Flattening in closed loop: the daemon and `hwsim serve` as separate processes, over the real pty and
 video. Hands push a ridge into the tracked cloth; it stays while nothing pulls it; `flatten` takes it out
-(docs/flattening.md)."""
+(docs/flattening.md). A folded corner left alone is checked in lockstep (tests/test_lockstep.py)."""
 
 from __future__ import annotations
 
@@ -78,26 +78,3 @@ def test_a_pushed_in_ridge_is_seen_kept_and_flattened(cell: Cell, daemon: Daemon
     except AssertionError as err:
         raise AssertionError(f"{err}; truth {cell.truth()}; status {daemon.status()['flatness']}") from None
     assert daemon.status()["mode"] == "flatten"
-
-
-def test_a_folded_corner_is_reported_as_a_flap_and_not_pulled(cell: Cell, daemon: Daemon) -> None:
-    wait(lambda: _ready(daemon), 60, "tracking, link up")
-    _lay_flat(cell, daemon, {"flaps": [{"corner": "+s+t", "size_m": 0.06}]})
-    folded = cell.truth()["folded_ratio"]
-    assert folded > 0.02
-    # The flatness block is null until the first estimate after the reset has been read.
-    wait(lambda: bool((daemon.status()["flatness"] or {}).get("flaps")), 10, "the flap reported")
-    seen = daemon.status()["flatness"]
-    assert len(seen["flaps"]) == 1 and not seen["flat"]
-    # The cloth lies square at the origin: its +s+t corner is the +x +y one, 60 mm legs.
-    assert seen["flaps"][0]["kind"] == "flap"
-    assert 0.07 < seen["flaps"][0]["x_m"] < 0.125 and 0.05 < seen["flaps"][0]["y_m"] < 0.10
-    daemon.put_setpoint({"mode": "flatten"})
-    fastest_m_s = 0.0
-    deadline = time.monotonic() + 3.0
-    while time.monotonic() < deadline:
-        fastest_m_s = max(fastest_m_s, max(abs(v) for v in cell.truth()["module_speed_m_s"]))
-        time.sleep(0.05)
-    assert fastest_m_s < 0.005  # only the pose hold's trims: nothing pulls
-    assert cell.truth()["folded_ratio"] >= 0.95 * folded
-    assert daemon.status()["flatness"]["flaps"]

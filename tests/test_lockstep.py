@@ -55,3 +55,24 @@ def test_a_move_ends_where_the_truth_says_and_the_same_run_gives_the_same_number
         truth = twin.truth()["pose"]
         assert np.hypot(truth[0] - 0.03, truth[1] + 0.02) < 0.005 and abs(truth[2] - 0.1) < np.radians(1.0)
     assert poses[0] == poses[1]
+
+
+def test_a_folded_corner_is_reported_as_a_flap_and_not_pulled(cell: LockstepCell) -> None:
+    cell.lay([0.0, 0.0, 0.0], flaps=[{"corner": "+s+t", "size_m": 0.06}])
+    folded = cell.truth()["folded_ratio"]
+    assert folded > 0.02
+    # The flatness is null until the first estimate after the reset has been read.
+    cell.wait(lambda: bool((cell.status()["flatness"] or {}).get("flaps")), 10, "the flap reported")
+    seen = cell.status()["flatness"]
+    assert len(seen["flaps"]) == 1 and not seen["flat"]
+    # The cloth lies square at the origin: its +s+t corner is the +x +y one, 60 mm legs.
+    assert seen["flaps"][0]["kind"] == "flap"
+    assert 0.07 < seen["flaps"][0]["x_m"] < 0.125 and 0.05 < seen["flaps"][0]["y_m"] < 0.10
+    cell.setpoint_request({"mode": "flatten"})
+    fastest_m_s = 0.0
+    for _ in range(30):  # 3 s
+        cell.sleep(0.1)
+        fastest_m_s = max(fastest_m_s, float(np.abs(cell.truth()["module_speed_m_s"]).max()))
+    assert fastest_m_s < 0.005  # only the pose hold's trims: nothing pulls
+    assert cell.truth()["folded_ratio"] >= 0.95 * folded
+    assert cell.status()["flatness"]["flaps"]

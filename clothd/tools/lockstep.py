@@ -35,6 +35,7 @@ from clothd.core.modes import LoopState, Mode
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
 from clothd.formats import read_camera
+from clothd.status import FlatnessState
 from clothd.taichi_runtime import start_taichi
 from hwsim import scenario as scenarios
 from hwsim.camera import Camera
@@ -104,11 +105,13 @@ class LockstepCell:
         pose = None
         if est is not None and est.tracking:
             pose = {"x_m": est.pose[0], "y_m": est.pose[1], "theta_rad": est.pose[2]}
+        flatness = None if self.flatness is None else FlatnessState.of(self.flatness).model_dump()
         return {
             "state": self.state.value,
             "mode": self.setpoint.mode.value,
             "link": {"state": "connected"},
             "pose": pose,
+            "flatness": flatness,
             "halt_reason": self.halt_reason,
         }
 
@@ -117,6 +120,7 @@ class LockstepCell:
             "t_s": self.world.t_s,
             "pose": self.world.cloth_pose().tolist(),
             "module_speed_m_s": self.world.table.speed_m_s.tolist(),
+            "module_cmd_speed_m_s": self.world.table.cmd_speed_m_s.tolist(),
             **self.world.sheet_measures(),
         }
 
@@ -137,11 +141,13 @@ class LockstepCell:
         self.setpoint = Setpoint(mode, target, started_mono_s=self.now())
         self.halt_reason = None
 
-    def lay(self, pose: list[float]) -> None:
-        """hwsim's POST /cloth, then a reset of tracking onto it, as the benches do it live."""
+    def lay(self, pose: list[float], flaps: list[dict[str, Any]] | None = None) -> None:
+        """hwsim's POST /cloth (flaps as a scenario's pose gives them), then a reset of tracking onto it,
+        as the benches do it live."""
         self.setpoint_request({"mode": "idle"})
         self.wait(lambda: not self.world.table.speed_m_s.any(), 5, "belts stopped")
-        self.world.lay(Pose(x_m=pose[0], y_m=pose[1], theta_rad=pose[2]))
+        laid = {"x_m": pose[0], "y_m": pose[1], "theta_rad": pose[2], "flaps": flaps or []}
+        self.world.lay(Pose.model_validate(laid))
         self.reset()
         self.wait(lambda: self.state == LoopState.TRACKING, 30, "tracking again")
 
