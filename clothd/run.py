@@ -35,19 +35,19 @@ from clothd.api.commands import Commands
 from clothd.api.connections import BoundedH11Protocol, BoundedWebSocketProtocol
 from clothd.api.opcua_server import OpcUaServer
 from clothd.api.stream import StreamHub
-from clothd.compute import ComputeSpec
-from clothd.compute_process import ComputeProcess
 from clothd.config import ApiConfig, Config, FoxgloveConfig, OpcUaConfig, opcua_host_port, with_overrides
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.module_calibration import ModuleCalibration
 from clothd.core.workspace import Workspace
-from clothd.daemon import Daemon, DaemonSettings
 from clothd.drivers.camera import VideoCaptureSource, redact_source
 from clothd.drivers.stepper_link import StepperLink
 from clothd.errors import ConfigError, HardwareError
 from clothd.formats import read_camera, read_module_calibration
-from clothd.priority import claim_realtime, leave_realtime, set_thread_nice
+from clothd.loop.compute import ComputeSpec
+from clothd.loop.compute_process import ComputeProcess
+from clothd.loop.daemon import Daemon, DaemonSettings
+from clothd.loop.priority import claim_realtime, leave_realtime, set_thread_nice
 
 SIM_START_TIMEOUT_S = 120.0
 GIL_SWITCH_S = 0.001
@@ -226,7 +226,7 @@ class ApiThread(threading.Thread):
         self.error: BaseException | None = None
 
     def run(self) -> None:
-        leave_realtime()  # requests, however many, must not take a core from the loop (clothd/priority.py)
+        leave_realtime()  # requests, however many, must not take a core from the loop (loop/priority.py)
         try:
             asyncio.run(self._serve())
         except BaseException as err:  # handed to the main thread, which stops the daemon first
@@ -344,7 +344,7 @@ def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -
         listener.close()
         raise
     # This thread runs the tick and the stepper link; the threads and the compute process started from it
-    # inherit its priority (clothd/priority.py). hwsim inherits the nice value, not the real-time class:
+    # inherit its priority (clothd/loop/priority.py). hwsim inherits the nice value, not the real-time class:
     # it runs its firmware, the stand-in for a microcontroller, in that class itself.
     set_thread_nice(cfg.loop.nice, "the loop")
     sim = start_sim(sim_scenario) if sim_scenario is not None else None

@@ -10,13 +10,13 @@ from typing import Any
 
 import numpy as np
 
-from clothd.compute import Compute, ComputeSpec, TickReply, TickRequest
 from clothd.config import CellConfig, ControlConfig, TrackerConfig
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.workspace import Workspace
 from clothd.drivers.footage import open_footage
 from clothd.drivers.ports import CameraFrame, FrameSourceHealth
 from clothd.formats import read_camera
+from clothd.loop.compute import Compute, ComputeSpec, TickReply, TickRequest
 from clothd.taichi_runtime import start_taichi
 
 

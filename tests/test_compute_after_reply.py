@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 from recorded_frames import compute_on, tick
 
-from clothd.compute import Compute, TickRequest
 from clothd.core.control import Setpoint
 from clothd.core.messages import ModuleCommands
+from clothd.loop.compute import Compute, TickRequest
 
 IDLE = Setpoint("idle", None)
 

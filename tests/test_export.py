@@ -17,9 +17,9 @@ from clothd.cli import main
 from clothd.drivers.footage import open_footage
 from clothd.errors import InputError
 from clothd.formats import read_camera
-from clothd.foxglove_channels import CellChannels, encode_jpeg
+from clothd.outputs.foxglove_channels import CellChannels, encode_jpeg
+from clothd.outputs.view import draw_tracking
 from clothd.tools.mcap_picture import read_cell_mcap
-from clothd.view import draw_tracking
 
 Recorder = Callable[[str], Path]
 

@@ -15,7 +15,7 @@ from clothd.core.ekf import UpdateStats
 from clothd.core.flatness import FlatnessMonitor
 from clothd.core.flattening import FlatteningRegulator, rigid_part
 from clothd.core.messages import Estimate
-from clothd.view import ViewRenderer
+from clothd.outputs.view import ViewRenderer
 
 CELL = CellConfig()
 LAYOUT = ConveyorLayout.of_cell(CELL)

@@ -1,4 +1,4 @@
-"""Live Foxglove output (clothd/foxglove_live.py): sessions recorded straight to MCAP by the compute
+"""Live Foxglove output (clothd/outputs/foxglove_live.py): sessions recorded straight to MCAP by the compute
 process's parts, read back with the mcap reader; their size limit and write errors; and the Foxglove
 WebSocket server, with a real WebSocket client, and one that never reads."""
 
@@ -24,12 +24,12 @@ from recorded_frames import compute_on, tick
 from websockets.sync.client import connect
 from websockets.typing import Subprotocol
 
-from clothd.compute import Compute, TickReply, TickRequest
 from clothd.config import FoxgloveConfig
 from clothd.core.control import Setpoint
 from clothd.core.messages import ModuleCommands
 from clothd.errors import ConfigError
-from clothd.foxglove_live import LiveFoxglove
+from clothd.loop.compute import Compute, TickReply, TickRequest
+from clothd.outputs.foxglove_live import LiveFoxglove
 from clothd.tools.bench_loop import free_port
 
 Recorder = Callable[[str], Path]
@@ -135,7 +135,7 @@ from dataclasses import asdict
 from pathlib import Path
 import numpy as np
 from clothd.core.messages import ModuleCommands
-from clothd.foxglove_live import LiveFoxglove
+from clothd.outputs.foxglove_live import LiveFoxglove
 
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
 resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[2]), int(sys.argv[2])))

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from clothd.frame_phase import FramePhaseLock
+from clothd.loop.frame_phase import FramePhaseLock
 
 PERIOD_S = 1 / 30
 LEAD_S = 0.001

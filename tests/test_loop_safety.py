@@ -14,7 +14,6 @@ import numpy as np
 import pytest
 from recorded_frames import compute_on
 
-from clothd.compute import InForce, TickReply, TickRequest
 from clothd.config import AreaConfig, CellConfig
 from clothd.core.control import Setpoint
 from clothd.core.drive_script import DriveScript
@@ -23,9 +22,10 @@ from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.module_calibration import ModuleCalibration
 from clothd.core.module_check import ModuleCalibrationEntry
 from clothd.core.workspace import Workspace
-from clothd.daemon import Daemon, DaemonSettings
 from clothd.drivers.ports import ControllerFault, FrameSourceHealth, LinkCounters
 from clothd.errors import InvalidRequestError, RequestError, UnreachableTargetError
+from clothd.loop.compute import InForce, TickReply, TickRequest
+from clothd.loop.daemon import Daemon, DaemonSettings
 
 N = 48
 PERIOD_S = 0.01

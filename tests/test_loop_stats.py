@@ -8,7 +8,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from clothd.loop_stats import LoopStats
+from clothd.loop.loop_stats import LoopStats
 
 
 @pytest.fixture

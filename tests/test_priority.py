@@ -10,7 +10,7 @@ import threading
 
 import pytest
 
-from clothd.priority import claim_realtime, leave_realtime, set_thread_nice
+from clothd.loop.priority import claim_realtime, leave_realtime, set_thread_nice
 
 
 def test_a_thread_lowers_only_its_own_priority() -> None:

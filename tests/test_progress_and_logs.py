@@ -15,7 +15,7 @@ import pytest
 from terminal import on_terminal, piped
 
 from clothd.logs import RateLimit
-from clothd.view import wall_clock_label
+from clothd.outputs.view import wall_clock_label
 
 Recorder = Callable[[str], Path]
 
@@ -39,7 +39,7 @@ def _log_lines(env: dict[str, str]) -> list[str]:
         "import logging\n"
         "from clothd.logs import configure_logging\n"
         "configure_logging()\n"
-        "logging.getLogger('clothd.daemon').warning('tick overran')\n"
+        "logging.getLogger('clothd.loop.daemon').warning('tick overran')\n"
         "logging.getLogger('httpx').info('HTTP Request: GET /truth 200')\n"
         "logging.getLogger('uvicorn.access').info('127.0.0.1 GET /api/v1/status 200')\n"
     )
@@ -49,9 +49,9 @@ def _log_lines(env: dict[str, str]) -> list[str]:
 
 def test_logs_leave_time_stamps_to_journald_and_skip_per_request_lines() -> None:
     base = {k: v for k, v in os.environ.items() if k != "JOURNAL_STREAM"}
-    assert _log_lines({**base, "JOURNAL_STREAM": "8:1234"}) == ["WARNING clothd.daemon: tick overran"]
+    assert _log_lines({**base, "JOURNAL_STREAM": "8:1234"}) == ["WARNING clothd.loop.daemon: tick overran"]
     on_a_terminal = _log_lines(base)
-    assert len(on_a_terminal) == 1 and on_a_terminal[0].endswith("WARNING clothd.daemon: tick overran")
+    assert len(on_a_terminal) == 1 and on_a_terminal[0].endswith("WARNING clothd.loop.daemon: tick overran")
     assert on_a_terminal[0][:4].isdigit()  # a time stamp of our own first
 
 

@@ -10,9 +10,9 @@ from pathlib import Path
 
 from recorded_frames import compute_on, tick
 
-from clothd.compute import TickRequest
 from clothd.core.control import Setpoint
 from clothd.core.messages import ModuleCommands
+from clothd.loop.compute import TickRequest
 from clothd.tools.procfs import rss_mb
 
 RESETS = 60

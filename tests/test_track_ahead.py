@@ -1,5 +1,5 @@
 """Between requests the compute tracks a frame as it arrives, with the commands the daemon said it had
-sent; the tick that follows uses that estimate and only controls (clothd/compute.py `track_ahead`)."""
+sent; the tick that follows uses that estimate and only controls (clothd/loop/compute.py `track_ahead`)."""
 
 import time
 from collections.abc import Callable
@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from recorded_frames import compute_on, tick
 
-from clothd.compute import Compute, TickRequest
 from clothd.core.control import Setpoint
 from clothd.core.messages import ModuleCommands
+from clothd.loop.compute import Compute, TickRequest
 
 IDLE = Setpoint("idle", None)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 
-from clothd.view import ViewBoard
+from clothd.outputs.view import ViewBoard
 
 
 def test_the_view_is_wanted_while_watched_and_each_post_is_numbered() -> None:

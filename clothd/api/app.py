@@ -32,10 +32,10 @@ from clothd.api.stream import StreamHub
 from clothd.config import ApiConfig
 from clothd.core.camera_model import CameraModel
 from clothd.core.modes import LoopState
-from clothd.daemon import Daemon
 from clothd.errors import ClothdError, HardwareError, InvalidRequestError, RequestError, StorageError
-from clothd.recorder import recording_path
-from clothd.status import Status
+from clothd.loop.daemon import Daemon
+from clothd.loop.status import Status
+from clothd.outputs.recorder import recording_path
 
 ERROR_DOC: dict[int | str, dict[str, Any]] = {
     400: {"model": ErrorResponse, "description": "a body that is not JSON"},

@@ -17,8 +17,8 @@ from pydantic import ValidationError
 
 from clothd.api.bridge import DaemonBridge
 from clothd.api.schemas import DriveSetpoint, MoveSetpoint, SetpointRequest
-from clothd.daemon import Daemon
 from clothd.errors import InvalidRequestError
+from clothd.loop.daemon import Daemon
 
 
 def describe_invalid(errors: Sequence[Any]) -> str:

@@ -1,5 +1,5 @@
 """The OPC UA address space of the cell: one `Cell` object under our namespace, its variables filled from
-the status snapshots the daemon publishes (clothd/status.py), and two state machines. docs/opcua.md
+the status snapshots the daemon publishes (clothd/loop/status.py), and two state machines. docs/opcua.md
 draws the tree.
 
 Following OPC UA for Machinery (OPC 40001-1) where it fits: an `Identification` object with the
@@ -26,7 +26,7 @@ from asyncua import Node, Server, ua
 from pydantic import BaseModel
 
 from clothd.core.modes import LoopState, Mode
-from clothd.status import Status
+from clothd.loop.status import Status
 
 NAMESPACE_URI = "urn:clothd:cell"
 

@@ -1,5 +1,5 @@
 """Request and response bodies of the API (pydantic): validation at the edge and the OpenAPI schema. The
-status's models are clothd/status.py's."""
+status's models are clothd/loop/status.py's."""
 
 from __future__ import annotations
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import asyncio
 
-from clothd.status import Status
+from clothd.loop.status import Status
 
 
 class Subscriber:

@@ -63,7 +63,7 @@ class LoopConfig(Strict):
     starved_ms: float = Field(
         250.0, ge=50, le=2000, description="the daemon silent this long: the tracker starts afresh"
     )
-    # The tick's phase follows the camera's frames (clothd/frame_phase.py, docs/architecture.md).
+    # The tick's phase follows the camera's frames (clothd/loop/frame_phase.py, docs/architecture.md).
     frame_lock: bool = Field(True, description="start ticks just before the camera's frames are due")
     frame_lead_ms: float = Field(1.0, ge=0, le=10, description="how long before a frame is due a tick starts")
     frame_wait_ms: float = Field(
@@ -78,7 +78,7 @@ class LoopConfig(Strict):
     # cut the frame-to-command latency p99 from 16 to 12-13 ms and missed no tick (docs/benchmarks.md).
     compute_threads: int = Field(2, ge=1, le=16, description="OpenCV threads in the compute process")
     # A loaded PC: the loop and the compute before other programs, the API after the loop
-    # (clothd/priority.py, docs/deploy.md "A loaded cell PC").
+    # (clothd/loop/priority.py, docs/deploy.md "A loaded cell PC").
     nice: int = Field(-10, ge=-20, le=0, description="the loop's thread and the compute, where permitted")
     realtime_priority: int = Field(
         20, ge=0, le=98, description="SCHED_FIFO priority of the loop's thread; 0: normal class"

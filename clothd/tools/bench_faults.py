@@ -109,7 +109,7 @@ class Cell:
         return s["state"] == "tracking" and s["link"]["state"] == "connected" and not s["estop"]
 
     def compute_pid(self) -> int:
-        """The compute process: the daemon's child that runs clothd.compute (multiprocessing spawn)."""
+        """The compute process: the daemon's child that runs clothd.loop.compute (multiprocessing spawn)."""
         for entry in Path("/proc").iterdir():
             if entry.name.isdigit():
                 try:

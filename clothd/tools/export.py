@@ -20,8 +20,8 @@ from tqdm import tqdm
 from clothd.drivers.footage import CommandSchedule, open_footage
 from clothd.errors import InputError
 from clothd.formats import read_camera, read_layout
-from clothd.foxglove_channels import CellChannels, encode_jpeg, residual_mean_px
-from clothd.view import draw_tracking
+from clothd.outputs.foxglove_channels import CellChannels, encode_jpeg, residual_mean_px
+from clothd.outputs.view import draw_tracking
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ from clothd.core.modes import LoopState, Mode
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
 from clothd.formats import read_camera
-from clothd.status import FlatnessState
+from clothd.loop.status import FlatnessState
 from clothd.taichi_runtime import start_taichi
 from hwsim import scenario as scenarios
 from hwsim.camera import Camera

@@ -3,7 +3,7 @@ would lay them out: the camera frame (annotated, where the file has that channel
 from above coloured by height with the pose's track, and the residual and module speeds over time with
 a cursor at the chosen frame.
 
-It reads what `clothd export` and a live MCAP recording write (clothd/foxglove_channels.py), decoding the
+It reads what `clothd export` and a live MCAP recording write (outputs/foxglove_channels.py), decoding the
 protobuf messages from the schemas the file carries, so it also shows that a file is complete without
 Foxglove at hand.
 """
@@ -25,7 +25,7 @@ from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory as ProtobufDecoderFactory
 
 from clothd.errors import InputError
-from clothd.foxglove_channels import HEIGHT_FULL_SCALE_M
+from clothd.outputs.foxglove_channels import HEIGHT_FULL_SCALE_M
 
 
 class _JsonDecoderFactory(DecoderFactory):

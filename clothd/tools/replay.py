@@ -24,8 +24,8 @@ from clothd.config import TrackerConfig
 from clothd.core.camera_model import CameraModel
 from clothd.core.messages import Estimate
 from clothd.formats import write_estimates
+from clothd.outputs.view import draw_estimate
 from clothd.tools.offline import OfflineTracking
-from clothd.view import draw_estimate
 
 TIMED_STAGES = ("prepare", "predict", "klt", "update", "estimate", "resample", "tick")
 

@@ -3,7 +3,7 @@ recording (`recording.format: mcap`) and the live Foxglove WebSocket server (fox
 these topics, with these schemas, through `CellChannels`:
 
 /camera    foxglove.CompressedImage   the camera frame as JPEG, frame id "camera"
-/camera/annotated  foxglove.CompressedImage  the frame with the estimate drawn on (clothd.view), JPEG;
+/camera/annotated  foxglove.CompressedImage  the frame with the estimate drawn on (clothd.outputs.view), JPEG;
            written by `clothd export` where the recording has a camera.json and estimates
 /mesh      foxglove.SceneUpdate       the tracked mesh in the "table" frame, a line list coloured by height
 /pose      foxglove.PoseInFrame       the cloth's pose in the "table" frame, while tracked

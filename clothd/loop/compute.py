@@ -41,12 +41,12 @@ from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
 from clothd.drivers.ports import CameraFrame, FrameSource, FrameSourceHealth
 from clothd.errors import ClothdError
-from clothd.foxglove_live import LiveFoxglove
 from clothd.logs import configure_logging
-from clothd.priority import leave_realtime
-from clothd.recorder import FrameSink, Recorder, RecordingStatus
+from clothd.loop.priority import leave_realtime
+from clothd.outputs.foxglove_live import LiveFoxglove
+from clothd.outputs.recorder import FrameSink, Recorder, RecordingStatus
+from clothd.outputs.view import ViewRenderer
 from clothd.taichi_runtime import start_taichi
-from clothd.view import ViewRenderer
 
 log = logging.getLogger(__name__)
 
@@ -367,7 +367,7 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
     # (a terminal's Ctrl-C or systemd's stop reach the whole process group).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    leave_realtime()  # before its threads start: they inherit the class (clothd/priority.py)
+    leave_realtime()  # before its threads start: they inherit the class (clothd/loop/priority.py)
     configure_logging()
     start_taichi(spec.taichi_arch)
     cv2.setNumThreads(spec.opencv_threads)

@@ -38,9 +38,9 @@ from foxglove.mcap import MCAPWriteOptions, MCAPWriter
 from clothd.config import FoxgloveConfig, RecordingFormat
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.errors import ConfigError
-from clothd.foxglove_channels import CellChannels, encode_jpeg, residual_mean_px
-from clothd.priority import leave_realtime
-from clothd.recorder import RecordingStatus
+from clothd.loop.priority import leave_realtime
+from clothd.outputs.foxglove_channels import CellChannels, encode_jpeg, residual_mean_px
+from clothd.outputs.recorder import RecordingStatus
 
 log = logging.getLogger(__name__)
 

@@ -19,7 +19,7 @@ from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.modes import LoopState, Mode
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
-from clothd.recorder import RecordingStatus
+from clothd.outputs.recorder import RecordingStatus
 
 NODE_DECIMALS = 5  # 10 µm: the status carries the mesh, not the filter's noise
 
@@ -58,7 +58,7 @@ class Window(BaseModel):
 
 class LatencyTail(BaseModel):
     """Why the slowest frames were slow: each part's mean over the frames at or above the 95th percentile
-    of frame-to-command (clothd/loop_stats.py FrameToCommand). wait + compute + delivery is the whole."""
+    of frame-to-command (clothd/loop/loop_stats.py FrameToCommand). wait + compute + delivery is the whole."""
 
     frames: int
     wait_ms: float | None = Field(description="from the frame's arrival until the compute began on it")

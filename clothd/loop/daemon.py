@@ -2,7 +2,7 @@
 
 Every tick has an absolute deadline (next += period). A tick that starts a whole period late counts the
 ticks it missed and skips ahead; there are no catch-up ticks. The compute stages (camera capture,
-tracker, control, the annotated view) run in the compute process (clothd/compute.py), one request and
+tracker, control, the annotated view) run in the compute process (clothd/loop/compute.py), one request and
 one reply per tick; this process's event loop only schedules, talks to the serial port and serves the
 API, and shares its GIL with nothing heavy.
 
@@ -25,8 +25,6 @@ from typing import NoReturn
 
 import numpy as np
 
-from clothd.compute import InForce, TickReply, TickRequest
-from clothd.compute_process import ComputeProcess
 from clothd.config import CellConfig, RecordingFormat
 from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
@@ -43,11 +41,13 @@ from clothd.errors import (
     StorageError,
     UnreachableTargetError,
 )
-from clothd.frame_phase import FramePhaseLock
-from clothd.loop_stats import LoopStats
+from clothd.loop.compute import InForce, TickReply, TickRequest
+from clothd.loop.compute_process import ComputeProcess
+from clothd.loop.frame_phase import FramePhaseLock
+from clothd.loop.loop_stats import LoopStats
+from clothd.loop.status import Status, build_status
 from clothd.notify import SystemdNotifier
-from clothd.status import Status, build_status
-from clothd.view import ViewBoard
+from clothd.outputs.view import ViewBoard
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +68,7 @@ class DaemonSettings:
     link_port: str
     estimates_shape: bool  # the tracker's model follows the cloth's shape: flatten is possible
     recording_format: RecordingFormat = RecordingFormat.DIRECTORY
-    frame_lock: bool = False  # loop.frame_lock: the tick's phase follows the camera (clothd/frame_phase.py)
+    frame_lock: bool = False  # loop.frame_lock: the tick's phase follows the camera (loop/frame_phase.py)
     frame_lead_s: float = 0.001
     frame_wait_s: float = 0.012
     phase_step_s: float = 0.001

@@ -1,4 +1,4 @@
-"""The daemon's end of the compute process (clothd/compute.py): start it, send a tick's request, take
+"""The daemon's end of the compute process (clothd/loop/compute.py): start it, send a tick's request, take
 its reply without blocking the event loop, and stop it."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import os
 from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
-from clothd.compute import ComputeSpec, InForce, TickReply, TickRequest, serve_compute
 from clothd.errors import ConfigError, HardwareError
+from clothd.loop.compute import ComputeSpec, InForce, TickReply, TickRequest, serve_compute
 
 START_TIMEOUT_S = 120.0
 JOIN_TIMEOUT_S = 10.0
