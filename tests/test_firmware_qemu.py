@@ -10,11 +10,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
 import json
 import os
 import re
 import select
 import shutil
+import signal
 import statistics
 import subprocess
 import termios
@@ -91,6 +93,12 @@ def _qemu_pty(log: Path, qemu: subprocess.Popen[bytes]) -> str:
     return found[0]
 
 
+def _die_with_parent() -> None:
+    """Run in QEMU's child before exec: SIGTERM when pytest dies, so no emulator outlives a killed run."""
+    pr_set_pdeathsig = 1
+    ctypes.CDLL(None).prctl(pr_set_pdeathsig, signal.SIGTERM)
+
+
 def _answers_ping(fd: int, timeout_s: float) -> bool:
     """Send PINGs until one is ACKed. QEMU looks for a reader on its pty only once a second and drops what
     the firmware sends before then, so the first PINGs may go unanswered."""
@@ -121,7 +129,13 @@ def qemu_firmware(firmware_elf: Path, tmp_path_factory: pytest.TempPathFactory) 
     command = ["qemu-system-arm", "-machine", "netduinoplus2", "-display", "none", "-monitor", "none"]
     command += ["-serial", "pty", "-kernel", str(firmware_elf)]
     with log.open("wb") as out:
-        qemu = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=out, stderr=subprocess.STDOUT)
+        qemu = subprocess.Popen(
+            command,
+            stdin=subprocess.DEVNULL,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            preexec_fn=_die_with_parent,
+        )
     holder = -1
     try:
         pty = _qemu_pty(log, qemu)
