@@ -10,7 +10,7 @@ UV_VERSION := $(shell sed -n 's/^uv==\([^ ]*\).*/\1/p' $(LOCK))
 COMPILE = $(BIN)/uv pip compile --quiet pyproject.toml --extra dev --universal --generate-hashes \
 	--python-version 3.11
 
-.PHONY: run test lint lock lock-check venv clean browser postgres firmware
+.PHONY: run test lint lock lock-check venv clean browser postgres firmware firmware-stm32
 
 venv: $(STAMP)
 
@@ -64,7 +64,16 @@ firmware:
 	  else echo "make test: the firmware needs Debian's gcc: sudo apt-get install gcc"; exit 1; fi; }
 	$(MAKE) -C deploy/firmware host check
 
-test: lock-check lint browser postgres firmware
+# The same firmware for an STM32F405, booted in QEMU's netduinoplus2 by tests/test_firmware_qemu.py:
+# Debian's gcc-arm-none-eabi (no libc linked) and qemu-system-arm, about a minute to install.
+firmware-stm32:
+	@command -v arm-none-eabi-gcc >/dev/null && command -v qemu-system-arm >/dev/null || { \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -q && \
+	    DEBIAN_FRONTEND=noninteractive apt-get install -y -q gcc-arm-none-eabi qemu-system-arm; \
+	  else echo "make test: the STM32 build needs: sudo apt-get install gcc-arm-none-eabi qemu-system-arm"; exit 1; fi; }
+	$(MAKE) -C deploy/firmware stm32
+
+test: lock-check lint browser postgres firmware firmware-stm32
 	$(BIN)/pytest -q
 
 clean:
