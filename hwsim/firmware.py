@@ -255,6 +255,7 @@ class Firmware:
                 self._send(frame(NACK, seq, bytes([NACK_BAD_VERSION])))
                 return
             hello = struct.pack("<BH", _VERSION, self.drives.n_modules) + FIRMWARE.encode()
+            self._last_seq = None  # a new host session: its first COMMAND is never a retransmit
             self._send(frame(HELLO_ACK, seq, hello))
         elif msg_type == COMMAND:
             self._command(seq, payload)

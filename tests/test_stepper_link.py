@@ -6,6 +6,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import select
 import threading
 import time
 import tty
@@ -332,3 +333,32 @@ def test_overlong_frames_count_as_invalid(tmp_path: Path) -> None:
         assert link.connected
 
     _with_relay(tmp_path, body)
+
+
+def test_a_hello_starts_a_new_session_whose_first_command_is_applied(tmp_path: Path) -> None:
+    """A host that starts again numbers from 1: the controller must not take that COMMAND for a retransmit
+    of the last one it applied (docs/serial-protocol.md)."""
+    table = Table(TableSpec())
+    fw = Firmware(TableDrives(table), tmp_path / "ttyCELL")
+    fw.start()
+    port = os.open(fw.link_path, os.O_RDWR | os.O_NOCTTY)
+    tty.setraw(port)
+
+    def send(msg_type: wire.MsgType, seq: int, payload: bytes = b"") -> None:
+        os.write(port, wire.encode(msg_type, seq, payload))
+        deadline = time.monotonic() + 2.0
+        while time.monotonic() < deadline and not select.select([port], [], [], 0.05)[0]:
+            pass
+        os.read(port, 4096)  # its answer
+
+    try:
+        hello = bytes([wire.PROTOCOL_VERSION])
+        send(wire.MsgType.HELLO, 1, hello)
+        send(wire.MsgType.COMMAND, 2, wire.command_payload(np.full(N, 0.05), np.zeros(N)))
+        assert fw.commands_applied == 1
+        send(wire.MsgType.HELLO, 1, hello)  # the host started again
+        send(wire.MsgType.COMMAND, 2, wire.command_payload(np.full(N, 0.02), np.zeros(N)))
+        assert fw.commands_applied == 2 and abs(table.cmd_speed_m_s[0] - 0.02) < 1e-4
+    finally:
+        os.close(port)
+        fw.stop()
