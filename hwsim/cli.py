@@ -139,7 +139,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     sc = scenarios.load(args.scenario)
     state_dir = args.state_dir or Path(tempfile.mkdtemp(prefix="hwsim-"))
     with contextlib.suppress(KeyboardInterrupt):
-        serve(sc, state_dir, args.port, args.camera_fps, arch=args.arch)
+        serve(sc, state_dir, args.port, args.camera_fps, args.arch, args.other_cameras_fps)
     return 0
 
 
@@ -223,6 +223,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--port", type=int, default=0, help="HTTP port on 127.0.0.1 (default: any free one)")
     s.add_argument("--state-dir", type=Path, help="for the pty link and camera.json (default: temp)")
     s.add_argument("--camera-fps", type=float, default=15.0, help="frames served per second")
+    s.add_argument(
+        "--other-cameras-fps",
+        type=float,
+        help="frames per second of every camera but the first (default: --camera-fps)",
+    )
     s.add_argument(
         "--exit-with-parent", action="store_true", help="stop when the process that started it dies (Linux)"
     )

@@ -1,7 +1,8 @@
 """`hwsim record`: run a scenario and write a recording (format: docs/recording-format.md).
 
-DIR/frames/NNNNNN.png   lossless frames, BGR
+DIR/frames/NNNNNN.png   lossless frames, BGR, the first camera's
 DIR/camera.json         K, dist, width, height, T_cam_world
+DIR/cameras/NAME/       each further camera's frames/ and camera.json, in the same layout
 DIR/table.json          the module layout (ids, centres), for replaying commands
 DIR/commands.csv        t_s, module, speed_m_s, heading_rad: the commands in force while each frame was taken
 DIR/truth.npz           ground truth, for grading only
@@ -67,22 +68,34 @@ class FrameSink:
             raise OSError("could not write a frame (disk full or not writable?)")
 
 
-def render_frame(world: World, renderer: Renderer) -> tuple[np.ndarray, np.ndarray]:
-    """The frame at the world's current instant: image in [0, 1] and node visibility, with motion blur
-    spread over the exposure when the scenario asks for it."""
+def render_frame(world: World, renderer: Renderer, skew_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The frame at the world's current instant plus `skew_s` (a camera's capture_skew_s): image in [0, 1]
+    and node visibility, with motion blur spread over the exposure when the scenario asks for it."""
     noise = world.scenario.noise
     n = noise.motion_blur_samples
-    backs = [noise.exposure_s * (n - 1 - k) / max(n - 1, 1) for k in range(n)]
+    backs = [noise.exposure_s * (n - 1 - k) / max(n - 1, 1) - skew_s for k in range(n)]
     return renderer.render([world.scene_state(before_s=b) for b in backs])
+
+
+def camera_dir(out_dir: Path, index: int, name: str) -> Path:
+    """Where camera `index` is written: the recording itself for the first, cameras/NAME/ for others."""
+    return out_dir if index == 0 else out_dir / "cameras" / name
+
+
+def noise_rng(scenario: Scenario, index: int) -> np.random.Generator:
+    """Camera `index`'s own sensor noise; the first camera's draws are those of a one-camera scenario."""
+    seed = scenario.noise.seed
+    return np.random.default_rng(seed if index == 0 else (seed, index))
 
 
 def record(scenario: Scenario, out_dir: Path, arch: str = "cpu") -> RecordStats:
     out_dir.mkdir(parents=True, exist_ok=True)
     world = World(scenario, arch)
-    camera = Camera.from_spec(scenario.camera)
-    renderer = Renderer(scenario, camera, world.cloth.grid)
-    rng = np.random.default_rng(scenario.noise.seed)
-    sink = FrameSink(out_dir)
+    specs = scenario.camera_specs
+    cameras = [Camera.from_spec(spec) for spec in specs]
+    renderers = [Renderer(scenario, cam, world.cloth.grid) for cam in cameras]
+    rngs = [noise_rng(scenario, i) for i in range(len(specs))]
+    sinks = [FrameSink(camera_dir(out_dir, i, str(spec.name))) for i, spec in enumerate(specs)]
     n = scenario.frame_count
     nodes = np.empty((n, world.cloth.grid.ny, world.cloth.grid.nx, 3), np.float32)
     visible = np.empty((n, world.cloth.grid.ny, world.cloth.grid.nx), bool)
@@ -94,8 +107,11 @@ def record(scenario: Scenario, out_dir: Path, arch: str = "cpu") -> RecordStats:
         # A progress bar on a terminal only (tqdm disables itself elsewhere: logs and CI stay quiet).
         for k in tqdm(range(n), desc=f"recording {scenario.name}", unit="frame", disable=None, leave=False):
             t0 = time.perf_counter()
-            image, visible[k] = render_frame(world, renderer)
-            sink.write(k, to_sensor_bgr8(image, scenario.noise.sigma, rng))
+            for i, spec in enumerate(specs):
+                image, seen = render_frame(world, renderers[i], spec.capture_skew_s)
+                sinks[i].write(k, to_sensor_bgr8(image, scenario.noise.sigma, rngs[i]))
+                if i == 0:
+                    visible[k] = seen  # truth's visibility is the first camera's
             nodes[k] = world.cloth.positions_m()
             speeds[k], headings[k] = world.table.speed_m_s, world.table.heading_rad
             t1 = time.perf_counter()
@@ -104,8 +120,10 @@ def record(scenario: Scenario, out_dir: Path, arch: str = "cpu") -> RecordStats:
             physics_s += time.perf_counter() - t1
             render_s += t1 - t0
     finally:
-        sink.close()
-    camera.save(out_dir / "camera.json")
+        for sink in sinks:
+            sink.close()
+    for i, (spec, cam) in enumerate(zip(specs, cameras, strict=True)):
+        cam.save(camera_dir(out_dir, i, str(spec.name)) / "camera.json")
     write_table(world, out_dir / "table.json")
     _write_commands(world, out_dir / "commands.csv")
     (out_dir / "scenario.yaml").write_text(yaml.safe_dump(scenario.model_dump(mode="json"), sort_keys=False))

@@ -16,6 +16,7 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
+MAX_CAMERAS = 4
 
 
 class ScenarioError(ValueError):
@@ -142,6 +143,12 @@ class CameraSpec(_Strict):
     position_m: tuple[float, float, Annotated[float, Field(gt=0.1, le=10.0)]] = (0.0, 0.0, 1.0)
     tilt_rad: float = Field(0.0, ge=-0.5, le=0.5, description="rotation about the world x axis")
     yaw_rad: float = Field(0.0, ge=-math.pi, le=math.pi, description="rotation about the view axis")
+    name: str | None = Field(
+        None, pattern=r"^[a-z0-9_-]{1,32}$", description="URL and directory name; default cam0, cam1, ..."
+    )
+    # Unsynchronised cameras: each frame shows the world this long after the first camera's frame of the
+    # same index (negative: before). Rendered by extrapolating the scene, as motion blur is.
+    capture_skew_s: float = Field(0.0, ge=-0.1, le=0.1, description="capture lag behind the first camera")
 
 
 class NoiseSpec(_Strict):
@@ -276,6 +283,9 @@ class Scenario(_Strict):
     cloth: ClothSpec = ClothSpec()
     texture: TextureSpec = TextureSpec()
     camera: CameraSpec = CameraSpec()
+    cameras: list[CameraSpec] = Field(
+        [], max_length=MAX_CAMERAS, description="every camera, first first; `camera` is a one-camera list"
+    )
     noise: NoiseSpec = NoiseSpec()
     light: LightSpec = LightSpec()
     initial_pose: Pose = Pose()
@@ -287,6 +297,28 @@ class Scenario(_Strict):
     @property
     def frame_count(self) -> int:
         return math.floor(self.duration_s * self.fps + 1e-9) + 1
+
+    @property
+    def camera_specs(self) -> list[CameraSpec]:
+        """Every camera, the first being `camera`, each with its name filled in (cam0, cam1, ...)."""
+        specs = [self.camera, *self.cameras[1:]]
+        return [s if s.name else s.model_copy(update={"name": f"cam{i}"}) for i, s in enumerate(specs)]
+
+    @model_validator(mode="after")
+    def _cameras_agree(self) -> Scenario:
+        if self.cameras:
+            # A dumped scenario holds both, equal; anything else is two answers to "the first camera".
+            if "camera" in self.model_fields_set and self.camera != self.cameras[0]:
+                raise ValueError("camera: give camera (one camera) or cameras (several), not both")
+            object.__setattr__(self, "camera", self.cameras[0])  # frozen model: set once, here
+        if self.camera.capture_skew_s != 0.0:
+            key = "cameras.0" if self.cameras else "camera"
+            raise ValueError(f"{key}.capture_skew_s must be 0: skews are measured from the first camera")
+        names = [s.name for s in self.camera_specs]
+        for i, name in enumerate(names):
+            if name in names[:i]:
+                raise ValueError(f"cameras.{i}.name: {name!r} is taken by an earlier camera")
+        return self
 
     @model_validator(mode="after")
     def _flaps_fit(self) -> Scenario:

@@ -7,7 +7,7 @@ import numpy as np
 
 from hwsim.camera import Camera
 from hwsim.cloth import ClothGrid
-from hwsim.recording import render_frame
+from hwsim.recording import noise_rng, render_frame
 from hwsim.renderer import Renderer
 from hwsim.scenario import Scenario
 from hwsim.world import World
@@ -17,15 +17,20 @@ JPEG_QUALITY = 90
 
 
 class Sensor:
-    def __init__(self, scenario: Scenario, camera: Camera, grid: ClothGrid) -> None:
+    """Camera `index` of the scenario (its own noise bank), frames `skew_s` after the world's instant."""
+
+    def __init__(
+        self, scenario: Scenario, camera: Camera, grid: ClothGrid, index: int = 0, skew_s: float = 0.0
+    ) -> None:
         self.renderer = Renderer(scenario, camera, grid)
-        rng = np.random.default_rng(scenario.noise.seed)
+        self.skew_s = skew_s
+        rng = noise_rng(scenario, index)
         shape = (camera.height, camera.width, 3)
         self._noise = rng.standard_normal((NOISE_BANK, *shape), dtype=np.float32) * scenario.noise.sigma
 
     def jpeg(self, world: World, k: int) -> bytes:
         """Frame k of the stream, at the world's current instant."""
-        image, _ = render_frame(world, self.renderer)
+        image, _ = render_frame(world, self.renderer, self.skew_s)
         level = image * 255.0 + self._noise[k % NOISE_BANK]
         bgr = np.clip(level + 0.5, 0, 255).astype(np.uint8)
         ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])

@@ -2,17 +2,19 @@
 
 - The stepper controller's firmware in a process of its own (hwsim.firmware_process), on a pty behind
   the symlink STATE_DIR/ttyCELL.
-- The camera as MJPEG over HTTP on 127.0.0.1 (GET /video.mjpg), which OpenCV's FFmpeg backend reads.
+- Every camera as MJPEG over HTTP on 127.0.0.1 (GET /video/NAME.mjpg; GET /video.mjpg is the first),
+  which OpenCV's FFmpeg backend reads.
 - Ground truth and module states at GET /truth (JSON), for tests and the truth overlay.
 - Test hooks: POST /unplug?seconds=S (serial cable), POST /camera/drop?seconds=S (video stream),
   POST /fault?code=C&module=M (a controller fault report), POST /cloth with a JSON pose as in a
   scenario's `initial_pose` (lay the cloth down again there, ridges and all; 409 while a belt runs),
   POST /cloth/push with a JSON push (two hands push a ridge into the cloth where it lies).
 
-The world steps at the scenario's rate with absolute deadlines; the camera renders every
-`camera_every` steps. It moves only by what the firmware receives: the loop is closed through the real
+The world steps at the scenario's rate with absolute deadlines; each camera renders every `every`
+steps of its own. It moves only by what the firmware receives: the loop is closed through the real
 protocol and the real video. On start it prints one JSON line with the pty, the URLs and the paths of
-camera.json and table.json (and writes it to STATE_DIR/ready.json).
+camera.json (camera-NAME.json for each further camera) and table.json (and writes it to
+STATE_DIR/ready.json).
 """
 
 from __future__ import annotations
@@ -47,10 +49,39 @@ class VideoFrame:
     t_s: float
 
 
-class Cell:
-    """The world, its camera and its firmware, advanced in real time on a thread."""
+@dataclass
+class Stream:
+    """One camera of the cell: its sensor, how many world steps apart its frames are, its latest frame."""
 
-    def __init__(self, scenario: Scenario, state_dir: Path, camera_fps: float, arch: str = "cpu") -> None:
+    name: str
+    camera: Camera
+    sensor: Sensor
+    every: int
+    json_name: str  # its camera.json in the state directory
+    frame: VideoFrame | None = None
+
+
+def frame_intervals(
+    world_fps: float, n_cameras: int, camera_fps: float, others_fps: float | None
+) -> list[int]:
+    """World steps between frames, per camera. The others' are whole multiples of the first's, so that
+    each of their frames is taken with one of the first camera's (stereo needs simultaneous pairs)."""
+    first = max(1, round(world_fps / camera_fps))
+    other = first * max(1, round(world_fps / (others_fps or camera_fps) / first))
+    return [first] + [other] * (n_cameras - 1)
+
+
+class Cell:
+    """The world, its cameras and its firmware, advanced in real time on a thread."""
+
+    def __init__(
+        self,
+        scenario: Scenario,
+        state_dir: Path,
+        camera_fps: float,
+        arch: str = "cpu",
+        other_cameras_fps: float | None = None,
+    ) -> None:
         self.scenario = scenario
         self.state_dir = state_dir
         state_dir.mkdir(parents=True, exist_ok=True)
@@ -58,17 +89,21 @@ class Cell:
         # every core for itself.
         ensure_taichi(arch, cpu_threads=1)
         self.world = World(scenario, arch, log_commands=False)
-        self.camera = Camera.from_spec(scenario.camera)
-        self.sensor = Sensor(scenario, self.camera, self.world.cloth.grid)
-        self.camera_every = max(1, round(scenario.fps / camera_fps))
+        self.streams = [
+            self._make_stream(i, every)
+            for i, every in enumerate(
+                frame_intervals(scenario.fps, len(scenario.camera_specs), camera_fps, other_cameras_fps)
+            )
+        ]
+        self.camera_every = self.streams[0].every
         self.lock = threading.Lock()  # the world, between its thread and the HTTP handlers
         self.firmware = FirmwareProcess(
             self.world.table.n_modules, state_dir / "ttyCELL", state_dir / "drives.bin"
         )
-        self.camera.save(state_dir / "camera.json")
+        for stream in self.streams:
+            stream.camera.save(state_dir / stream.json_name)
         write_table(self.world, state_dir / "table.json")
-        self.frame_cond = threading.Condition()
-        self.frame: VideoFrame | None = None
+        self.frame_cond = threading.Condition()  # a new frame from any camera
         self.video_dropped_until = 0.0
         self.video_generation = 0  # bumped by a drop: streaming clients hang up
         self.camera_frames_dropped = 0  # frames not rendered while the world caught up with real time
@@ -77,9 +112,22 @@ class Cell:
         self._thread = threading.Thread(target=self._run, name="world", daemon=True)
         self._truth_cache: dict[str, Any] = {}
 
+    def _make_stream(self, index: int, every: int) -> Stream:
+        spec = self.scenario.camera_specs[index]
+        name = str(spec.name)
+        camera = Camera.from_spec(spec)
+        sensor = Sensor(self.scenario, camera, self.world.cloth.grid, index, spec.capture_skew_s)
+        return Stream(name, camera, sensor, every, "camera.json" if index == 0 else f"camera-{name}.json")
+
+    def stream(self, name: str | None) -> Stream | None:
+        """The camera called `name`; None: the first."""
+        if name is None:
+            return self.streams[0]
+        return next((s for s in self.streams if s.name == name), None)
+
     def start(self) -> None:
         self._update_truth()  # /truth answers in full from the first request on
-        self._publish_frame()
+        self._publish_frames(force=True)
         self._thread.start()
 
     def stop(self) -> None:
@@ -128,12 +176,12 @@ class Cell:
                 self.world.step()
                 self._update_truth()
             behind_s = time.monotonic() - next_t
-            if self.world.frame_index % self.camera_every == 0:
+            if any(self.world.frame_index % s.every == 0 for s in self.streams):
                 dropped_last = behind_s >= dt and not dropped_last
                 if dropped_last:
                     self.camera_frames_dropped += 1
                 else:
-                    self._publish_frame()
+                    self._publish_frames()
             if behind_s < 0:
                 self._stop.wait(-behind_s)
             elif behind_s > MAX_CATCH_UP_S:
@@ -154,12 +202,16 @@ class Cell:
             **self.world.sheet_measures(),
         }
 
-    def _publish_frame(self) -> None:
-        k = self.world.frame_index // self.camera_every
-        jpeg = self.sensor.jpeg(self.world, k)
-        with self.frame_cond:
-            self.frame = VideoFrame(k, jpeg, self.world.t_s)
-            self.frame_cond.notify_all()
+    def _publish_frames(self, force: bool = False) -> None:
+        """Every camera due at this step renders the same world instant (plus its capture skew)."""
+        for stream in self.streams:
+            if not force and self.world.frame_index % stream.every != 0:
+                continue
+            k = self.world.frame_index // stream.every
+            jpeg = stream.sensor.jpeg(self.world, k)
+            with self.frame_cond:
+                stream.frame = VideoFrame(k, jpeg, self.world.t_s + stream.sensor.skew_s)
+                self.frame_cond.notify_all()
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -171,11 +223,18 @@ class _Handler(BaseHTTPRequestHandler):
 
     def do_GET(self) -> None:
         url = urlparse(self.path)
+        json_names = {"table.json", *(s.json_name for s in self.cell.streams)}
         if url.path == "/video.mjpg":
-            self._stream()
+            self._stream(self.cell.streams[0])
+        elif url.path.startswith("/video/") and url.path.endswith(".mjpg"):
+            stream = self.cell.stream(url.path[len("/video/") : -len(".mjpg")])
+            if stream is None:
+                self.send_error(HTTPStatus.NOT_FOUND, "no such camera")
+                return
+            self._stream(stream)
         elif url.path == "/truth":
             self._json(self.cell.truth(with_nodes="nodes" in parse_qs(url.query)))
-        elif url.path in ("/camera.json", "/table.json"):
+        elif url.path[1:] in json_names:
             self._bytes((self.cell.state_dir / url.path[1:]).read_bytes(), "application/json")
         elif url.path == "/healthz":
             self._json({"ok": True})
@@ -223,7 +282,7 @@ class _Handler(BaseHTTPRequestHandler):
         self.end_headers()
         self.wfile.write(body)
 
-    def _stream(self) -> None:
+    def _stream(self, stream: Stream) -> None:
         cell = self.cell
         if not cell.video_up:
             self.send_error(HTTPStatus.SERVICE_UNAVAILABLE, "camera unplugged")
@@ -240,7 +299,7 @@ class _Handler(BaseHTTPRequestHandler):
                     cell.frame_cond.wait(timeout=2.0)
                     if cell.video_generation != generation:
                         return
-                    frame = cell.frame
+                    frame = stream.frame
                 if frame is None or frame.index == last:
                     continue
                 last = frame.index
@@ -253,9 +312,16 @@ class _Handler(BaseHTTPRequestHandler):
             self.close_connection = True
 
 
-def serve(scenario: Scenario, state_dir: Path, port: int, camera_fps: float, arch: str = "cpu") -> None:
+def serve(
+    scenario: Scenario,
+    state_dir: Path,
+    port: int,
+    camera_fps: float,
+    arch: str = "cpu",
+    other_cameras_fps: float | None = None,
+) -> None:
     """Run the cell until interrupted."""
-    cell = Cell(scenario, state_dir, camera_fps, arch)
+    cell = Cell(scenario, state_dir, camera_fps, arch, other_cameras_fps)
     handler = type("Handler", (_Handler,), {"cell": cell})
     server = ThreadingHTTPServer(("127.0.0.1", port), handler)
     server.daemon_threads = True
@@ -268,6 +334,16 @@ def serve(scenario: Scenario, state_dir: Path, port: int, camera_fps: float, arc
         "camera_json": str(state_dir / "camera.json"),
         "table_json": str(state_dir / "table.json"),
         "camera_fps": scenario.fps / cell.camera_every,
+        "cameras": [
+            {
+                "name": s.name,
+                "video_url": f"{base}/video/{s.name}.mjpg",
+                "camera_json": str(state_dir / s.json_name),
+                "capture_skew_s": s.sensor.skew_s,
+                "camera_fps": scenario.fps / s.every,
+            }
+            for s in cell.streams
+        ],
     }
     cell.start()
     (state_dir / "ready.json").write_text(json.dumps(ready, indent=2) + "\n")
