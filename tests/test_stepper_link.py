@@ -7,6 +7,7 @@ import asyncio
 import contextlib
 import os
 import select
+import struct
 import threading
 import time
 import tty
@@ -362,3 +363,41 @@ def test_a_hello_starts_a_new_session_whose_first_command_is_applied(tmp_path: P
     finally:
         os.close(port)
         fw.stop()
+
+
+def test_a_fault_that_shares_the_hellos_seq_is_not_taken_for_its_answer(tmp_path: Path) -> None:
+    """A controller's FAULT numbers from its own counter: one with the pending HELLO's seq, arriving
+    first, must not stand in for the HELLO_ACK."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    link_path = tmp_path / "ttyFAULTY"
+    link_path.symlink_to(os.ttyname(slave))
+
+    def controller() -> None:
+        splitter = wire.FrameSplitter()
+        while True:
+            try:
+                data = os.read(master, 4096)
+            except OSError:
+                return
+            for packet in splitter.feed(data):
+                msg = wire.decode(packet)
+                if msg.type == wire.MsgType.HELLO:
+                    fault = struct.pack("<BH", FAULT_WATCHDOG, 0xFFFF) + b"left over"
+                    hello = struct.pack("<BH", wire.PROTOCOL_VERSION, N) + b"faulty-fw"
+                    os.write(master, wire.encode(wire.MsgType.FAULT, msg.seq, fault))
+                    os.write(master, wire.encode(wire.MsgType.HELLO_ACK, msg.seq, hello))
+
+    threading.Thread(target=controller, daemon=True).start()
+
+    async def body() -> None:
+        async with _running(_link(link_path)) as link:
+            await _until(lambda: link.connected)
+            assert link.firmware == "faulty-fw"
+            await link.stop()
+
+    try:
+        asyncio.run(asyncio.wait_for(body(), 10))
+    finally:
+        os.close(master)
+        os.close(slave)

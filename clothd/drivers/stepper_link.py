@@ -238,7 +238,8 @@ class StepperLink:
             self._lose(f"serial read failed: {err.strerror or err}")
 
     def _dispatch(self, frame: wire.Message) -> None:
-        waiter = self._waiters.get(frame.seq)
+        # A FAULT answers nothing: its seq is the controller's own counter, not a request's.
+        waiter = None if frame.type == wire.MsgType.FAULT else self._waiters.get(frame.seq)
         if waiter is not None and not waiter.done():
             waiter.set_result(frame)
         if frame.type in (wire.MsgType.ACK, wire.MsgType.NACK):  # an answer: the controller is there
