@@ -59,6 +59,7 @@ class Stream:
     every: int
     json_name: str  # its camera.json in the state directory
     frame: VideoFrame | None = None
+    readers: int = 0  # clients streaming it now (under the cell's frame_cond)
 
 
 def frame_intervals(
@@ -203,9 +204,13 @@ class Cell:
         }
 
     def _publish_frames(self, force: bool = False) -> None:
-        """Every camera due at this step renders the same world instant (plus its capture skew)."""
-        for stream in self.streams:
+        """Every camera due at this step renders the same world instant (plus its capture skew); a camera
+        other than the first renders only while a client streams it."""
+        for i, stream in enumerate(self.streams):
             if not force and self.world.frame_index % stream.every != 0:
+                continue
+            if i > 0 and not stream.readers:  # nobody watches it: a render would only cost CPU
+                stream.frame = None  # a client that comes waits for a fresh frame, not an old one
                 continue
             k = self.world.frame_index // stream.every
             jpeg = stream.sensor.jpeg(self.world, k)
@@ -293,6 +298,8 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("Connection", "close")
         self.end_headers()
         generation, last = cell.video_generation, -1
+        with cell.frame_cond:
+            stream.readers += 1
         try:
             while True:
                 with cell.frame_cond:
@@ -309,6 +316,8 @@ class _Handler(BaseHTTPRequestHandler):
         except (BrokenPipeError, ConnectionResetError):
             return
         finally:
+            with cell.frame_cond:
+                stream.readers -= 1
             self.close_connection = True
 
 
