@@ -33,6 +33,7 @@ import numpy as np
 from hwsim.table import Table
 
 WATCHDOG_S = 0.25
+MAX_RUN = 1024  # encoded bytes without a delimiter: past it, line noise
 FIRMWARE = "hwsim-fw 1.0"
 _VERSION = 1
 # Message types and codes, as specified in docs/serial-protocol.md.
@@ -161,6 +162,7 @@ class Firmware:
         self._plugged = threading.Event()
         self._stop = threading.Event()
         self._buf = bytearray()
+        self._in_noise = False  # discarding a run past MAX_RUN until the next delimiter
         self._open_pty()
         self._thread = threading.Thread(target=self._run, name="firmware", daemon=True)
 
@@ -196,6 +198,7 @@ class Firmware:
         tmp.symlink_to(os.ttyname(slave))
         tmp.replace(self.link_path)
         self._buf.clear()
+        self._in_noise = False
         self._plugged.set()
 
     def _close_pty(self) -> None:
@@ -233,12 +236,21 @@ class Firmware:
             self.on_change(self.counters())
 
     def _receive(self, data: bytes) -> None:
+        """A run of more than MAX_RUN bytes without a delimiter is line noise: dropped up to the next zero
+        and counted invalid once (docs/serial-protocol.md)."""
         self._buf += data
         *packets, rest = self._buf.split(b"\x00")
-        self._buf = bytearray(rest[-1024:])
         for packet in packets:
-            if packet:
+            if self._in_noise:  # the end of a run already counted
+                self._in_noise = False
+            elif len(packet) > MAX_RUN:
+                self.frames_bad += 1
+            elif packet:
                 self._handle(bytes(packet))
+        if len(rest) > MAX_RUN:
+            self.frames_bad += 0 if self._in_noise else 1
+            self._in_noise, rest = True, bytearray()
+        self._buf = bytearray(rest)
         self._changed()
 
     def _handle(self, packet: bytes) -> None:

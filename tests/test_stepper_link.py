@@ -401,3 +401,31 @@ def test_a_fault_that_shares_the_hellos_seq_is_not_taken_for_its_answer(tmp_path
     finally:
         os.close(master)
         os.close(slave)
+
+
+def test_a_run_past_the_bound_is_noise_up_to_the_next_zero(tmp_path: Path) -> None:
+    """Even a valid frame at the end of an over-long run is dropped; the run counts as one invalid frame,
+    and the next frame after the delimiter is answered."""
+    fw = Firmware(TableDrives(Table(TableSpec())), tmp_path / "ttyCELL")
+    fw.start()
+    port = os.open(fw.link_path, os.O_RDWR | os.O_NOCTTY)
+    tty.setraw(port)
+
+    def answers(wait_s: float) -> bytes:
+        got = b""
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            if select.select([port], [], [], 0.02)[0]:
+                got += os.read(port, 4096)
+        return got
+
+    try:
+        ping = wire.encode(wire.MsgType.PING, 7)
+        os.write(port, bytes(range(1, 256)) * 5 + ping)  # 1275 bytes, the PING's zero ends the run
+        assert answers(0.3) == b"" and fw.frames_bad == 1
+        os.write(port, wire.encode(wire.MsgType.PING, 8))
+        reply = answers(0.3)
+        assert reply and wire.decode(reply[:-1]).seq == 8 and fw.frames_bad == 1
+    finally:
+        os.close(port)
+        fw.stop()
