@@ -1,171 +1,39 @@
 """Ground-truth cloth: a fine XPBD sheet on the conveyor table (Taichi, float64, one thread).
 
-This is deliberately a different model from the tracker's (an explicit Provot mass-spring on a coarse
-mesh): extended position-based dynamics with small steps (Macklin et al. 2019, one constraint iteration
-per substep) on a mesh at least 3x finer, with
-
-- stretch: distance constraints on the grid edges, membrane stiffness `stretch_stiffness_n_m`
-  (for a square lattice a spring's k equals the sheet's tension per unit strain, whatever the spacing);
-- shear: a constraint on each diagonal of every cell, measured so that bending does not count as shear.
-  A cell bent across one diagonal (a ridge running along the other) brings that diagonal's ends closer
-  in space while the cloth keeps its shape in its own plane; the diagonal is then measured along the
-  cloth, through the midpoint of the other (`_diagonal`). Plain distances would make every cell a rigid
-  plate, so that the sheet could fold only along rows and columns: a ridge at an angle to them was
-  forced flat, or held with its cells strained by up to 2 %;
-- bending: linear second-difference constraints along rows and columns, i.e. the discrete curvature
-  energy ½ B ∫ |∂²x|² dA of an (almost) inextensible sheet, with compliance h⁴ / (B · cell area), plus the
-  friction between the yarns (Grosberg's M = Bκ ± HB; KES's bending hysteresis 2HB): in parallel with the
-  elastic bend, a frictional element of stiffness k_f holds each bend at its stick point r until its
-  couple k_f·|Δ²x - r|/Δs² reaches HB, and then slips (`_slip_yarns`). The two are one constraint,
-  C = Δ²x - r·k_f/(B + k_f), of compliance h⁴ / ((B + k_f) · cell area). That is what holds a wrinkle on
-  a table: the yarns' friction carries the ridge's bend up to HB, so only its excess pushes the ridge's
-  feet apart (docs/hwsim.md, "The yarns' friction in bending");
-- table contact: z >= 0, its normal impulse m·Δz/h measured from the projection;
-- friction: Coulomb against the surface velocity of the belt under each node (the belts stand proud of
-  the deck, so a node over a gap between belts is supported but feels no friction). A sliding node's
-  slip shrinks by μ times the normal correction per substep; a node that comes to rest on its belt sticks:
-  it rides the belt, the solve does not move it, and the impulse the constraints ask of it is summed
-  (between two stuck nodes, the edge's true elastic force k·C). It slides again once that exceeds
-  μ_static times its normal force, or when the constraints lift it (docs/hwsim.md, "Friction");
-- gravity, and a linear velocity damping.
-
-Running belts shake the cloth a little (`vibration_m_s`, seeded): real modules do, and without any
-vertical disturbance a perfectly flat sheet under exactly in-plane compression never leaves the plane.
-
-The whole frame (all substeps) is one serial kernel: no launch overhead per substep, and the result is
-bit-for-bit reproducible, which a ground truth must be.
+A different model from the tracker's: extended position-based dynamics with small steps (Macklin et al.
+2019) on a mesh at least 3x finer; stretch, shear measured along the cloth (`_diagonal`), bending with the
+yarns' friction (`_slip_yarns`), table contact, Coulomb friction with a stick state against the belts,
+gravity, damping and the belts' vibration (docs/hwsim.md, "The cloth", derives each). The whole frame is
+one serial kernel: no launch overhead per substep, and bit-for-bit reproducible, as a ground truth must be.
+The grid is in hwsim/cloth_grid.py, the solver's constants in hwsim/cloth_constants.py.
 """
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import taichi as ti
 
 from hwsim.belt_geometry import belt_at, belt_hit
-from hwsim.ridges import lay_ridges
-from hwsim.scenario import ClothSpec, Flap, Pose, TableSpec
+from hwsim.cloth_constants import (
+    FLAT_CELL,
+    FOLD_STRAIN,
+    GRAVITY_M_S2,
+    LAY_IN_DAMPING_1_S,
+    LAY_IN_S,
+    ON_TABLE_M,
+    VIBRATION_REF_SPEED_M_S,
+    YARN_FRICTION_STIFFNESS,
+)
+from hwsim.cloth_grid import FLAP_THICKNESS_M, ClothGrid, bends_in_own_frames
+from hwsim.scenario import ClothSpec, Pose, TableSpec
 
-GRAVITY_M_S2 = 9.81
 vec2d = ti.types.vector(2, ti.f64)
-# Laying a cloth with ridges down, and hands letting go of one: quasi-static (velocity decays within
-# 10 ms) until its ridges have settled.
-_LAY_IN_S = 0.5
-LAY_IN_DAMPING_1_S = 100.0
-_ON_TABLE_M = 1e-4  # a node laid lower than this (above its floor) rests on the table
-# A flap lies on the cloth beneath it: its nodes' floor is one cloth thickness up (hwsim has no
-# self-contact; the floor stays with those nodes wherever they go).
-FLAP_THICKNESS_M = 0.001
-# How much shorter than the other a cell's diagonal must be to count as the one a fold crosses: the
-# choice only matters in a cell that is not flat, and any value from 1e-5 to 1e-3 held the same ridges.
-FOLD_STRAIN = 1e-4
-# A cell whose diagonals' midpoints lie closer than this (of the diagonal) is flat: its diagonals' lengths
-# along the cloth are their straight ones, to 1e-6 (the difference goes as the square).
-FLAT_CELL = 1e-3
-# The yarns' frictional element sticks with this stiffness (k_f / B) until its couple reaches HB, i.e. for
-# a change of curvature of HB / k_f (11 m⁻¹ for the default cloth): Grosberg's friction is rigid until it
-# slips; 20 made the Gauss–Seidel solve blow up at 0.5 ms substeps.
-YARN_FRICTION_STIFFNESS = 4.0
-# A belt this fast shakes the cloth with the full vibration_m_s; slower belts proportionally less.
-_VIBRATION_REF_SPEED_M_S = 0.05
-
-
-def _bends_in_own_frames(x_m: np.ndarray) -> np.ndarray:
-    """Second differences along axis 1 of nodes x_m (ny, nx, 3), each in its own frame (along its chord,
-    across it, up): (ny, nx - 2, 3), as `ClothSim._bend_frame` measures them."""
-    bend = x_m[:, :-2] - 2.0 * x_m[:, 1:-1] + x_m[:, 2:]
-    chord = x_m[:, 2:, :2] - x_m[:, :-2, :2]
-    # A flap's crease may stack a chord's ends: no direction then, and no NaN.
-    along = chord / np.maximum(np.linalg.norm(chord, axis=-1, keepdims=True), 1e-12)
-    across = np.stack([-along[..., 1], along[..., 0]], axis=-1)
-    level = bend[..., :2]
-    local = np.stack([(level * along).sum(axis=-1), (level * across).sum(axis=-1), bend[..., 2]], axis=-1)
-    return np.ascontiguousarray(local, dtype=np.float64)
 
 
 @ti.func
 def _swept(k: ti.i32, n: ti.i32, flip: ti.i32) -> ti.i32:
     """Loop index k of n, run backwards when flip is 1."""
     return ti.select(flip == 1, n - 1 - k, k)
-
-
-@dataclass(frozen=True)
-class ClothGrid:
-    """Node layout of the truth mesh. `st_m` (ny, nx, 2): material (flat) coordinates, origin at a corner."""
-
-    nx: int
-    ny: int
-    dx_m: float
-    dy_m: float
-
-    @classmethod
-    def from_spec(cls, spec: ClothSpec) -> "ClothGrid":
-        w, h = spec.size_m
-        nx = round(w / spec.spacing_m) + 1
-        ny = round(h / spec.spacing_m) + 1
-        return cls(nx, ny, w / (nx - 1), h / (ny - 1))
-
-    @property
-    def st_m(self) -> np.ndarray:
-        s, t = np.meshgrid(np.arange(self.nx) * self.dx_m, np.arange(self.ny) * self.dy_m)
-        return np.stack([s, t], axis=-1)
-
-    def placed(self, pose: Pose) -> np.ndarray:
-        """World positions (ny, nx, 3) of the cloth with its centre at (x, y), rotated by theta: flat, or
-        with the pose's ridges laid in (hwsim/ridges.py), which keeps the sheet's lengths, and its flaps
-        folded over."""
-        centre = np.array([(self.nx - 1) * self.dx_m, (self.ny - 1) * self.dy_m]) / 2.0
-        xy, z = lay_ridges(self.st_m - centre, pose.ridges)
-        for flap in pose.flaps:
-            xy, z = self._fold(flap, xy, z, centre)
-        c, s = np.cos(pose.theta_rad), np.sin(pose.theta_rad)
-        x = c * xy[..., 0] - s * xy[..., 1] + pose.x_m
-        y = s * xy[..., 0] + c * xy[..., 1] + pose.y_m
-        return np.stack([x, y, z], axis=-1)
-
-    def edge_strains(self, x_m: np.ndarray) -> np.ndarray:
-        """Strain of every grid edge of nodes (ny, nx, 3), those along rows then along columns, flattened."""
-        along_x = np.linalg.norm(np.diff(x_m, axis=1), axis=-1) / self.dx_m - 1.0
-        along_y = np.linalg.norm(np.diff(x_m, axis=0), axis=-1) / self.dy_m - 1.0
-        return np.concatenate([along_x.ravel(), along_y.ravel()])
-
-    def folded(self, pose: Pose) -> np.ndarray:
-        """(ny, nx) the nodes that the pose's flaps fold over."""
-        mask = np.zeros((self.ny, self.nx), dtype=bool)
-        for flap in pose.flaps:
-            mask |= self._flap_local_m(flap).sum(axis=-1) < flap.size_m
-        return mask
-
-    def _flap_local_m(self, flap: Flap) -> np.ndarray:
-        """Material distances (ny, nx, 2) of the nodes from the flap's corner, along its two edges."""
-        size = np.array([(self.nx - 1) * self.dx_m, (self.ny - 1) * self.dy_m])
-        high = np.array([flap.corner[0] == "+", flap.corner[2] == "+"])
-        return np.abs(self.st_m - np.where(high, size, 0.0))
-
-    def _fold(
-        self, flap: Flap, xy: np.ndarray, z: np.ndarray, centre: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """Fold the corner over along a + b = size (a, b: distances from the corner along its edges):
-        a node at (a, b) lands on the material point at (size - b, size - a), one thickness up."""
-        ab = self._flap_local_m(flap)
-        over = ab.sum(axis=-1) < flap.size_m
-        high = np.array([flap.corner[0] == "+", flap.corner[2] == "+"])
-        size = np.array([(self.nx - 1) * self.dx_m, (self.ny - 1) * self.dy_m])
-        corner = np.where(high, size, 0.0)
-        inward = np.where(high, -1.0, 1.0)
-        landing = corner + inward * (flap.size_m - ab[..., ::-1])
-        xy = xy.copy()
-        xy[over] = landing[over] - centre
-        z = np.where(over, z + FLAP_THICKNESS_M, z)
-        return xy, z
-
-    def node_masses_kg(self, areal_density_kg_m2: float) -> np.ndarray:
-        """Lumped masses (ny, nx): each node carries the area of the cell quarters around it."""
-        wx = np.full(self.nx, self.dx_m)
-        wx[[0, -1]] /= 2
-        wy = np.full(self.ny, self.dy_m)
-        wy[[0, -1]] /= 2
-        return np.asarray(areal_density_kg_m2 * np.outer(wy, wx))
 
 
 @ti.data_oriented
@@ -204,9 +72,8 @@ class ClothSim:
         self.lay(pose, np.zeros(n_mod))
 
     def lay(self, pose: Pose, module_heading_rad: np.ndarray) -> None:
-        """Lay the cloth down at rest at `pose` on the stopped belts (turned to the given headings), as a
-        hand does: its yarns settled in the laid shape, what lies on a belt sticks to it, and a ridge settles
-        quasi-statically into the shape its weight, stiffness and friction give it."""
+        """Lay the cloth down at rest at `pose` on the stopped belts (at the given headings), as a hand does:
+        yarns settled in the laid shape, what lies on a belt stuck to it, a ridge settled quasi-statically."""
         x = self.grid.placed(pose)
         self.held.fill(0)
         self.set_positions(x)
@@ -214,10 +81,10 @@ class ClothSim:
         self.folded.from_numpy(folded.astype(np.int32))
         floor = np.where(folded, FLAP_THICKNESS_M, 0.0)
         self.floor.from_numpy(floor)
-        self.stuck.from_numpy((x[..., 2] < floor + _ON_TABLE_M).astype(np.int32))
+        self.stuck.from_numpy((x[..., 2] < floor + ON_TABLE_M).astype(np.int32))
         if pose.ridges or pose.flaps:
             stopped = np.zeros(len(module_heading_rad))
-            self.advance(_LAY_IN_S, stopped, module_heading_rad, damping_1_s=LAY_IN_DAMPING_1_S)
+            self.advance(LAY_IN_S, stopped, module_heading_rad, damping_1_s=LAY_IN_DAMPING_1_S)
             self.v.fill(0.0)
 
     def set_positions(self, x_m: np.ndarray) -> None:
@@ -227,8 +94,8 @@ class ClothSim:
         self.x.from_numpy(np.ascontiguousarray(x_m, dtype=np.float64))
         self.v.fill(0.0)
         self.stuck.fill(0)
-        self.set_along_s.from_numpy(_bends_in_own_frames(x_m))
-        self.set_along_t.from_numpy(_bends_in_own_frames(x_m.transpose(1, 0, 2)).transpose(1, 0, 2))
+        self.set_along_s.from_numpy(bends_in_own_frames(x_m))
+        self.set_along_t.from_numpy(bends_in_own_frames(x_m.transpose(1, 0, 2)).transpose(1, 0, 2))
 
     def hold(self, held: np.ndarray, velocity_m_s: np.ndarray) -> None:
         """Hands hold the nodes where `held` (ny, nx) is set and move them at velocity_m_s (ny, nx, 3) until
@@ -240,7 +107,7 @@ class ClothSim:
         """The hands let go where they stopped. The cloth comes to rest with them (what they dragged along
         slid no faster than they moved), so whatever lies on a belt stays there, held by static friction:
         a hand lifts off a cloth at rest; it does not throw it."""
-        on_table = self.positions_m()[..., 2] < self.floor.to_numpy() + _ON_TABLE_M
+        on_table = self.positions_m()[..., 2] < self.floor.to_numpy() + ON_TABLE_M
         self.v.fill(0.0)
         self.stuck.from_numpy(on_table.astype(np.int32))
         self.held.fill(0)
@@ -499,7 +366,7 @@ class ClothSim:
                     self.stuck[j, i] = 0
                     self.v[j, i][2] -= GRAVITY_M_S2 * h
                     if step == 0 and self.x[j, i][2] <= self.floor[j, i] + 1e-6:
-                        shake = ti.min(1.0, vec2d(belt[0], belt[1]).norm() / _VIBRATION_REF_SPEED_M_S)
+                        shake = ti.min(1.0, vec2d(belt[0], belt[1]).norm() / VIBRATION_REF_SPEED_M_S)
                         self.v[j, i][2] += shake * ti.abs(self.kick[j, i])
                 self.x[j, i] += h * self.v[j, i]
             # Gauss-Seidel sweeps alternate direction: a one-way sweep pushes the cloth sideways.

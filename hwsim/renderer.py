@@ -18,7 +18,7 @@ import taichi as ti
 
 from hwsim.belt_geometry import belt_at
 from hwsim.camera import Camera
-from hwsim.cloth import ClothGrid
+from hwsim.cloth_grid import ClothGrid
 from hwsim.scenario import Scenario
 from hwsim.scene import SceneState
 from hwsim.texture import (

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 
 from hwsim.camera import Camera
-from hwsim.cloth import ClothGrid
+from hwsim.cloth_grid import ClothGrid
 from hwsim.recording import noise_rng, render_frame
 from hwsim.renderer import Renderer
 from hwsim.scenario import Scenario

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hwsim.cloth import LAY_IN_DAMPING_1_S, ClothSim
+from hwsim.cloth import ClothSim
+from hwsim.cloth_constants import LAY_IN_DAMPING_1_S
 from hwsim.scenario import Pose, Push, Scenario, check_flap
 from hwsim.scene import SceneState, arms_at
 from hwsim.table import Table

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from hwsim import scenario as scenarios
-from hwsim.cloth import GRAVITY_M_S2
+from hwsim.cloth_constants import GRAVITY_M_S2
 from hwsim.world import World
 
 

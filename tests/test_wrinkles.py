@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hwsim import scenario as scenarios
-from hwsim.cloth import FLAP_THICKNESS_M, ClothGrid
+from hwsim.cloth_grid import FLAP_THICKNESS_M, ClothGrid
 from hwsim.ridges import lay_ridges
 from hwsim.stretch import stretch_under_turn
 from hwsim.world import World
