@@ -23,6 +23,7 @@ from clothd.config.tracker import (
     MeshConfig,
     ModuleLimitsConfig,
     PhysicsConfig,
+    StereoConfig,
     TaichiConfig,
     TrackerConfig,
 )
@@ -36,6 +37,7 @@ __all__ = [
     "MeshConfig",
     "ModuleLimitsConfig",
     "PhysicsConfig",
+    "StereoConfig",
     "TaichiConfig",
     "TrackerConfig",
 ]

@@ -148,6 +148,23 @@ class ModuleLimitsConfig(Strict):
     steer_rate_limit_rad_s: float = Field(3.0, gt=0, le=100)
 
 
+class StereoConfig(Strict):
+    """A second camera's view, used when tracking begins to measure the surface (clothd/core/stereo.py)."""
+
+    max_skew_ms: float = Field(
+        20.0, ge=0, le=200, description="two frames further apart in capture time than this are not paired"
+    )
+    epipolar_max_px: float = Field(
+        1.5, gt=0, le=20, description="a match this far off its epipolar line is a wrong match"
+    )
+    max_height_m: float = Field(
+        0.05, gt=0, le=0.5, description="the highest the cloth can rise: bounds the search along the line"
+    )
+    min_matches: int = Field(
+        30, ge=4, le=10000, description="fewer matches than this and the surface is not measured (mono)"
+    )
+
+
 class TaichiConfig(Strict):
     arch: Literal["cpu", "cuda", "vulkan"] = "cpu"
 
@@ -161,6 +178,7 @@ class TrackerConfig(Strict):
     mesh: MeshConfig = MeshConfig()
     physics: PhysicsConfig = PhysicsConfig()
     ekf: EkfConfig = EkfConfig()
+    stereo: StereoConfig = StereoConfig()
 
     @property
     def estimates_shape(self) -> bool:

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from clothd.config import FlatnessConfig
+from clothd.core.modes import FlatnessBasis
 
 
 @dataclass(frozen=True)
@@ -63,6 +64,7 @@ class Flatness:
     flat: bool
     ridges: tuple[Ridge, ...]
     flaps: tuple[Flap, ...] = ()
+    basis: FlatnessBasis = FlatnessBasis.SINCE_START
 
 
 MIN_FLAP_QUADS = 2  # one unseen quad at the border is too little to tell from an edge misplaced by a pixel
@@ -312,9 +314,14 @@ class FlatnessMonitor:
         self._compressed = None
 
     def update(
-        self, nodes_m: np.ndarray, cloth_size_m: tuple[float, float], quad_seen: np.ndarray | None = None
+        self,
+        nodes_m: np.ndarray,
+        cloth_size_m: tuple[float, float],
+        quad_seen: np.ndarray | None = None,
+        basis: FlatnessBasis = FlatnessBasis.SINCE_START,
     ) -> Flatness:
-        """The flatness of mesh nodes_m (ny, nx, 3); quad_seen (ny-1, nx-1) where known finds flaps."""
+        """The flatness of mesh nodes_m (ny, nx, 3); quad_seen (ny-1, nx-1) where known finds flaps; basis:
+        what the mesh's rest shape rests on (the estimate's)."""
         ny, nx = nodes_m.shape[:2]
         spacing = (cloth_size_m[0] / (nx - 1), cloth_size_m[1] / (ny - 1))
         shortening = quad_shortening(nodes_m[..., :2], spacing)
@@ -340,4 +347,4 @@ class FlatnessMonitor:
         else:
             self.flat = max_height <= c.flat_height_m and starting_pct <= c.flat_compressed_pct
         self.flat = self.flat and not flaps  # a folded corner is not flat, and stays until a hand lifts it
-        return Flatness(max_height, compressed_pct, self.flat, ridges, flaps)
+        return Flatness(max_height, compressed_pct, self.flat, ridges, flaps, basis)

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from clothd.core.ekf import UpdateStats
+from clothd.core.modes import FlatnessBasis
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,15 @@ class ModuleCommands:
     @property
     def n_modules(self) -> int:
         return len(self.speed_m_s)
+
+
+@dataclass(frozen=True)
+class PairedView:
+    """A further camera's frame paired with the first camera's: its BGR image and its capture time in the
+    same clock as the first frame's (so skew_s = t_s - the first frame's time)."""
+
+    image: np.ndarray
+    t_s: float
 
 
 @dataclass(frozen=True)
@@ -86,6 +96,8 @@ class Estimate:
     # the cloth's colour is not known (a folded-over corner leaves its quads' place showing the table).
     quad_seen: np.ndarray | None = None
     detected: Detections = field(default_factory=Detections.none)
+    # What the mesh's rest shape rests on: a surface measured through a second view, or the first frame's.
+    flatness_basis: FlatnessBasis = FlatnessBasis.SINCE_START
 
     @property
     def tracking(self) -> bool:

@@ -26,3 +26,10 @@ class LoopState(StrEnum):
     TRACKING_LOST = "tracking_lost"  # frames arrive, the cloth is not tracked in them
     CAMERA_LOST = "camera_lost"  # no frame for camera.stale_after_s
     FAULT = "fault"  # the compute failed, or the loop stopped on a fault
+
+
+class FlatnessBasis(StrEnum):
+    """What a flatness reading rests on."""
+
+    MEASURED = "measured"  # a second view measured the surface's heights when tracking began
+    SINCE_START = "since_start"  # one view: only slack gained since tracking began can be seen

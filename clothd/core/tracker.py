@@ -14,7 +14,7 @@ The core is pure: a `clock` is injected only to time the stages.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import cv2
 import numpy as np
@@ -35,7 +35,7 @@ from clothd.core.features import (
     structure_ratios,
 )
 from clothd.core.mesh import QuadMesh
-from clothd.core.messages import Detections, Estimate, ModuleCommands
+from clothd.core.messages import Detections, Estimate, ModuleCommands, PairedView
 from clothd.core.outline_edges import OutlineEdges
 from clothd.core.segmentation import (
     ClothColour,
@@ -71,9 +71,11 @@ class Tracker:
         layout: ConveyorLayout | None,
         roi: str = "auto",
         clock: Clock | None = None,
+        other_cameras: Sequence[CameraModel] = (),
     ) -> None:
         self.cfg = cfg
         self.camera_model = camera_model
+        self.other_cameras = tuple(other_cameras)
         self.layout = layout
         self.roi = roi
         self.clock = clock or (lambda: 0.0)
@@ -125,10 +127,17 @@ class Tracker:
         self._upkeep_frame: GrayFrame | None = None  # the tracked frame whose upkeep is still to do
         self._detected: list[Detections] = []  # features detected since the last estimate
 
-    def step(self, image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None) -> Estimate:
+    def step(
+        self,
+        image: np.ndarray,
+        frame_t_s: float,
+        commands: ModuleCommands | None,
+        views: Sequence[PairedView | None] = (),
+    ) -> Estimate:
         """Track one BGR frame captured at frame_t_s, with `commands` the modules' commands in force while
-        it was taken (None: not known). The first frame, and the first after a loss, initialises."""
-        estimate = self.track(image, frame_t_s, commands)
+        it was taken (None: not known). The first frame, and the first after a loss, initialises. views:
+        the further cameras' frames paired with it, one per `other_cameras` (None: none paired)."""
+        estimate = self.track(image, frame_t_s, commands, views)
         upkeep_s = self.upkeep() or 0.0
         if "tick" in estimate.timing_s:
             estimate.timing_s["resample"] = upkeep_s
@@ -148,7 +157,13 @@ class Tracker:
             self.anchors.adopt(frame, self.features)
         return self.clock() - t0
 
-    def track(self, image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None) -> Estimate:
+    def track(
+        self,
+        image: np.ndarray,
+        frame_t_s: float,
+        commands: ModuleCommands | None,
+        views: Sequence[PairedView | None] = (),
+    ) -> Estimate:
         """`step` up to the estimate; `upkeep` does the rest (or the next call, if it was not called)."""
         self.upkeep()
         timing: dict[str, float] = {}

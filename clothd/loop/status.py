@@ -17,7 +17,7 @@ from clothd.config import RecordingFormat
 from clothd.core.control import Setpoint
 from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands
-from clothd.core.modes import LoopState, Mode
+from clothd.core.modes import FlatnessBasis, LoopState, Mode
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
 from clothd.outputs.recorder import RecordingStatus
 
@@ -173,10 +173,15 @@ class FlatnessState(BaseModel):
     )
     ridges: list[RidgeState] = Field(description="highest first")
     flaps: list[FlapState] = Field(description="folded-over corners or edges, largest first; not pulled")
+    basis: FlatnessBasis = Field(
+        description="measured: a second view measured the heights when tracking began, so wrinkles a piece "
+        "arrived with count; since_start: one view, only slack gained since tracking began is seen"
+    )
 
     @classmethod
     def of(cls, f: Flatness) -> FlatnessState:
         return cls(
+            basis=f.basis,
             max_height_mm=f.max_height_m * 1e3,
             compressed_area_pct=f.compressed_area_pct,
             flat=f.flat,
