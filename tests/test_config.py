@@ -89,3 +89,96 @@ def test_the_compute_process_gets_the_configured_opencv_threads() -> None:
     parts = build(parse_config({"loop": {"compute_threads": 1}}))
     assert parts.daemon.compute.spec.opencv_threads == 1
     assert build(Config()).daemon.compute.spec.opencv_threads == 2
+
+
+# -- cameras -----------------------------------------------------------------------------------------
+
+
+def test_one_camera_without_a_cameras_list() -> None:
+    cfg = parse_config({"camera": {"source": "rtsp://a/s", "calibration": "top.json", "stale_after_s": 2}})
+    (only,) = cfg.all_cameras
+    assert only.name == "cam0" and only.source == cfg.camera
+    assert str(only.source.calibration) == "top.json"
+
+
+def test_a_cameras_list_shares_camera_settings_and_names_each() -> None:
+    cfg = parse_config(
+        {
+            "camera": {"stale_after_s": 2.5, "reconnect_max_s": 9},
+            "cameras": [
+                {"source": "0", "calibration": "a.json"},
+                {"name": "side", "source": "1", "calibration": "b.json"},
+            ],
+        }
+    )
+    first, side = cfg.all_cameras
+    assert (first.name, first.source.source, str(first.source.calibration)) == ("cam0", "0", "a.json")
+    assert (side.name, side.source.source, str(side.source.calibration)) == ("side", "1", "b.json")
+    assert first.source.stale_after_s == side.source.stale_after_s == 2.5
+    assert side.source.reconnect_max_s == 9
+
+
+@pytest.mark.parametrize(
+    ("data", "names"),
+    [
+        (
+            {"camera": {"source": "0"}, "cameras": [{"source": "1"}]},
+            ["camera.source and cameras are both set", "cameras.N.source", "remove camera.source"],
+        ),
+        (
+            {"camera": {"calibration": "c.json"}, "cameras": [{"source": "1"}]},
+            ["camera.calibration and cameras are both set", "remove camera.calibration"],
+        ),
+        (
+            {"camera": {"source": "0", "calibration": "c.json"}, "cameras": [{"source": "1"}]},
+            ["camera.calibration and camera.source and cameras are both set"],
+        ),
+        ({"cameras": []}, ["cameras", "at least 1"]),
+        (
+            {"cameras": [{"source": str(i), "calibration": "c.json"} for i in range(5)]},
+            ["cameras", "at most 4"],
+        ),
+        ({"cameras": [{"source": "0"}, {"source": "1"}]}, ["cameras.1.calibration", "needs its camera.json"]),
+        (
+            {"cameras": [{"source": "0"}, {"name": "cam0", "source": "1", "calibration": "c.json"}]},
+            ["cameras.1.name", "'cam0' is taken"],
+        ),
+        ({"cameras": [{"name": "a b", "source": "0"}]}, ["cameras.0.name", "pattern"]),
+        ({"cameras": [{"calibration": "c.json"}]}, ["cameras.0.source", "Field required"]),
+    ],
+)
+def test_bad_cameras_name_the_keys(data: dict[str, object], names: list[str]) -> None:
+    with pytest.raises(ConfigError) as err:
+        parse_config(data)
+    for name in names:
+        assert name in str(err.value)
+
+
+def test_overrides_keep_a_cameras_list_valid() -> None:
+    from clothd.config import first_cameras, with_cameras, with_overrides
+
+    cfg = parse_config(
+        {"cameras": [{"source": "0"}, {"name": "side", "source": "1", "calibration": "c.json"}]}
+    )
+    assert [c.name for c in with_overrides(cfg, {"api": {"port": 9000}}).all_cameras] == ["cam0", "side"]
+    mono = first_cameras(cfg, 1)
+    assert [c.source.source for c in mono.all_cameras] == ["0"]
+    with pytest.raises(ConfigError, match="--cameras 3: the configuration has 2"):
+        first_cameras(cfg, 3)
+    # A single camera's source becomes a list's entry: camera.source is no longer set beside it.
+    one = parse_config({"camera": {"source": "5", "stale_after_s": 3}})
+    two = with_cameras(one, [{"source": "a"}, {"source": "b", "calibration": "c.json"}])
+    assert [c.source.source for c in two.all_cameras] == ["a", "b"]
+    assert two.camera.stale_after_s == 3
+    assert [c.source.source for c in first_cameras(one, 1).all_cameras] == ["5"]
+
+
+def test_the_shipped_config_yaml_shows_a_cameras_list_that_loads(tmp_path: Path) -> None:
+    """The commented example in config.yaml, uncommented with camera.source/calibration deleted, loads."""
+    text = (Path(__file__).resolve().parent.parent / "config.yaml").read_text()
+    example = [
+        line.removeprefix("# ") for line in text.splitlines() if line.startswith(("# cameras:", "#   - "))
+    ]
+    assert len(example) == 3
+    cfg = parse_config(yaml.safe_load("\n".join(example)))
+    assert [c.name for c in cfg.all_cameras] == ["top", "side"]

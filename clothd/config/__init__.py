@@ -6,15 +6,28 @@ names the key and the bound it broke.
 
 from __future__ import annotations
 
-import ipaddress
 from enum import StrEnum
 from pathlib import Path
-from typing import Any, Literal
-from urllib.parse import urlsplit
+from typing import Any
 
 import yaml
-from pydantic import Field, ValidationError, field_validator, model_validator
+from pydantic import Field, ValidationError, model_validator
 
+from clothd.config.api import (
+    OPCUA_SIGN_AND_ENCRYPT,
+    ApiConfig,
+    OpcUaConfig,
+    is_loopback,
+    opcua_host_port,
+)
+from clothd.config.camera import (
+    MAX_CAMERAS,
+    CameraConfig,
+    CameraSourceConfig,
+    NamedCamera,
+    cameras_of,
+    check_cameras,
+)
 from clothd.config.strict import Strict
 from clothd.config.tracker import (
     EkfConfig,
@@ -31,25 +44,24 @@ from clothd.errors import ConfigError
 
 # The tracker's sections live in clothd/config/tracker.py; importers may name them from here.
 __all__ = [
+    "OPCUA_SIGN_AND_ENCRYPT",
+    "ApiConfig",
+    "CameraConfig",
+    "CameraSourceConfig",
     "EkfConfig",
     "FeatureConfig",
     "IdealCameraConfig",
     "MeshConfig",
     "ModuleLimitsConfig",
+    "NamedCamera",
+    "OpcUaConfig",
     "PhysicsConfig",
     "StereoConfig",
     "TaichiConfig",
     "TrackerConfig",
+    "is_loopback",
+    "opcua_host_port",
 ]
-
-
-def is_loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 class LoopConfig(Strict):
@@ -99,17 +111,6 @@ class LoopConfig(Strict):
     @property
     def period_s(self) -> float:
         return 1.0 / self.tick_hz
-
-
-class CameraSourceConfig(Strict):
-    """Where frames come from: a device index ("0"), a device path, a video file, a stream URL or a
-    directory of images."""
-
-    source: str = Field("0", min_length=1, max_length=1024)
-    calibration: Path | None = Field(None, description="camera.json (K, dist, T_cam_world); else ideal")
-    reconnect_initial_s: float = Field(0.5, gt=0, le=60)
-    reconnect_max_s: float = Field(5.0, gt=0, le=600)
-    stale_after_s: float = Field(1.0, gt=0, le=60, description="no new frame for this long: camera lost")
 
 
 class StepperConfig(Strict):
@@ -219,107 +220,6 @@ class ControlConfig(Strict):
     flattening: FlattenConfig = FlattenConfig()
 
 
-class ApiConfig(Strict):
-    host: str = Field("127.0.0.1", min_length=1, max_length=255)
-    port: int = Field(8080, ge=1, le=65535)
-    token: str | None = Field(None, min_length=16, max_length=256, description="required off loopback")
-    view_fps: float = Field(10.0, gt=0, le=30, description="the annotated MJPEG view's rate")
-    allowed_hosts: tuple[str, ...] = Field(
-        (), max_length=32, description="host names the API answers to besides 127.0.0.1, localhost and [::1]"
-    )
-    allowed_origins: tuple[str, ...] = Field(
-        (),
-        max_length=32,
-        description="web origins (scheme://host[:port]) that may change things, besides its own",
-    )
-    max_body_bytes: int = Field(
-        4096, ge=256, le=1_000_000, description="a larger request body is refused (413)"
-    )
-    max_connections: int = Field(
-        128, ge=8, le=2048, description="open HTTP connections; one more evicts the oldest idle one"
-    )
-    request_timeout_s: float = Field(
-        5.0, gt=0, le=120, description="a request must arrive whole this soon after its connection opens"
-    )
-    max_streams: int = Field(
-        32, ge=1, le=512, description="WebSockets and MJPEG views open at once, apart from max_connections"
-    )
-    stall_timeout_s: float = Field(
-        5.0, gt=0, le=120, description="a client that reads nothing this long while data waits is dropped"
-    )
-
-    @model_validator(mode="after")
-    def _token_off_loopback(self) -> ApiConfig:
-        """Off loopback, the API needs a token: refuse to start without one."""
-        if not is_loopback(self.host) and self.token is None:
-            raise ValueError(
-                f"api.host: {self.host} is reachable from other machines; set api.token (16+ characters) "
-                "so that changes need Authorization: Bearer <token>, or bind to 127.0.0.1"
-            )
-        return self
-
-
-OPCUA_SIGN_AND_ENCRYPT = "Basic256Sha256_SignAndEncrypt"
-
-
-def opcua_host_port(endpoint: str) -> tuple[str, int]:
-    """The host and port an opc.tcp:// endpoint binds to (4840, OPC UA's registered port, when none)."""
-    url = urlsplit(endpoint)
-    return url.hostname or "", url.port or 4840
-
-
-class OpcUaConfig(Strict):
-    """The OPC UA server (docs/opcua.md). Loopback: anonymous reads, no security policy needed. Anywhere
-    else: Basic256Sha256 SignAndEncrypt only, with a certificate made on first start in `cert_dir`."""
-
-    enabled: bool = True
-    endpoint: str = Field("opc.tcp://127.0.0.1:4840/clothd/", min_length=1, max_length=255)
-    security_policies: tuple[Literal["None", "Basic256Sha256_SignAndEncrypt"], ...] = Field(
-        ("None",), min_length=1, max_length=2, description="offered to clients; None only on loopback"
-    )
-    cert_dir: Path = Field(
-        Path("opcua"), description="server key and certificate; relative: to the state directory (systemd)"
-    )
-    publish_hz: float = Field(10.0, gt=0, le=10, description="how often the variables follow the status")
-    max_message_bytes: int = Field(
-        262_144,
-        ge=8192,
-        le=16_777_216,
-        description="a larger request, or a chunk over 64 KiB, closes its peer",
-    )
-    max_anonymous_sessions: int = Field(32, ge=0, le=1000, description="activated anonymous sessions at once")
-    max_user_sessions: int = Field(8, ge=1, le=100, description="activated sessions of user clothd, apart")
-    max_pending_connections: int = Field(
-        32, ge=1, le=1000, description="connections with no session yet; one more closes the oldest"
-    )
-    activation_timeout_s: float = Field(
-        5.0, gt=0, le=60, description="a connection with no activated session after this is closed"
-    )
-
-    @field_validator("endpoint")
-    @classmethod
-    def _opc_tcp_url(cls, endpoint: str) -> str:
-        try:
-            host, _ = opcua_host_port(endpoint)  # a port that is no number, or out of range, raises
-        except ValueError as err:
-            raise ValueError(f"{endpoint!r} is not a URL: {err}") from None
-        if urlsplit(endpoint).scheme != "opc.tcp" or not host:
-            raise ValueError(f"{endpoint!r}: an endpoint is opc.tcp://HOST:PORT/PATH")
-        return endpoint
-
-    @model_validator(mode="after")
-    def _secure_off_loopback(self) -> OpcUaConfig:
-        """Off loopback, the None policy (plain text, no server identity) is refused at start."""
-        host, _ = opcua_host_port(self.endpoint)
-        if not is_loopback(host) and self.security_policies != (OPCUA_SIGN_AND_ENCRYPT,):
-            raise ValueError(
-                f"opcua.endpoint: {self.endpoint} is reachable from other machines; set "
-                f"opcua.security_policies to [{OPCUA_SIGN_AND_ENCRYPT}] (no None policy off loopback), "
-                "or bind to 127.0.0.1"
-            )
-        return self
-
-
 class RecordingFormat(StrEnum):
     """How a recording is written; named once for the config, the daemon, the compute and the status."""
 
@@ -374,6 +274,8 @@ class Config(Strict):
     tracker: TrackerConfig = TrackerConfig()
     loop: LoopConfig = LoopConfig()
     camera: CameraSourceConfig = CameraSourceConfig()
+    # Several cameras (clothd/config/camera.py); null: camera's one.
+    cameras: list[CameraConfig] | None = Field(None, min_length=1, max_length=MAX_CAMERAS)
     stepper: StepperConfig = StepperConfig()
     cell: CellConfig = CellConfig()
     control: ControlConfig = ControlConfig()
@@ -381,6 +283,16 @@ class Config(Strict):
     opcua: OpcUaConfig = OpcUaConfig()
     recording: RecordingConfig = RecordingConfig()
     foxglove: FoxgloveConfig = FoxgloveConfig()
+
+    @model_validator(mode="after")
+    def _cameras_agree(self) -> Config:
+        check_cameras(self.camera, self.cameras)
+        return self
+
+    @property
+    def all_cameras(self) -> tuple[NamedCamera, ...]:
+        """Every camera, the first (which tracking depends on) first."""
+        return cameras_of(self.camera, self.cameras)
 
     @model_validator(mode="after")
     def _opcua_token_off_loopback(self) -> Config:
@@ -440,5 +352,23 @@ def load_config(path: Path | None, overrides: dict[str, Any] | None = None) -> C
 
 
 def with_overrides(cfg: Config, overrides: dict[str, Any]) -> Config:
-    """cfg with `overrides` laid over it, validated again as a whole."""
-    return parse_config(_merged(cfg.model_dump(), overrides), "<overrides>")
+    """cfg with `overrides` laid over it, validated again as a whole. Only what was set travels: a key
+    left to its default stays unset (camera.source beside cameras is an error only when set)."""
+    return parse_config(_merged(cfg.model_dump(exclude_unset=True), overrides), "<overrides>")
+
+
+def with_cameras(cfg: Config, cameras: list[dict[str, Any]]) -> Config:
+    """cfg with its cameras replaced by `cameras` (entries of cameras:), camera's shared settings kept."""
+    data = cfg.model_dump(exclude_unset=True)
+    data["camera"] = {k: v for k, v in data.get("camera", {}).items() if k not in ("source", "calibration")}
+    data["cameras"] = cameras
+    return parse_config(data, "<cameras>")
+
+
+def first_cameras(cfg: Config, n: int) -> Config:
+    """cfg with only its first n cameras (n = 1: mono); more than it has is an error."""
+    have = cfg.all_cameras
+    if n > len(have):
+        raise ConfigError(f"--cameras {n}: the configuration has {len(have)} camera(s)")
+    entries = [{"name": c.name, "source": c.source.source, "calibration": c.source.calibration} for c in have]
+    return with_cameras(cfg, entries[:n])
