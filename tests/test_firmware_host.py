@@ -1,6 +1,7 @@
 """The C reference firmware (deploy/firmware/) against clothd's real stepper link, on a pseudo-terminal:
 handshake, acknowledged commands, the e-stop latch and its clearing, the watchdog's FAULT; and, frame by
-frame with clothd's wire encoder, the NACKs and flags docs/serial-protocol.md specifies.
+frame with clothd's wire encoder, the NACKs and flags docs/serial-protocol.md specifies, and the hardware
+e-stop input (SIGUSR1 opens the chain, SIGUSR2 closes it).
 
 The build runs `make -C deploy/firmware host check` once per module: the C unit tests run with it."""
 
@@ -33,6 +34,7 @@ BINARY = FIRMWARE_DIR / "build" / "host" / "clothd-fw-host"
 N = 48
 WATCHDOG_S = 0.25  # docs/serial-protocol.md
 FAULT_WATCHDOG = 1
+FAULT_ESTOP_INPUT = 4
 BOARD = 0xFFFF
 NACK_ESTOPPED, NACK_BAD_LENGTH, NACK_UNKNOWN_TYPE, NACK_BAD_VERSION = 1, 2, 3, 4
 
@@ -206,6 +208,44 @@ def test_nacks_flags_and_the_watchdog_frame_by_frame(firmware_link: Path) -> Non
         assert host.ask(T.COMMAND, 10, _command(0.0)) == (ack, 10, b"\x00")  # the next command clears it
     finally:
         host.close()
+
+
+def _fault_code_and_module(fault: wire.Message) -> tuple[int, int]:
+    assert fault.type == wire.MsgType.FAULT, fault
+    assert fault.payload[3:].isascii() and fault.payload[3:], fault  # a text a person can read
+    code, module = struct.unpack("<BH", fault.payload[:3])
+    return code, module
+
+
+def test_the_hardware_estop_input_latches_like_estop_until_closed_and_cleared(
+    firmware_binary: Path, tmp_path: Path
+) -> None:
+    link = tmp_path / "ttyFW"
+    with _firmware(firmware_binary, link) as proc:
+        host = _RawHost(link)
+        try:
+            ack, nack, T = wire.MsgType.ACK, wire.MsgType.NACK, wire.MsgType
+            estopped = bytes([wire.FLAG_ESTOP])
+            assert host.ask(T.HELLO, 1, wire.hello_payload())[0] == T.HELLO_ACK
+            assert host.ask(T.COMMAND, 2, _command(0.1)) == (ack, 2, b"\x00")
+            proc.send_signal(signal.SIGUSR1)  # the chain opens: unasked, the controller says so
+            assert _fault_code_and_module(host.receive()) == (FAULT_ESTOP_INPUT, BOARD)
+            assert host.ask(T.COMMAND, 3, _command(0.1)) == (nack, 3, bytes([NACK_ESTOPPED]))
+            assert host.ask(T.ESTOP_CLEAR, 4) == (ack, 4, estopped)  # refused while the chain is open
+            proc.send_signal(signal.SIGUSR2)  # closed again: that alone restarts nothing
+            assert host.ask(T.PING, 5) == (ack, 5, estopped)
+            assert host.ask(T.COMMAND, 6, _command(0.1)) == (nack, 6, bytes([NACK_ESTOPPED]))
+            assert host.ask(T.ESTOP_CLEAR, 7) == (ack, 7, b"\x00")
+            assert host.ask(T.COMMAND, 8, _command(0.1)) == (ack, 8, b"\x00")
+            # Opened and closed again before the firmware looks: the opening is not lost.
+            proc.send_signal(signal.SIGUSR1)
+            proc.send_signal(signal.SIGUSR2)
+            assert _fault_code_and_module(host.receive()) == (FAULT_ESTOP_INPUT, BOARD)
+            assert host.ask(T.PING, 9) == (ack, 9, estopped)
+            assert host.ask(T.ESTOP_CLEAR, 10) == (ack, 10, b"\x00")
+            assert host.ask(T.COMMAND, 11, _command(0.0)) == (ack, 11, b"\x00")
+        finally:
+            host.close()
 
 
 def test_the_firmware_exits_when_its_stdin_closes(firmware_binary: Path, tmp_path: Path) -> None:

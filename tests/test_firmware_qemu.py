@@ -9,153 +9,47 @@ all its tests; it fails, naming the Debian packages, where the cross compiler or
 from __future__ import annotations
 
 import asyncio
-import ctypes
 import json
-import os
-import re
-import select
-import shutil
-import signal
 import statistics
-import subprocess
 import termios
 import time
-import tty
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
-from firmware_links import check_conformance, run, running, until
+from firmware_links import QemuFirmware, boot_qemu, build_stm32, check_conformance, run, running, until
 
 from clothd.cli import main
 from clothd.core.messages import ModuleCommands
-from clothd.drivers import wire
 from clothd.drivers.stepper_link import StepperLink
 
-ROOT = Path(__file__).resolve().parents[1]
-FIRMWARE_DIR = ROOT / "deploy" / "firmware"
-ELF = FIRMWARE_DIR / "build" / "stm32" / "clothd-fw.elf"
 N = 48  # BOARD_MODULES in stm32f4/board.h
 WATCHDOG_S = 0.25  # docs/serial-protocol.md
 FAULT_WATCHDOG = 1
+FAULT_ESTOP_INPUT = 4
 BOARD = 0xFFFF
-TOOLS = {
-    "arm-none-eabi-gcc": "gcc-arm-none-eabi",
-    "arm-none-eabi-objcopy": "gcc-arm-none-eabi",
-    "qemu-system-arm": "qemu-system-arm",
-    "make": "make",
-}
-PTY_LINE = re.compile(r"char device redirected to (/dev/pts/\d+) \(label serial0\)")
+ESTOP_INPUT_PIN = 1  # PA1: stm32f4/hal_stm32.c, docs/hardware.md
 
 
 @pytest.fixture(scope="module")
-def firmware_elf() -> Path:
-    missing = sorted({package for tool, package in TOOLS.items() if shutil.which(tool) is None})
-    if missing:
-        pytest.fail(
-            "the STM32 firmware's build and its QEMU run need the Debian packages "
-            f"{', '.join(missing)} (apt-get install gcc-arm-none-eabi qemu-system-arm make)"
-        )
-    # Run from `make test`, a nested make would inherit the outer one's flags.
-    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MAKELEVEL", "MFLAGS")}
-    done = subprocess.run(
-        ["make", "--no-print-directory", "-C", str(FIRMWARE_DIR), "stm32"],
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=120,
-    )
-    assert done.returncode == 0, f"make -C deploy/firmware stm32 failed:\n{done.stdout}\n{done.stderr}"
-    return ELF
-
-
-def _wait_for(check: Callable[[], bool], what: str, timeout_s: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not check():
-        assert time.monotonic() < deadline, f"{what}: not within {timeout_s} s"
-        time.sleep(0.01)
-
-
-def _qemu_pty(log: Path, qemu: subprocess.Popen[bytes]) -> str:
-    """The pty QEMU gave USART1: it names it on stdout, "char device redirected to /dev/pts/N"."""
-    found: list[str] = []
-
-    def named() -> bool:
-        assert qemu.poll() is None, f"QEMU exited: {log.read_text()}"
-        found.extend(PTY_LINE.findall(log.read_text()))
-        return bool(found)
-
-    _wait_for(named, "QEMU naming its pty")
-    return found[0]
-
-
-def _die_with_parent() -> None:
-    """Run in QEMU's child before exec: SIGTERM when pytest dies, so no emulator outlives a killed run."""
-    pr_set_pdeathsig = 1
-    ctypes.CDLL(None).prctl(pr_set_pdeathsig, signal.SIGTERM)
-
-
-def _answers_ping(fd: int, timeout_s: float) -> bool:
-    """Send PINGs until one is ACKed. QEMU looks for a reader on its pty only once a second and drops what
-    the firmware sends before then, so the first PINGs may go unanswered."""
-    splitter = wire.FrameSplitter()
-    deadline = time.monotonic() + timeout_s
-    seq = 0
-    while time.monotonic() < deadline:
-        seq += 1
-        os.write(fd, wire.encode(wire.MsgType.PING, seq))
-        retry_at = time.monotonic() + 0.1
-        while (left_s := retry_at - time.monotonic()) > 0:
-            if select.select([fd], [], [], left_s)[0]:
-                for packet in splitter.feed(os.read(fd, 4096)):
-                    reply = wire.decode(packet)
-                    if reply.type == wire.MsgType.ACK and reply.seq == seq:
-                        return True
-    return False
-
-
-@pytest.fixture(scope="module")
-def qemu_firmware(firmware_elf: Path, tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, int]]:
-    """The firmware booted in QEMU: its pty, and a descriptor on it this fixture holds open throughout.
+def qemu_firmware(tmp_path_factory: pytest.TempPathFactory) -> Iterator[QemuFirmware]:
+    """The firmware booted in QEMU, with a descriptor on its pty held open throughout.
 
     QEMU stops serving the pty when the last process closes it and notices a new one only up to a second
     later; holding it open keeps the link up between the tests (and the test that opens it next reads
     nothing this descriptor does not read, since it never reads)."""
-    log = tmp_path_factory.mktemp("qemu") / "qemu.log"
-    command = ["qemu-system-arm", "-machine", "netduinoplus2", "-display", "none", "-monitor", "none"]
-    command += ["-serial", "pty", "-kernel", str(firmware_elf)]
-    with log.open("wb") as out:
-        qemu = subprocess.Popen(
-            command,
-            stdin=subprocess.DEVNULL,
-            stdout=out,
-            stderr=subprocess.STDOUT,
-            preexec_fn=_die_with_parent,
-        )
-    holder = -1
-    try:
-        pty = _qemu_pty(log, qemu)
-        holder = os.open(pty, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
-        tty.setraw(holder)  # QEMU sets raw mode too: an echo would hand the firmware its own replies
-        answered = _answers_ping(holder, timeout_s=5.0)
-        assert answered, f"the firmware in QEMU answers no PING: {log.read_text()}"
-        yield pty, holder
-    finally:
-        if holder >= 0:
-            os.close(holder)
-        qemu.terminate()
-        qemu.wait(timeout=5)
+    with boot_qemu(build_stm32(), tmp_path_factory.mktemp("qemu")) as firmware:
+        yield firmware
 
 
 @pytest.fixture
-def firmware_port(qemu_firmware: tuple[str, int]) -> str:
+def firmware_port(qemu_firmware: QemuFirmware) -> str:
     """The pty with nothing stale queued: a watchdog trip the last test left coming happens, then what
     the firmware sent since is discarded."""
-    pty, holder = qemu_firmware
     time.sleep(2 * WATCHDOG_S)
-    termios.tcflush(holder, termios.TCIOFLUSH)
-    return pty
+    termios.tcflush(qemu_firmware.holder, termios.TCIOFLUSH)
+    return qemu_firmware.pty
 
 
 # -- the conformance kit ------------------------------------------------------------------------------
@@ -232,5 +126,40 @@ def test_the_watchdog_fault_reaches_the_link_after_250_ms_of_silence(firmware_po
             print(f"\nQEMU watchdog (last COMMAND to FAULT at the link): {ms} ms, median {median} ms")
             # The firmware times from when the frame arrived, after the host wrote it: never sooner.
             assert min(latencies_s) >= WATCHDOG_S, f"FAULT after {ms} ms: sooner than the watchdog"
+
+    run(body(), 15.0)
+
+
+def test_the_estop_input_pin_latches_the_estop_and_reports_a_fault(
+    qemu_firmware: QemuFirmware, firmware_port: str
+) -> None:
+    """PA1 rising (the chain opening), driven from outside through QEMU's SYSCFG and EXTI models: the
+    interrupt cuts ENABLE and the core latches as for ESTOP. QEMU models no GPIO port, so the level the
+    firmware reads back is always 0 (closed): this is the edge path; the level path is the host build's
+    test (test_firmware_host.py) and the bench's."""
+    fw = qemu_firmware
+
+    async def body() -> None:
+        async with running(firmware_port, N) as link:
+            await _commands_acked(link, 3)
+            assert fw.read_u8("drivers_enabled") == 1 and fw.read_i32("estop_edges") == 0
+            faults, nacked = len(link.faults), link.counters.nacked
+            raised_s = time.monotonic()
+            fw.set_gpio_a(ESTOP_INPUT_PIN, 1)
+            fw.set_gpio_a(ESTOP_INPUT_PIN, 0)
+            await until(_more_faults_than(link, faults), timeout_s=1.0, poll_s=0.0005)
+            took_ms = (time.monotonic() - raised_s) * 1e3
+            fault = link.faults[faults]
+            assert (fault.code, fault.module) == (FAULT_ESTOP_INPUT, BOARD) and fault.text
+            assert fw.read_u8("drivers_enabled") == 0 and fw.read_i32("estop_edges") == 1
+            assert link.send_commands(_forward(0.05))  # the host did not e-stop: it sends, and is refused
+            await until(lambda: link.counters.nacked > nacked)
+            link.estop()  # what the daemon does on hearing of it: latch its own too, then clear both
+            await until(lambda: link.controller_estopped)
+            link.estop_clear()
+            await until(lambda: not link.controller_estopped)
+            await _commands_acked(link, 2)
+            assert fw.read_u8("drivers_enabled") == 1
+            print(f"\nQEMU e-stop input: PA1 raised to FAULT(ESTOP_INPUT) at the link {took_ms:.1f} ms")
 
     run(body(), 15.0)

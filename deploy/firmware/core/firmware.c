@@ -43,6 +43,7 @@ bool fw_init(fw_state *fw, const fw_config *config, uint32_t now_ms)
         hal_steer_set_rate(i, 0);
     }
     fw->estop_latched = false;
+    fw->estop_input_active = false; /* an input already open at power-up latches at the first tick */
     fw->watchdog_armed = false;
     fw->watchdog_tripped = false;
     fw->has_applied_seq = false;
@@ -216,10 +217,27 @@ static void handle_estop(fw_state *fw, const frame_msg *msg)
     send_ack(fw, msg->seq);
 }
 
+/* The hardware e-stop input: its turning active latches the e-stop exactly as an ESTOP frame does, and
+ * the host hears of it unasked (the ACK flags then show the latch). */
+static void check_estop_input(fw_state *fw)
+{
+    bool active = hal_estop_input();
+    if (active && !fw->estop_input_active) {
+        cut_all_modules(fw);
+        fw->estop_latched = true;
+        fw->counters.estop_input_trips++;
+        fw_report_fault(fw, FAULT_ESTOP_INPUT, FAULT_MODULE_BOARD,
+                        "hardware e-stop input: drivers cut, e-stop latched");
+    }
+    fw->estop_input_active = active;
+}
+
 static void handle_estop_clear(fw_state *fw, const frame_msg *msg)
 {
-    /* The modules stay stopped (targets zero) until the host's next COMMAND. */
-    if (fw->estop_latched) {
+    /* The modules stay stopped (targets zero) until the host's next COMMAND. While the hardware chain is
+     * still open the latch holds: the ACK carries the e-stop flag, and the host clears again later. */
+    check_estop_input(fw);
+    if (fw->estop_latched && !fw->estop_input_active) {
         fw->estop_latched = false;
         hal_drivers_enable(true);
     }
@@ -301,6 +319,7 @@ static void advance_motion(fw_state *fw, uint32_t now_ms)
 
 void fw_tick(fw_state *fw, uint32_t now_ms)
 {
+    check_estop_input(fw);
     check_watchdog(fw, now_ms);
     if (fw->estop_latched) {
         fw->last_motion_ms = now_ms; /* drivers disabled: nothing moves, nothing ramps */

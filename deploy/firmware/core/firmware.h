@@ -43,6 +43,7 @@ typedef struct {
     uint32_t nacks_sent;
     uint32_t faults_sent;
     uint32_t watchdog_trips;
+    uint32_t estop_input_trips; /* the hardware e-stop input turning active */
 } fw_counters;
 
 typedef struct {
@@ -55,7 +56,8 @@ typedef struct {
     fw_config config;
     frame_rx rx;
     fw_module modules[FW_MAX_MODULES];
-    bool estop_latched;
+    bool estop_latched;      /* by ESTOP or the hardware input, until ESTOP_CLEAR */
+    bool estop_input_active; /* hal_estop_input() at the last look */
     bool watchdog_armed;   /* by the first applied COMMAND */
     bool watchdog_tripped; /* until the next applied COMMAND */
     bool has_applied_seq;

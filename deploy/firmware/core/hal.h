@@ -34,4 +34,10 @@ void hal_steer_set_rate(uint16_t module, int32_t steps_per_s);
  * ramp, whatever step rates are still set. */
 void hal_drivers_enable(bool enabled);
 
+/* The cell's hardware e-stop chain (docs/hardware.md, section 3): true while the chain is open (the safety
+ * relay has cut the drivers' power), and also once after it opened and closed again between two calls (a
+ * port that catches the edge in an interrupt must not lose a pulse shorter than a poll). The core latches
+ * its e-stop when this turns true, as for an ESTOP frame, and reports FAULT(ESTOP_INPUT). */
+bool hal_estop_input(void);
+
 #endif

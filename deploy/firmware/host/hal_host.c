@@ -3,6 +3,7 @@
 #include "hal_host.h"
 
 #include <errno.h>
+#include <signal.h>
 #include <time.h>
 #include <unistd.h>
 
@@ -12,6 +13,10 @@ static int serial_fd = -1;
 static int32_t drive_steps_per_s[FW_MAX_MODULES];
 static int32_t steer_steps_per_s[FW_MAX_MODULES];
 static bool drivers_enabled;
+/* The hardware e-stop input, set from a signal handler: the chain open now, and opened since the last
+ * hal_estop_input() (so a SIGUSR1 followed at once by a SIGUSR2 is not lost between two polls). */
+static volatile sig_atomic_t estop_input_open;
+static volatile sig_atomic_t estop_input_opened;
 
 void hal_host_init(int fd)
 {
@@ -65,6 +70,21 @@ void hal_steer_set_rate(uint16_t module, int32_t steps_per_s)
 void hal_drivers_enable(bool enabled)
 {
     drivers_enabled = enabled;
+}
+
+bool hal_estop_input(void)
+{
+    bool opened = estop_input_opened != 0;
+    estop_input_opened = 0;
+    return opened || estop_input_open != 0;
+}
+
+void hal_host_set_estop_input(bool open)
+{
+    estop_input_open = open ? 1 : 0;
+    if (open) {
+        estop_input_opened = 1;
+    }
 }
 
 int32_t hal_host_drive_rate(uint16_t module)

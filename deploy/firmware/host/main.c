@@ -5,7 +5,8 @@
  *   clothd-fw-host --link /tmp/x/ttyFW [--modules 48] [--exit-on-stdin-eof]
  *
  * Exits 0 on SIGTERM or SIGINT, and when stdin closes if --exit-on-stdin-eof (so a test that dies
- * takes the firmware with it).
+ * takes the firmware with it). SIGUSR1 opens the hardware e-stop chain (the input a board reads from its
+ * safety relay, docs/hardware.md) and SIGUSR2 closes it again: `kill -USR1 PID` is pressing the button.
  */
 #define _POSIX_C_SOURCE 200809L
 
@@ -91,6 +92,11 @@ static int parse_options(int argc, char **argv, host_options *opt)
     return 0;
 }
 
+static void on_estop_signal(int signo)
+{
+    hal_host_set_estop_input(signo == SIGUSR1);
+}
+
 static void install_signal_handlers(void)
 {
     struct sigaction sa;
@@ -99,6 +105,9 @@ static void install_signal_handlers(void)
     sigemptyset(&sa.sa_mask);
     sigaction(SIGTERM, &sa, NULL);
     sigaction(SIGINT, &sa, NULL);
+    sa.sa_handler = on_estop_signal; /* likewise: the loop polls the input at once */
+    sigaction(SIGUSR1, &sa, NULL);
+    sigaction(SIGUSR2, &sa, NULL);
     signal(SIGPIPE, SIG_IGN);
 }
 
@@ -134,10 +143,10 @@ static void print_summary(const fw_state *fw)
     const fw_counters *c = &fw->counters;
     fprintf(stderr,
             "clothd-fw-host: frames ok %u invalid %u, commands applied %u repeated %u, nacks %u, "
-            "faults %u, watchdog trips %u, e-stop %s, drivers %s\n",
+            "faults %u, watchdog trips %u, e-stop input trips %u, e-stop %s, drivers %s\n",
             (unsigned)c->frames_ok, (unsigned)c->frames_invalid, (unsigned)c->commands_applied,
             (unsigned)c->commands_repeated, (unsigned)c->nacks_sent, (unsigned)c->faults_sent,
-            (unsigned)c->watchdog_trips, fw->estop_latched ? "latched" : "clear",
+            (unsigned)c->watchdog_trips, (unsigned)c->estop_input_trips, fw->estop_latched ? "latched" : "clear",
             hal_host_drivers_enabled() ? "enabled" : "disabled");
 }
 

@@ -23,5 +23,6 @@ void board_drivers_off(void);
 
 void board_systick_handler(void);
 void board_usart1_handler(void);
+void board_exti1_handler(void); /* the hardware e-stop input (PA1) */
 
 #endif

@@ -13,6 +13,12 @@
  * - the steppers: the rates are recorded in arrays, as in the host build. Step pulse generation (a timer
  *   per STEP pin) is board-specific and not written here; QEMU models no stepper either.
  * - the drivers' ENABLE line: PB0, active low (the usual ENN input of a stepper driver).
+ * - the hardware e-stop input: PA1, pulled up, high while the chain is open (docs/hardware.md, section 3:
+ *   the safety relay's SAFE_EN holds it low through an optocoupler, so a broken wire reads as open too).
+ *   EXTI1 catches the rising edge: its interrupt cuts ENABLE at once and counts the edge, and
+ *   hal_estop_input reports the edge or the level to the core, which latches. QEMU models no GPIO (the
+ *   level reads 0, closed) but does model SYSCFG and EXTI: tests/test_firmware_qemu.py raises the line
+ *   through QEMU's qtest interface.
  */
 #include <stdbool.h>
 #include <stddef.h>
@@ -47,6 +53,7 @@
 #define MICROSECONDS_PER_MS 1000u
 
 #define DRIVERS_ENABLE_PIN 0u /* PB0 */
+#define ESTOP_INPUT_PIN 1u    /* PA1, EXTI line 1 */
 #define USART1_TX_PIN 9u      /* PA9 */
 #define USART1_RX_PIN 10u     /* PA10 */
 
@@ -64,9 +71,14 @@ static volatile uint32_t rx_head; /* written only by the interrupt */
 static volatile uint32_t rx_tail; /* written only by the main loop */
 static volatile uint32_t rx_dropped;
 
+/* Rising edges of the e-stop input: counted by the interrupt only; the main loop remembers how many it
+ * has seen, so no edge is lost between its read and a clear. */
+static volatile uint32_t estop_edges;
+static uint32_t estop_edges_seen;
+
 static int32_t drive_steps_per_s[FW_MAX_MODULES];
 static int32_t steer_steps_per_s[FW_MAX_MODULES];
-static bool drivers_enabled;
+static volatile bool drivers_enabled; /* read back by tests/test_firmware_qemu.py through QEMU */
 
 /* -- set-up -------------------------------------------------------------------------------------- */
 
@@ -85,6 +97,22 @@ static void drivers_pin_init(void)
 {
     drivers_pin_write(false); /* the level first, then the pin an output: no glitch that enables them */
     gpio_set_mode(GPIOB_BASE, DRIVERS_ENABLE_PIN, GPIO_MODE_OUTPUT);
+}
+
+/* PA1 an input with its pull-up, and EXTI1 on its rising edge (the chain opening). */
+static void estop_input_init(void)
+{
+    gpio_set_mode(GPIOA_BASE, ESTOP_INPUT_PIN, GPIO_MODE_INPUT);
+    uint32_t pull_shift = 2u * ESTOP_INPUT_PIN;
+    GPIO_PUPDR(GPIOA_BASE) = (GPIO_PUPDR(GPIOA_BASE) & ~(3u << pull_shift)) | (GPIO_PULL_UP << pull_shift);
+    uint32_t line_shift = 4u * (ESTOP_INPUT_PIN % 4u);
+    uint32_t exticr = SYSCFG_EXTICR(ESTOP_INPUT_PIN / 4u) & ~(0xFu << line_shift);
+    SYSCFG_EXTICR(ESTOP_INPUT_PIN / 4u) = exticr | (SYSCFG_EXTI_PORT_A << line_shift);
+    EXTI_RTSR |= 1u << ESTOP_INPUT_PIN;
+    EXTI_FTSR &= ~(1u << ESTOP_INPUT_PIN);
+    EXTI_PR = 1u << ESTOP_INPUT_PIN; /* nothing stale from before the set-up */
+    EXTI_IMR |= 1u << ESTOP_INPUT_PIN;
+    NVIC_ISER(EXTI1_IRQN / 32u) = 1u << (EXTI1_IRQN % 32u);
 }
 
 static void usart1_init(void)
@@ -124,9 +152,10 @@ void board_init(void)
 {
     RCC_AHB1ENR |= RCC_AHB1ENR_GPIOAEN | RCC_AHB1ENR_GPIOBEN;
     RCC_APB1ENR |= RCC_APB1ENR_TIM2EN;
-    RCC_APB2ENR |= RCC_APB2ENR_USART1EN;
+    RCC_APB2ENR |= RCC_APB2ENR_USART1EN | RCC_APB2ENR_SYSCFGEN;
     (void)RCC_APB2ENR; /* RM0090: wait a bus cycle after enabling a peripheral's clock before using it */
     drivers_pin_init();
+    estop_input_init();
     microsecond_timer_init();
     usart1_init();
     systick_init();
@@ -157,6 +186,17 @@ void board_usart1_handler(void)
         } else {
             rx_dropped++;
         }
+    }
+}
+
+/* The e-stop chain opened: ENABLE off now, without waiting for the main loop (which latches the e-stop
+ * at its next poll and keeps ENABLE off until ESTOP_CLEAR). */
+void board_exti1_handler(void)
+{
+    if (EXTI_PR & (1u << ESTOP_INPUT_PIN)) {
+        EXTI_PR = 1u << ESTOP_INPUT_PIN;
+        drivers_pin_write(false);
+        estop_edges = estop_edges + 1u;
     }
 }
 
@@ -219,4 +259,12 @@ void hal_drivers_enable(bool enabled)
 {
     drivers_enabled = enabled;
     drivers_pin_write(enabled);
+}
+
+bool hal_estop_input(void)
+{
+    uint32_t edges = estop_edges;
+    bool opened = edges != estop_edges_seen;
+    estop_edges_seen = edges;
+    return opened || (GPIO_IDR(GPIOA_BASE) & (1u << ESTOP_INPUT_PIN)) != 0u;
 }

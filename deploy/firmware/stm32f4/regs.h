@@ -19,6 +19,7 @@
 #define RCC_AHB1ENR_GPIOBEN (1u << 1)
 #define RCC_APB1ENR_TIM2EN (1u << 0)
 #define RCC_APB2ENR_USART1EN (1u << 4)
+#define RCC_APB2ENR_SYSCFGEN (1u << 14)
 
 /* -- TIM2: a 32-bit general-purpose timer on APB1 (RM0090 18.4) ------------------------------------ */
 #define TIM2_BASE 0x40000000u
@@ -34,11 +35,28 @@
 #define GPIOA_BASE 0x40020000u
 #define GPIOB_BASE 0x40020400u
 #define GPIO_MODER(base) REG32((base) + 0x00u)
+#define GPIO_PUPDR(base) REG32((base) + 0x0Cu)
+#define GPIO_IDR(base) REG32((base) + 0x10u)
 #define GPIO_AFRH(base) REG32((base) + 0x24u)
 #define GPIO_BSRR(base) REG32((base) + 0x18u)
+#define GPIO_MODE_INPUT 0u
 #define GPIO_MODE_OUTPUT 1u
 #define GPIO_MODE_AF 2u
 #define GPIO_AF7_USART1 7u
+#define GPIO_PULL_UP 1u
+
+/* -- SYSCFG: which port's pin drives each EXTI line (RM0090 9.2) ---------------------------------- */
+#define SYSCFG_BASE 0x40013800u
+#define SYSCFG_EXTICR(n) REG32(SYSCFG_BASE + 0x08u + 4u * (n)) /* lines 4n..4n+3, four bits each */
+#define SYSCFG_EXTI_PORT_A 0u
+
+/* -- EXTI: edge detection on the GPIO lines (RM0090 12.3) ----------------------------------------- */
+#define EXTI_BASE 0x40013C00u
+#define EXTI_IMR REG32(EXTI_BASE + 0x00u)
+#define EXTI_RTSR REG32(EXTI_BASE + 0x08u)
+#define EXTI_FTSR REG32(EXTI_BASE + 0x0Cu)
+#define EXTI_PR REG32(EXTI_BASE + 0x14u) /* pending: write 1 to clear */
+#define EXTI1_IRQN 7u
 
 /* -- USART1 on APB2 (RM0090 30.6) ---------------------------------------------------------------- */
 #define USART1_BASE 0x40011000u

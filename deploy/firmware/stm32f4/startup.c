@@ -64,7 +64,7 @@ static void fault_handler(void)
     }
 }
 
-/* Only SysTick and USART1 are enabled; every other line stays masked in the NVIC, so its vector is 0. */
+/* Only SysTick, EXTI1 and USART1 are enabled; every other line stays masked in the NVIC, so its vector is 0. */
 __attribute__((section(".isr_vector"), used))
 static const vector_fn vector_table[SYSTEM_EXCEPTIONS + IRQ_LINES] = {
     [0] = (vector_fn)(uintptr_t)&_estack, /* not a handler: the initial stack pointer the core loads */
@@ -77,5 +77,6 @@ static const vector_fn vector_table[SYSTEM_EXCEPTIONS + IRQ_LINES] = {
     [11] = fault_handler, /* SVCall: unused */
     [14] = fault_handler, /* PendSV: unused */
     [15] = board_systick_handler,
+    [SYSTEM_EXCEPTIONS + EXTI1_IRQN] = board_exti1_handler,
     [SYSTEM_EXCEPTIONS + USART1_IRQN] = board_usart1_handler,
 };

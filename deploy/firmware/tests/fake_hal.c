@@ -9,6 +9,7 @@ uint32_t fake_now_ms;
 int32_t fake_drive_rate[FW_MAX_MODULES];
 int32_t fake_steer_rate[FW_MAX_MODULES];
 bool fake_drivers_enabled;
+bool fake_estop_input;
 
 static uint8_t rx_bytes[4096];
 static size_t rx_len;
@@ -25,6 +26,7 @@ void fake_hal_reset(void)
     memset(fake_drive_rate, 0, sizeof fake_drive_rate);
     memset(fake_steer_rate, 0, sizeof fake_steer_rate);
     fake_drivers_enabled = false;
+    fake_estop_input = false;
 }
 
 void fake_hal_queue_rx(const uint8_t *data, size_t len)
@@ -100,4 +102,9 @@ void hal_steer_set_rate(uint16_t module, int32_t steps_per_s)
 void hal_drivers_enable(bool enabled)
 {
     fake_drivers_enabled = enabled;
+}
+
+bool hal_estop_input(void)
+{
+    return fake_estop_input;
 }

@@ -1,5 +1,5 @@
 /* The unit tests' hardware layer: a clock the test sets, bytes the test feeds, frames the core sent
- * (decoded), and the step rates and driver enable the core commanded. */
+ * (decoded), the step rates and driver enable the core commanded, and the e-stop input the test sets. */
 #ifndef CLOTHD_FW_FAKE_HAL_H
 #define CLOTHD_FW_FAKE_HAL_H
 
@@ -22,6 +22,7 @@ extern uint32_t fake_now_ms;
 extern int32_t fake_drive_rate[FW_MAX_MODULES];
 extern int32_t fake_steer_rate[FW_MAX_MODULES];
 extern bool fake_drivers_enabled;
+extern bool fake_estop_input; /* what hal_estop_input() returns: the hardware chain open */
 
 /* Forget everything sent and received; the clock back to 1000 ms. */
 void fake_hal_reset(void);

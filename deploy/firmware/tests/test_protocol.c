@@ -221,6 +221,85 @@ static void noise_does_not_feed_the_watchdog(void)
     CHECK(fw.watchdog_tripped && fw.counters.frames_invalid > 0);
 }
 
+static int is_estop_input_fault(fake_frame f)
+{
+    return f.type == MSG_FAULT && f.payload_len > 3 && f.payload[0] == FAULT_ESTOP_INPUT &&
+           (f.payload[1] | f.payload[2] << 8) == FAULT_MODULE_BOARD;
+}
+
+static void the_estop_input_latches_like_estop_and_reports_a_fault_once(void)
+{
+    start();
+    command(1, 0.2f, 0.0f);
+    advance_ms(200);
+    CHECK(fake_drive_rate[0] != 0 && fake_drivers_enabled);
+
+    fake_estop_input = true; /* the safety relay opens the chain */
+    advance_ms(1);
+    CHECK(is_estop_input_fault(reply()));
+    CHECK(fw.estop_latched && !fake_drivers_enabled && fw.counters.estop_input_trips == 1);
+    for (uint16_t i = 0; i < N_MODULES; i++) {
+        CHECK(fw.modules[i].motion.belt_speed_m_s == 0.0f && fake_drive_rate[i] == 0); /* no ramp */
+    }
+    CHECK(is_nack(command(2, 0.1f, 0.0f), 2, NACK_ESTOPPED));
+    host_sends(MSG_PING, 3, NULL, 0);
+    CHECK(is_ack(reply(), 3, FLAG_ESTOP));
+    advance_ms(100);
+    fake_frame frames[FAKE_MAX_SENT];
+    CHECK(fake_hal_take_sent(frames, FAKE_MAX_SENT) == 0); /* reported once, not every tick */
+
+    /* A clear while the chain is still open is refused: the ACK keeps the flag, the drivers stay off. */
+    host_sends(MSG_ESTOP_CLEAR, 4, NULL, 0);
+    CHECK(is_ack(reply(), 4, FLAG_ESTOP));
+    CHECK(fw.estop_latched && !fake_drivers_enabled);
+
+    /* The chain closing (the button released, the relay reset) restarts nothing: still latched. */
+    fake_estop_input = false;
+    advance_ms(50);
+    host_sends(MSG_PING, 5, NULL, 0);
+    CHECK(is_ack(reply(), 5, FLAG_ESTOP));
+    CHECK(!fake_drivers_enabled);
+
+    host_sends(MSG_ESTOP_CLEAR, 6, NULL, 0);
+    CHECK(is_ack(reply(), 6, 0));
+    CHECK(fake_drivers_enabled);
+    advance_ms(50);
+    CHECK(fw.modules[0].motion.belt_speed_m_s == 0.0f); /* stopped until the next command */
+    CHECK(is_ack(command(7, 0.1f, 0.0f), 7, 0));
+    advance_ms(100);
+    CHECK_NEAR(fw.modules[0].motion.belt_speed_m_s, 0.1, 1e-4);
+}
+
+static void an_estop_input_open_at_power_up_latches_at_the_first_tick(void)
+{
+    fake_estop_input = true;
+    start();
+    CHECK(fake_drivers_enabled); /* fw_init enables; the first tick looks at the input */
+    advance_ms(1);
+    CHECK(is_estop_input_fault(reply()));
+    CHECK(fw.estop_latched && !fake_drivers_enabled);
+    CHECK(is_nack(command(1, 0.1f, 0.0f), 1, NACK_ESTOPPED));
+}
+
+static void a_pulse_on_the_estop_input_latches_too(void)
+{
+    start();
+    command(1, 0.1f, 0.0f);
+    advance_ms(50);
+    fake_estop_input = true; /* a port reports a pulse shorter than a poll once */
+    advance_ms(1);
+    fake_estop_input = false;
+    advance_ms(1);
+    CHECK(is_estop_input_fault(reply()));
+    CHECK(fw.estop_latched && !fake_drivers_enabled);
+    host_sends(MSG_ESTOP_CLEAR, 2, NULL, 0);
+    CHECK(is_ack(reply(), 2, 0)); /* the chain is closed again: the clear is taken */
+    fake_estop_input = true;      /* and a second opening trips again */
+    advance_ms(1);
+    CHECK(is_estop_input_fault(reply()));
+    CHECK(fw.estop_latched && fw.counters.estop_input_trips == 2);
+}
+
 void run_protocol_tests(void)
 {
     RUN_TEST(hello_is_answered_with_version_modules_and_name);
@@ -231,4 +310,7 @@ void run_protocol_tests(void)
     RUN_TEST(a_host_that_only_said_hello_is_no_watchdog_fault);
     RUN_TEST(the_watchdog_stops_the_modules_250_ms_after_the_last_frame);
     RUN_TEST(noise_does_not_feed_the_watchdog);
+    RUN_TEST(the_estop_input_latches_like_estop_and_reports_a_fault_once);
+    RUN_TEST(an_estop_input_open_at_power_up_latches_at_the_first_tick);
+    RUN_TEST(a_pulse_on_the_estop_input_latches_too);
 }
