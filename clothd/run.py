@@ -25,6 +25,7 @@ import time
 from collections.abc import Generator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import uvicorn
 from fastapi import FastAPI
@@ -35,7 +36,16 @@ from clothd.api.commands import Commands
 from clothd.api.connections import BoundedH11Protocol, BoundedWebSocketProtocol
 from clothd.api.opcua_server import OpcUaServer
 from clothd.api.stream import StreamHub
-from clothd.config import ApiConfig, Config, FoxgloveConfig, OpcUaConfig, opcua_host_port, with_overrides
+from clothd.config import (
+    ApiConfig,
+    Config,
+    FoxgloveConfig,
+    OpcUaConfig,
+    first_cameras,
+    opcua_host_port,
+    with_cameras,
+    with_overrides,
+)
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.module_calibration import ModuleCalibration
@@ -47,6 +57,7 @@ from clothd.formats import read_camera, read_module_calibration
 from clothd.loop.compute import ComputeSpec
 from clothd.loop.compute_process import ComputeProcess
 from clothd.loop.daemon import Daemon, DaemonSettings
+from clothd.loop.pairing import FurtherCamera
 from clothd.loop.priority import claim_realtime, leave_realtime, set_thread_nice
 
 SIM_START_TIMEOUT_S = 120.0
@@ -94,22 +105,34 @@ def start_sim(scenario: str) -> SimCell:
     raise HardwareError(f"hwsim serve was not ready within {SIM_START_TIMEOUT_S:.0f} s")
 
 
-def sim_config(cfg: Config, ready: dict[str, object]) -> Config:
-    """Point the camera and the stepper link at the simulated cell."""
-    return with_overrides(
-        cfg,
-        {
-            "camera": {"source": str(ready["video_url"]), "calibration": str(ready["camera_json"])},
-            "stepper": {"port": str(ready["serial"])},
-        },
-    )
+def sim_config(cfg: Config, ready: dict[str, Any]) -> Config:
+    """Point the cameras (every camera of the cell, first first) and the stepper link at the simulated
+    cell. An hwsim that lists no cameras serves one, at video_url."""
+    cameras = ready.get("cameras") or [{"video_url": ready["video_url"], "camera_json": ready["camera_json"]}]
+    entries = [
+        {"name": c.get("name"), "source": str(c["video_url"]), "calibration": str(c["camera_json"])}
+        for c in cameras
+    ]
+    return with_overrides(with_cameras(cfg, entries), {"stepper": {"port": str(ready["serial"])}})
 
 
 def camera_model_for(cfg: Config) -> CameraModel:
-    if cfg.camera.calibration is not None:
-        return read_camera(cfg.camera.calibration)
+    """The first camera's model: its calibration, or else the ideal tracker.camera."""
+    calibration = cfg.all_cameras[0].source.calibration
+    if calibration is not None:
+        return read_camera(calibration)
     c = cfg.tracker.camera
     return CameraModel.ideal(c.width_px, c.height_px, c.f_px, c.distance_m)
+
+
+def further_cameras(cfg: Config) -> tuple[FurtherCamera, ...]:
+    """The cameras after the first, each with its calibrated model (the configuration requires one)."""
+    out = []
+    for cam in cfg.all_cameras[1:]:
+        assert cam.source.calibration is not None  # config/camera.py check_cameras
+        model = read_camera(cam.source.calibration)
+        out.append(FurtherCamera(model, functools.partial(VideoCaptureSource, cam.source)))
+    return tuple(out)
 
 
 def module_calibration_for(cfg: Config, layout: ConveyorLayout) -> ModuleCalibration | None:
@@ -143,7 +166,8 @@ def build(cfg: Config) -> Parts:
         workspace=workspace,
         taichi_arch=cfg.taichi.arch,
         max_record_bytes=cfg.recording.max_bytes,
-        frame_source=functools.partial(VideoCaptureSource, cfg.camera),
+        frame_source=functools.partial(VideoCaptureSource, cfg.all_cameras[0].source),
+        other_cameras=further_cameras(cfg),
         recording_format=cfg.recording.format,
         foxglove=cfg.foxglove,
         track_ahead=cfg.loop.track_ahead,
@@ -157,7 +181,8 @@ def build(cfg: Config) -> Parts:
         workspace=workspace,
         view_period_s=1.0 / cfg.api.view_fps,
         recording_dir=cfg.recording.dir,
-        camera_source=redact_source(cfg.camera.source),
+        camera_source=redact_source(cfg.all_cameras[0].source.source),
+        cameras=tuple((c.name, redact_source(c.source.source)) for c in cfg.all_cameras),
         link_port=cfg.stepper.port,
         estimates_shape=cfg.tracker.estimates_shape,
         recording_format=cfg.recording.format,
@@ -331,9 +356,11 @@ async def serve(
         raise api.error
 
 
-def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -> int:
+def run(
+    cfg: Config, sim_scenario: str | None, record_dir: Path | None = None, cameras: int | None = None
+) -> int:
     """Run the daemon with `cfg` (loaded and validated by the caller), against hwsim when sim_scenario
-    names a scenario."""
+    names a scenario; with only the first `cameras` cameras when given (1: one view)."""
     # The tick's thread waits at most this long for the GIL while the API's thread computes (default 5 ms).
     sys.setswitchinterval(GIL_SWITCH_S)
     listener = bind_api(cfg.api)
@@ -352,6 +379,8 @@ def run(cfg: Config, sim_scenario: str | None, record_dir: Path | None = None) -
         claim_realtime(cfg.loop.realtime_priority, "the loop")
         if sim is not None:
             cfg = sim_config(cfg, sim.ready)
+        if cameras is not None:
+            cfg = first_cameras(cfg, cameras)
         base = f"http://{cfg.api.host}:{cfg.api.port}"
         urls = (
             f"clothd: dashboard {base}/\n"

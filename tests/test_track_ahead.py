@@ -22,9 +22,9 @@ def _counting(compute: Compute, monkeypatch: pytest.MonkeyPatch) -> list[ModuleC
     calls: list[ModuleCommands | None] = []
     track = compute.tracker.track
 
-    def counted(image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None) -> Any:
+    def counted(image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None, views: Any = ()) -> Any:
         calls.append(commands)
-        return track(image, frame_t_s, commands)
+        return track(image, frame_t_s, commands, views)
 
     monkeypatch.setattr(compute.tracker, "track", counted)
     return calls

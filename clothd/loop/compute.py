@@ -22,7 +22,7 @@ from __future__ import annotations
 import logging
 import signal
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from multiprocessing.connection import Connection
 from pathlib import Path
@@ -35,13 +35,14 @@ from clothd.core.cell_controller import CellController
 from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.flatness import Flatness
-from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.messages import Estimate, ModuleCommands, PairedView
 from clothd.core.modes import LoopState
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
 from clothd.drivers.ports import CameraFrame, FrameSource, FrameSourceHealth
 from clothd.errors import ClothdError
 from clothd.logs import configure_logging
+from clothd.loop.pairing import CameraReport, FramePairing, FurtherCamera
 from clothd.loop.priority import leave_realtime
 from clothd.outputs.foxglove_live import LiveFoxglove
 from clothd.outputs.recorder import FrameSink, Recorder, RecordingStatus
@@ -83,6 +84,7 @@ class TickReply:
     new_frame: bool
     frame_t_mono_s: float | None  # capture time of the frame this tick used
     camera: FrameSourceHealth
+    cameras: tuple[CameraReport, ...] = ()  # the further cameras': health and pairing
     timing_s: dict[str, float] = field(default_factory=dict)
     view_jpeg: bytes | None = None
     recording: RecordingStatus | None = None
@@ -112,6 +114,7 @@ class ComputeSpec:
     track_ahead: bool = True  # loop.track_ahead: track a frame as it arrives, not when its tick asks
     opencv_threads: int = 2  # loop.compute_threads
     starved_s: float = 0.25  # loop.starved_ms
+    other_cameras: tuple[FurtherCamera, ...] = ()  # the cameras after the first (cameras:)
 
 
 @dataclass(frozen=True)
@@ -141,15 +144,28 @@ class _AfterReply:
 class Compute:
     """One tick's tracking and control, and the view; lives in the compute process."""
 
-    def __init__(self, spec: ComputeSpec, frames: FrameSource) -> None:
+    def __init__(
+        self, spec: ComputeSpec, frames: FrameSource, others: Sequence[FrameSource] | None = None
+    ) -> None:
+        """frames: the first camera's; others: the further cameras', one per spec.other_cameras (None:
+        opened from their factories)."""
         self.spec = spec
         self.frames = frames
+        if others is None:
+            others = [c.frame_source() for c in spec.other_cameras]
+        self.pairing = FramePairing(others, spec.tracker.stereo.max_skew_ms / 1e3)
         self.recorder: Recorder | None = None  # a directory recording
         # The live Foxglove output: the server, and MCAP recordings (format mcap) instead of Recorder.
         serves = spec.foxglove is not None and spec.foxglove.enabled
         needs_live = serves or spec.recording_format == RecordingFormat.MCAP
         self.foxglove = LiveFoxglove(spec.foxglove) if needs_live else None
-        self.tracker = Tracker(spec.tracker, spec.camera_model, spec.layout, clock=time.perf_counter)
+        self.tracker = Tracker(
+            spec.tracker,
+            spec.camera_model,
+            spec.layout,
+            clock=time.perf_counter,
+            other_cameras=[c.camera_model for c in spec.other_cameras],
+        )
         self.cell = CellController(
             spec.control,
             spec.cell,
@@ -175,6 +191,7 @@ class Compute:
         if self.foxglove is not None:
             self.foxglove.start()
         self.frames.start()
+        self.pairing.start()
 
     def close(self) -> None:
         if self.recorder is not None:
@@ -182,6 +199,7 @@ class Compute:
         if self.foxglove is not None:
             self.foxglove.close("daemon stopped")
         self.frames.stop()
+        self.pairing.stop()
 
     def stop_reply(self, state: LoopState) -> TickReply:
         return TickReply(
@@ -191,6 +209,7 @@ class Compute:
             new_frame=False,
             frame_t_mono_s=None,
             camera=self.frames.health(),
+            cameras=self.pairing.reports(),
             halt_reason=f"the compute failed ({state})",
         )
 
@@ -215,7 +234,8 @@ class Compute:
             return
         began_mono_s = time.monotonic()
         try:
-            est = self.tracker.track(frame.image, frame.t_mono_s, self._in_force)
+            views = self._views(frame, self._late_timing)  # reported with the next tick's stages
+            est = self.tracker.track(frame.image, frame.t_mono_s, self._in_force, views)
             flatness = self.cell.read_flatness(est)
         except Exception:  # as in a tick: a bug must not take the loop with it
             self._failed_between_ticks("tracking a frame ahead of its tick")
@@ -257,7 +277,8 @@ class Compute:
             self._flatness = ahead.flatness
             tracked_with, began_mono_s = ahead.commands_in_force, ahead.began_mono_s
         elif frame is not None and new_frame:
-            est = tracked = self.tracker.track(frame.image, frame.t_mono_s, req.commands_in_force)
+            views = self._views(frame, timing)
+            est = tracked = self.tracker.track(frame.image, frame.t_mono_s, req.commands_in_force, views)
             self._flatness = self.cell.read_flatness(est)
         if tracked is not None and frame is not None:
             self._estimate = tracked
@@ -277,6 +298,7 @@ class Compute:
             new_frame=new_frame,
             frame_t_mono_s=frame.t_mono_s if frame is not None else None,
             camera=self.frames.health(),
+            cameras=self.pairing.reports(),
             timing_s=timing,
             view_jpeg=view,
             recording=self._recording_status(),
@@ -332,6 +354,15 @@ class Compute:
         frame = self.frames.newer_than(self._last_frame_index, wait_until_mono_s - time.monotonic())
         timing["frame_wait"] = time.perf_counter() - t_wait
         return frame
+
+    def _views(self, frame: CameraFrame, timing: dict[str, float]) -> list[PairedView | None]:
+        """The further cameras' frames paired with `frame`; the time their pairing waited, as a stage."""
+        if not self.pairing.cameras:
+            return []
+        t0 = time.perf_counter()
+        views = self.pairing.views(frame.t_mono_s)
+        timing["pair_wait"] = time.perf_counter() - t0
+        return views
 
     def _recording_status(self) -> RecordingStatus | None:
         if self.recorder is not None:

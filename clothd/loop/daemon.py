@@ -45,6 +45,7 @@ from clothd.loop.compute import InForce, TickReply, TickRequest
 from clothd.loop.compute_process import ComputeProcess
 from clothd.loop.frame_phase import FramePhaseLock
 from clothd.loop.loop_stats import LoopStats
+from clothd.loop.pairing import CameraReport
 from clothd.loop.status import Status, build_status
 from clothd.notify import SystemdNotifier
 from clothd.outputs.view import ViewBoard
@@ -75,6 +76,7 @@ class DaemonSettings:
     layout: ConveyorLayout = field(default_factory=lambda: ConveyorLayout.of_cell(CellConfig()))  # for drives
     max_speed_m_s: float = 0.2  # cell.max_speed_m_s: the most a drive script may ask of a module
     module_calibration: ModuleCalibration | None = None  # cell.module_calibration: corrected on the wire
+    cameras: tuple[tuple[str, str], ...] = ()  # every camera's name and source as shown, first first
 
 
 class Daemon:
@@ -110,6 +112,7 @@ class Daemon:
         self.halt_t_unix_s: float | None = None  # when it stopped, wall clock
         self.state = LoopState.STARTING
         self.camera = FrameSourceHealth("connecting", False, None, 0)
+        self.further: tuple[CameraReport, ...] = ()  # the further cameras' health and pairing
         self.latest: TickReply | None = None
         self.status: Status | None = None
         self.view = ViewBoard()
@@ -380,7 +383,7 @@ class Daemon:
             self._starved(reply.starved_ms)
         if reply.halt_reason is not None:
             self._halt(reply.halt_reason)
-        self.camera = reply.camera
+        self.camera, self.further = reply.camera, reply.cameras
         self.latest = reply
         self._notify_systemd(time.monotonic(), reply)
 
@@ -414,6 +417,8 @@ class Daemon:
             timing=self.stats.cached_summary(),
             camera=self.camera,
             camera_source=s.camera_source,
+            cameras=s.cameras,
+            further=self.further,
             link=self.link,
             link_port=s.link_port,
             commands=self._in_force,

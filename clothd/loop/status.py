@@ -7,6 +7,7 @@ it once (non-finite numbers become null), and the API documents the same models 
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import asdict
 from typing import Literal
 
@@ -14,11 +15,13 @@ import numpy as np
 from pydantic import BaseModel, Field
 
 from clothd.config import RecordingFormat
+from clothd.config.camera import default_camera_name
 from clothd.core.control import Setpoint
 from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.modes import FlatnessBasis, LoopState, Mode
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
+from clothd.loop.pairing import CameraReport, PairingStats
 from clothd.outputs.recorder import RecordingStatus
 
 NODE_DECIMALS = 5  # 10 µm: the status carries the mesh, not the filter's noise
@@ -99,6 +102,26 @@ class CameraState(BaseModel):
     source: str
     last_error: str | None
     reconnects: int
+
+
+class CameraEntry(BaseModel):
+    """One camera of `cameras:` (the first is also `camera`)."""
+
+    name: str
+    source: str = Field(description="as configured, a URL's credentials shown as ***")
+    state: str = Field(description="connecting | streaming | lost")
+    healthy: bool = Field(description="a frame fresher than camera.stale_after_s is there")
+    last_error: str | None
+    reconnects: int
+    skew_ms: float | None = Field(
+        description="median over recent pairs of this camera's frame time minus the first camera's "
+        "(arrival, host monotonic); null for the first camera and before any pair"
+    )
+    skew_p95_ms: float | None = Field(description="95th percentile of the skew's magnitude; null likewise")
+    paired_pct: float | None = Field(
+        description="share of the first camera's recent frames this one had a frame within "
+        "tracker.stereo.max_skew_ms of; null for the first camera"
+    )
 
 
 class LinkCounters(BaseModel):
@@ -216,11 +239,32 @@ class Status(BaseModel):
     rejected_features: int = Field(description="rejected by the filter's gate in the last frame")
     residual: Residual
     timing: Timing
-    camera: CameraState
+    camera: CameraState = Field(description="the first camera, which tracking depends on")
+    cameras: list[CameraEntry] = Field(
+        description="every camera, first first; a further camera's loss leaves tracking on one view"
+    )
     link: LinkState
     modules: Modules = Field(description="what the modules were last told (stopped while the link is down)")
     faults: list[FaultReport]
     recording: Recording | None
+
+
+def camera_entries(
+    first: FrameSourceHealth,
+    first_source: str,
+    cameras: Sequence[tuple[str, str]],
+    further: Sequence[CameraReport],
+) -> list[CameraEntry]:
+    """Every camera's entry: `cameras` names them (the first alone when empty); a further camera with no
+    report yet is connecting."""
+    named = list(cameras) or [(default_camera_name(0), first_source)]
+    waiting = CameraReport(FrameSourceHealth("connecting", False, None, 0), PairingStats(None, None, None))
+    reports = [CameraReport(first, PairingStats(None, None, None)), *further]
+    reports += [waiting] * (len(named) - len(reports))
+    return [
+        CameraEntry(name=name, source=source, **asdict(r.health), **asdict(r.pairing))
+        for (name, source), r in zip(named, reports, strict=False)
+    ]
 
 
 def build_status(
@@ -234,6 +278,8 @@ def build_status(
     timing: dict[str, object],
     camera: FrameSourceHealth,
     camera_source: str,
+    cameras: Sequence[tuple[str, str]] = (),
+    further: Sequence[CameraReport] = (),
     link: ModuleLink,
     link_port: str,
     commands: ModuleCommands,
@@ -272,6 +318,7 @@ def build_status(
         residual=residual,
         timing=Timing.model_validate(timing),
         camera=CameraState(source=camera_source, **asdict(camera)),
+        cameras=camera_entries(camera, camera_source, cameras, further),
         link=LinkState(
             state=link.state,
             port=link_port,

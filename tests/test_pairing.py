@@ -1,0 +1,178 @@
+"""Pairing further cameras' frames with the first camera's by arrival time (clothd/loop/pairing.py), on
+fake frame sources that deliver on a schedule and a fake clock that a wait moves forward."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from recorded_frames import RecordedFrames, compute_on, tick
+
+from clothd.core.control import Setpoint
+from clothd.core.messages import ModuleCommands, PairedView
+from clothd.drivers.footage import open_footage
+from clothd.drivers.ports import CameraFrame, FrameSourceHealth
+from clothd.formats import read_camera
+from clothd.loop.compute import TickRequest
+from clothd.loop.pairing import FramePairing, FurtherCamera
+
+PERIOD_S = 1 / 15
+MAX_SKEW_S = 0.020
+
+
+class Clock:
+    def __init__(self, now_s: float = 0.0) -> None:
+        self.now_s = now_s
+
+    def __call__(self) -> float:
+        return self.now_s
+
+
+class ScheduledFrames:
+    """A FrameSource whose frame i arrives at arrivals_s[i]; `newer_than` waits on the fake clock."""
+
+    def __init__(self, clock: Clock, arrivals_s: list[float]) -> None:
+        self.clock = clock
+        self.arrivals_s = arrivals_s
+        self.waited_s: list[float] = []
+
+    def start(self) -> None:
+        pass
+
+    def stop(self) -> None:
+        pass
+
+    def latest(self) -> CameraFrame | None:
+        arrived = [i for i, t in enumerate(self.arrivals_s) if t <= self.clock.now_s]
+        if not arrived:
+            return None
+        i = arrived[-1]
+        return CameraFrame(i, self.arrivals_s[i], np.full((2, 2, 3), i, np.uint8))
+
+    def newer_than(self, index: int, timeout_s: float) -> CameraFrame | None:
+        later = [t for t in self.arrivals_s[index + 1 :] if t <= self.clock.now_s + timeout_s]
+        until = max(self.clock.now_s, later[0]) if later else self.clock.now_s + timeout_s
+        self.waited_s.append(until - self.clock.now_s)
+        self.clock.now_s = until
+        return self.latest()
+
+    def health(self) -> FrameSourceHealth:
+        return FrameSourceHealth("streaming", True, None, 0)
+
+
+def _grid(offset_s: float, n: int = 40) -> list[float]:
+    return [offset_s + k * PERIOD_S for k in range(n)]
+
+
+def _first_frames(pairing: FramePairing, clock: Clock, times_s: list[float], after_s: float = 0.001) -> list:
+    """Pair a first-camera frame at each time, each looked at `after_s` after it arrived."""
+    out = []
+    for t0 in times_s:
+        clock.now_s = max(clock.now_s, t0 + after_s)
+        out.append(pairing.views(t0))
+    return out
+
+
+def test_the_newest_frame_is_taken_when_it_is_the_nearest_and_its_skew_is_kept() -> None:
+    clock = Clock()
+    cam = ScheduledFrames(clock, _grid(0.004))  # 4 ms after the first camera's frames
+    pairing = FramePairing([cam], MAX_SKEW_S, clock)
+    views = _first_frames(pairing, clock, _grid(0.0, 20)[1:], after_s=0.006)
+    assert all(v[0] is not None for v in views)
+    assert views[-1][0].t_s == pytest.approx(0.004 + 19 * PERIOD_S)  # the frame of the same capture
+    assert views[-1][0].image[0, 0, 0] == 19
+    (stats,) = pairing.stats()
+    assert stats.skew_ms == pytest.approx(4.0) and stats.skew_p95_ms == pytest.approx(4.0)
+    assert stats.paired_pct == 100.0
+    assert not cam.waited_s  # nothing to wait for: the nearest frame was there
+
+
+def test_a_frame_due_within_the_bound_is_waited_for_and_the_wait_is_bounded() -> None:
+    clock = Clock()
+    cam = ScheduledFrames(clock, _grid(0.012))  # arrives 12 ms after the first camera's
+    pairing = FramePairing([cam], MAX_SKEW_S, clock)
+    views = _first_frames(pairing, clock, _grid(0.0, 20)[1:])
+    # Once the period is known, each newest frame is 55 ms old at t0: the one due 12 ms later is nearer.
+    assert views[-1][0].t_s == pytest.approx(0.012 + 19 * PERIOD_S)
+    assert pairing.stats()[0].skew_ms == pytest.approx(12.0)
+    assert cam.waited_s and max(cam.waited_s) <= MAX_SKEW_S + 1e-12
+    assert pytest.approx(0.011) in cam.waited_s  # from t0 + 1 ms until it arrived
+
+
+def test_a_frame_due_past_the_bound_is_not_waited_for() -> None:
+    clock = Clock()
+    cam = ScheduledFrames(clock, _grid(0.030))  # 30 ms after: past the 20 ms bound
+    pairing = FramePairing([cam], MAX_SKEW_S, clock)
+    views = _first_frames(pairing, clock, _grid(0.0, 20)[2:])
+    assert not cam.waited_s
+    # What there is: the previous frame, 37 ms early, handed on (the tracker refuses it) and counted.
+    assert views[-1][0].t_s == pytest.approx(0.030 + 18 * PERIOD_S)
+    stats = pairing.stats()[0]
+    assert stats.skew_ms == pytest.approx((0.030 - PERIOD_S) * 1e3)
+    assert stats.paired_pct == 0.0
+
+
+def test_a_camera_without_frames_gives_none_and_another_still_pairs() -> None:
+    clock = Clock()
+    silent = ScheduledFrames(clock, [])
+    live = ScheduledFrames(clock, _grid(-0.002))
+    pairing = FramePairing([silent, live], MAX_SKEW_S, clock)
+    views = _first_frames(pairing, clock, _grid(0.0, 10))
+    assert all(v[0] is None and v[1] is not None for v in views)
+    none_stats, live_stats = pairing.stats()
+    assert (none_stats.skew_ms, none_stats.skew_p95_ms, none_stats.paired_pct) == (None, None, 0.0)
+    assert live_stats.skew_ms == pytest.approx(-2.0) and live_stats.paired_pct == 100.0
+
+
+def test_stats_are_the_median_and_the_95th_percentile_over_recent_pairs() -> None:
+    clock = Clock()
+    rng = np.random.default_rng(0)
+    offsets_s = rng.uniform(-0.006, 0.006, 60)
+    cam = ScheduledFrames(clock, [k * PERIOD_S + o for k, o in enumerate(offsets_s)])
+    pairing = FramePairing([cam], MAX_SKEW_S, clock)
+    _first_frames(pairing, clock, _grid(0.0, 60)[1:], after_s=0.007)
+    stats = pairing.stats()[0]
+    skews_ms = offsets_s[1:] * 1e3
+    assert stats.skew_ms == pytest.approx(np.median(skews_ms))
+    assert stats.skew_p95_ms == pytest.approx(np.percentile(np.abs(skews_ms), 95))
+    assert stats.paired_pct == 100.0
+
+
+def test_before_any_first_camera_frame_there_are_no_stats() -> None:
+    pairing = FramePairing([ScheduledFrames(Clock(), [])], MAX_SKEW_S, Clock())
+    assert [(s.skew_ms, s.paired_pct) for s in pairing.stats()] == [(None, None)]
+
+
+def test_the_compute_hands_the_tracker_a_view_per_further_camera_and_reports_each(
+    short_recording: Callable[[str], Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The plumbing only: the views the tracker is given and the reply's reports, not what it does with
+    them (the tracker's own tests)."""
+    rec = short_recording("translate")
+    images = [img for _, (_, img) in zip(range(4), open_footage(rec).frames(), strict=False)]
+    side = FurtherCamera(read_camera(rec / "camera.json"), lambda: RecordedFrames(images))
+    compute = compute_on(rec, other_cameras=(side,))
+    given: list[tuple[float, Sequence[PairedView | None]]] = []
+    track = compute.tracker.track
+
+    def seen(image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None, views: Any = ()) -> Any:
+        given.append((frame_t_s, views))
+        return track(
+            image, frame_t_s, commands
+        )  # one view: what the tracker does with two is not tested here
+
+    monkeypatch.setattr(compute.tracker, "track", seen)
+    stopped = ModuleCommands.all_stop(compute.spec.layout.n_modules)
+    for _ in range(3):
+        reply = tick(compute, TickRequest(Setpoint("idle", None), stopped, reset=False, want_view=False))
+    assert len(given) == 3 and all(len(views) == 1 for _, views in given)
+    for frame_t_s, (view,) in given:
+        assert view is not None and view.image.shape == images[0].shape
+        assert 0 <= view.t_s - frame_t_s < 1.0  # the side camera's frame was taken after the first's
+    (report,) = reply.cameras
+    assert report.health.healthy and report.pairing.paired_pct is not None
+    assert report.pairing.skew_ms is not None and report.pairing.skew_ms >= 0
+    assert "pair_wait" in reply.timing_s
