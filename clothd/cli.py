@@ -29,7 +29,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     flags = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
     opcua = {"endpoint": args.opcua_endpoint} if args.opcua_endpoint else {}
     cfg = load_config(args.config, {"api": flags, "opcua": opcua})
-    return run(cfg, args.sim, args.record)
+    return run(cfg, args.sim, args.record, args.cameras)
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
@@ -166,6 +166,12 @@ def _add_run(sub: Subparsers) -> None:
         const="cell",
         metavar="SCENARIO",
         help="start hwsim serve (default scenario: cell) and run against it",
+    )
+    rn.add_argument(
+        "--cameras",
+        type=positive_int,
+        metavar="N",
+        help="only the first N cameras: the configuration's, or with --sim the cell's (1: one view)",
     )
     rn.add_argument(
         "--record",

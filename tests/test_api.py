@@ -25,7 +25,10 @@ from clothd.config import ApiConfig, CameraSourceConfig, Config, RecordingConfig
 from clothd.core.camera_model import CameraModel
 from clothd.core.modes import LoopState, Mode
 from clothd.drivers.camera import redact_source
+from clothd.drivers.ports import FrameSourceHealth
 from clothd.errors import ConfigError
+from clothd.formats import write_camera
+from clothd.loop.pairing import CameraReport, PairingStats
 from clothd.run import build
 
 TOKEN = "s3cret-token-for-tests"
@@ -279,6 +282,58 @@ def test_camera_credentials_stay_out_of_the_status() -> None:
     c = TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
     status = c.get("/api/v1/status")
     assert "s3cret" not in status.text and status.json()["camera"]["source"] == "rtsp://***@cam/stream"
+
+
+def test_every_camera_is_in_the_status_metrics_and_health_and_only_the_first_is_needed(
+    tmp_path: Path,
+) -> None:
+    side_json = tmp_path / "side.json"
+    write_camera(side_json, CameraModel.ideal(640, 480, 900.0, 1.0))
+    cameras = [
+        {"source": "0"},
+        {"name": "side", "source": "rtsp://u:s3cret@side/s", "calibration": str(side_json)},
+    ]
+    parts = build(parse_config({"cameras": cameras}))
+    c = TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
+    status = c.get("/api/v1/status")
+    assert "s3cret" not in status.text
+    first, side = status.json()["cameras"]
+    assert (first["name"], first["source"], side["name"], side["source"]) == (
+        "cam0",
+        "0",
+        "side",
+        "rtsp://***@side/s",
+    )
+    assert side["state"] == "connecting" and side["skew_ms"] is None and first["skew_ms"] is None
+    assert status.json()["camera"]["source"] == "0"  # the first camera, as before
+    # A further camera streaming with its pairing measured; the first lost.
+    stats = PairingStats(skew_ms=4.5, skew_p95_ms=7.0, paired_pct=98.0)
+    parts.daemon.further = (CameraReport(FrameSourceHealth("streaming", True, None, 2), stats),)
+    parts.daemon.publish()
+    side = c.get("/api/v1/status").json()["cameras"][1]
+    assert (side["skew_ms"], side["skew_p95_ms"], side["paired_pct"], side["reconnects"]) == (
+        4.5,
+        7.0,
+        98.0,
+        2,
+    )
+    text = c.get("/metrics").text
+    assert (
+        'clothd_camera_skew_ms{camera="side"} 4.5' in text
+        and 'clothd_camera_skew_ms{camera="cam0"}' not in text
+    )
+    assert (
+        'clothd_camera_healthy{camera="side"} 1.0' in text
+        and 'clothd_camera_healthy{camera="cam0"} 0.0' in text
+    )
+    assert 'clothd_camera_paired_ratio{camera="side"} 0.98' in text
+    health = c.get("/healthz").json()
+    assert "camera" in health["problems"] and health["degraded"] == []
+    # The further camera lost: degraded, not a problem (tracking goes on with the first view).
+    parts.daemon.further = (CameraReport(FrameSourceHealth("lost", False, "gone", 3), stats),)
+    parts.daemon.publish()
+    health = c.get("/healthz").json()
+    assert health["degraded"] == ["camera side"] and "camera side" not in health["problems"]
 
 
 def test_a_taken_port_ends_the_start_at_once_and_clearly() -> None:

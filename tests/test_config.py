@@ -182,3 +182,51 @@ def test_the_shipped_config_yaml_shows_a_cameras_list_that_loads(tmp_path: Path)
     assert len(example) == 3
     cfg = parse_config(yaml.safe_load("\n".join(example)))
     assert [c.name for c in cfg.all_cameras] == ["top", "side"]
+
+
+def test_sim_points_every_camera_of_the_cell_and_cameras_n_keeps_the_first(tmp_path: Path) -> None:
+    """`clothd run --sim` on the ready line hwsim serve prints; the shipped config.yaml sets camera.source
+    and camera.calibration, which the cell's cameras replace."""
+    from clothd.config import first_cameras
+    from clothd.run import sim_config
+
+    ready = {
+        "serial": "/tmp/ttyCELL",
+        "video_url": "http://127.0.0.1:1/video.mjpg",
+        "camera_json": "/tmp/camera.json",
+        "cameras": [
+            {
+                "name": "cam0",
+                "video_url": "http://127.0.0.1:1/video/cam0.mjpg",
+                "camera_json": "/tmp/cam0.json",
+            },
+            {
+                "name": "cam1",
+                "video_url": "http://127.0.0.1:1/video/cam1.mjpg",
+                "camera_json": "/tmp/cam1.json",
+            },
+        ],
+    }
+    shipped = load_config(Path(__file__).resolve().parent.parent / "config.yaml")
+    cfg = sim_config(shipped, ready)
+    assert [(c.name, c.source.source, str(c.source.calibration)) for c in cfg.all_cameras] == [
+        ("cam0", "http://127.0.0.1:1/video/cam0.mjpg", "/tmp/cam0.json"),
+        ("cam1", "http://127.0.0.1:1/video/cam1.mjpg", "/tmp/cam1.json"),
+    ]
+    assert cfg.stepper.port == "/tmp/ttyCELL" and cfg.camera.stale_after_s == shipped.camera.stale_after_s
+    assert [c.name for c in first_cameras(cfg, 1).all_cameras] == ["cam0"]
+    # An hwsim that lists no cameras serves one.
+    (only,) = sim_config(Config(), {k: v for k, v in ready.items() if k != "cameras"}).all_cameras
+    assert only.source.source == "http://127.0.0.1:1/video.mjpg"
+
+
+def test_run_takes_cameras_n(monkeypatch: pytest.MonkeyPatch) -> None:
+    import clothd.run
+
+    seen: list[object] = []
+    monkeypatch.setattr(clothd.run, "run", lambda cfg, sim, record, cameras: seen.append((sim, cameras)) or 0)
+    assert main(["run", "--sim", "--cameras", "1"]) == 0
+    assert main(["run", "--sim", "compress"]) == 0
+    assert seen == [("cell", 1), ("compress", None)]
+    with pytest.raises(SystemExit):
+        main(["run", "--cameras", "0"])

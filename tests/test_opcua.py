@@ -116,6 +116,21 @@ def test_the_address_space_browses_as_documented() -> None:
     asyncio.run(main())
 
 
+def test_one_camera_reads_as_one_entry_and_no_flatness_as_an_empty_basis() -> None:
+    async def main() -> None:
+        async with _server(_loopback(), None) as url, Client(url) as client:
+            cell, idx = await _cell(client)
+            names = await cell.get_child([f"{idx}:Cameras", f"{idx}:Name"])
+            skews = await cell.get_child([f"{idx}:Cameras", f"{idx}:Skew_ms"])
+            basis = await cell.get_child([f"{idx}:Flatness", f"{idx}:Basis"])
+            assert await names.read_value() == ["cam0"]
+            (skew,) = await skews.read_value()
+            assert math.isnan(skew)  # the first camera has no skew to itself
+            assert await basis.read_value() == ""  # not tracking: no flatness
+
+    asyncio.run(main())
+
+
 def test_the_start_names_its_security_policy_in_words(caplog: pytest.LogCaptureFixture) -> None:
     """The log line once read "OPC UA on opc.tcp://.../clothd/ (None)", like a bug."""
     cfg = _loopback()
@@ -362,6 +377,29 @@ def test_estop_stops_every_module_in_hwsim(live: DaemonProcess) -> None:
             assert (await _call(client, "ClearEStop")).StatusCode.is_good()
 
     asyncio.run(main())
+
+
+def test_the_flatness_basis_and_both_cameras_skew_read_live(live: DaemonProcess) -> None:
+    """`clothd run --sim` runs the default cell's two cameras: the second's skew is measured, and the
+    flatness says what it rests on."""
+
+    async def main() -> tuple[str, list[str], list[float]]:
+        async with Client(live.opcua_url) as client:
+            cell, idx = await _cell(client)
+            basis = await cell.get_child([f"{idx}:Flatness", f"{idx}:Basis"])
+            names = await cell.get_child([f"{idx}:Cameras", f"{idx}:Name"])
+            skews = await cell.get_child([f"{idx}:Cameras", f"{idx}:Skew_ms"])
+            for _ in range(100):  # the variables follow the status at 10 Hz
+                values = (await basis.read_value(), await names.read_value(), await skews.read_value())
+                if values[0] and len(values[2]) == 2 and math.isfinite(values[2][1]):
+                    break
+                await asyncio.sleep(0.1)
+            return values
+
+    basis, names, skews = asyncio.run(main())
+    assert basis in ("measured", "since_start")
+    assert names == ["cam0", "cam1"]
+    assert math.isnan(skews[0]) and math.isfinite(skews[1]), skews
 
 
 def test_a_wrong_password_is_refused_by_the_live_daemon(live: DaemonProcess) -> None:

@@ -218,7 +218,8 @@ def _add_page_routes(app: FastAPI, hub: StreamHub, registry: CollectorRegistry) 
 
     @app.get("/healthz", responses={503: {"description": "unhealthy; `problems` names what"}})
     async def healthz() -> JSONResponse:
-        """200 while the loop ticks with camera and link up, else 503 with the reasons."""
+        """200 while the loop ticks with the first camera and the link up, else 503 with the reasons;
+        `degraded` names further cameras without fresh frames (tracking goes on with one view)."""
         problems = []
         s = hub.status  # the last tick's snapshot: nothing here reads the daemon's live state
         assert s is not None  # the daemon publishes once when it is built
@@ -228,7 +229,9 @@ def _add_page_routes(app: FastAPI, hub: StreamHub, registry: CollectorRegistry) 
             problems.append("stepper link")
         if s.state == LoopState.FAULT:
             problems.append("loop fault")
-        body = {"ok": not problems, "state": s.state, "problems": problems}
+        # A further camera's loss leaves tracking on one view: said, not unhealthy.
+        degraded = [f"camera {c.name}" for c in s.cameras[1:] if not c.healthy]
+        body = {"ok": not problems, "state": s.state, "problems": problems, "degraded": degraded}
         return JSONResponse(body, status_code=503 if problems else 200)
 
     @app.get("/metrics", response_class=PlainTextResponse)

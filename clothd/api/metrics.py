@@ -10,7 +10,8 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector, CollectorRegistry
 
 from clothd.api.stream import StreamHub
-from clothd.core.modes import LoopState
+from clothd.core.modes import FlatnessBasis, LoopState
+from clothd.loop.status import Status
 
 
 class StatusCollector(Collector):
@@ -51,6 +52,7 @@ class StatusCollector(Collector):
         yield GaugeMetricFamily(
             "clothd_camera_up", "Camera delivering fresh frames", value=float(s.camera.healthy)
         )
+        yield from _cameras(s)
         yield GaugeMetricFamily(
             "clothd_link_up", "Stepper link connected", value=float(s.link.state == "connected")
         )
@@ -77,6 +79,36 @@ class StatusCollector(Collector):
                 "clothd_ridges", "Ridges found in the estimate", value=float(len(f.ridges))
             )
             yield GaugeMetricFamily("clothd_flaps", "Folded-over corners found", value=float(len(f.flaps)))
+            basis = GaugeMetricFamily(
+                "clothd_flatness_basis",
+                "1 for what the flatness rests on (status flatness.basis)",
+                labels=["basis"],
+            )
+            for name in FlatnessBasis:
+                basis.add_metric([name.value], 1.0 if f.basis == name else 0.0)
+            yield basis
+
+
+def _cameras(s: Status) -> Iterator[Metric]:
+    """Each camera's health, and each further camera's pairing with the first (status cameras[])."""
+    up = GaugeMetricFamily("clothd_camera_healthy", "Camera delivering fresh frames", labels=["camera"])
+    skew = GaugeMetricFamily(
+        "clothd_camera_skew_ms",
+        "Median of a further camera's frame time minus the first camera's, recent pairs",
+        labels=["camera"],
+    )
+    paired = GaugeMetricFamily(
+        "clothd_camera_paired_ratio",
+        "Share of the first camera's recent frames a further camera had a frame within max_skew_ms of",
+        labels=["camera"],
+    )
+    for cam in s.cameras:
+        up.add_metric([cam.name], float(cam.healthy))
+        if cam.skew_ms is not None:
+            skew.add_metric([cam.name], cam.skew_ms)
+        if cam.paired_pct is not None:
+            paired.add_metric([cam.name], cam.paired_pct / 100)
+    yield from (up, skew, paired)
 
 
 def registry_for(hub: StreamHub) -> CollectorRegistry:
