@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import math
+import os
 import statistics
 import termios
 import time
@@ -22,6 +24,7 @@ from firmware_links import QemuFirmware, boot_qemu, build_stm32, check_conforman
 
 from clothd.cli import main
 from clothd.core.messages import ModuleCommands
+from clothd.drivers import wire
 from clothd.drivers.stepper_link import StepperLink
 
 N = 48  # BOARD_MODULES in stm32f4/board.h
@@ -30,6 +33,11 @@ FAULT_WATCHDOG = 1
 FAULT_ESTOP_INPUT = 4
 BOARD = 0xFFFF
 ESTOP_INPUT_PIN = 1  # PA1: stm32f4/hal_stm32.c, docs/hardware.md
+STEP_CHANNELS = (
+    2 * 4
+)  # BOARD_STEP_MODULES in stm32f4/board.h: channel 2m is module m's drive, 2m + 1 its steering
+DRIVE_STEPS_PER_M = 200 * 16 / 0.040  # the core's example gearing (core/firmware.c, fw_default_config)
+STEER_STEPS_PER_RAD = 200 * 16 * 4 / (2 * math.pi)
 
 
 @pytest.fixture(scope="module")
@@ -163,3 +171,94 @@ def test_the_estop_input_pin_latches_the_estop_and_reports_a_fault(
             print(f"\nQEMU e-stop input: PA1 raised to FAULT(ESTOP_INPUT) at the link {took_ms:.1f} ms")
 
     run(body(), 15.0)
+
+
+# -- step pulses: what the emulated step tick issued, read from the firmware's memory ------------------
+
+
+class _Host:
+    """COMMANDs by hand on the held pty, a control period apart, to feed the watchdog while the test reads
+    the firmware's memory (its answers pile up unread and are flushed before the next test)."""
+
+    def __init__(self, fw: QemuFirmware) -> None:
+        self.fw, self.seq = fw, 0
+        self.send(wire.MsgType.HELLO, wire.hello_payload())  # a new session: no seq taken for a retransmit
+
+    def send(self, msg_type: int, payload: bytes = b"") -> None:
+        self.seq += 1
+        os.write(self.fw.holder, wire.encode(msg_type, self.seq, payload))
+
+    def hold(self, speed_m_s: float, heading_rad: float, seconds: float) -> None:
+        payload = wire.command_payload(np.full(N, speed_m_s), np.full(N, heading_rad))
+        end_s = time.monotonic() + seconds
+        while time.monotonic() < end_s:
+            self.send(wire.MsgType.COMMAND, payload)
+            time.sleep(1 / 30)
+
+    def positions(self) -> tuple[list[int], float]:
+        """Every channel's steps issued, and the firmware's clock (TIM2, emulated seconds) as read."""
+        steps = [self.fw.read_i32("step_position", c) for c in range(STEP_CHANNELS)]
+        return steps, self.fw.read_timer_us() / 1e6
+
+    def drive_rate(self, speed_m_s: float, heading_rad: float, seconds: float) -> float:
+        """Steps per second the drive channels issued over `seconds` at a steady speed, in emulated time;
+        every drive channel the same, no steering."""
+        before, t0 = self.positions()
+        self.hold(speed_m_s, heading_rad, seconds)
+        after, t1 = self.positions()
+        moved = [b - a for a, b in zip(before, after, strict=True)]
+        assert moved[0::2] == [moved[0]] * (STEP_CHANNELS // 2) and not any(moved[1::2]), moved
+        return moved[0] / (t1 - t0)
+
+
+def test_the_step_tick_issues_steps_at_the_commanded_rates(
+    qemu_firmware: QemuFirmware, firmware_port: str
+) -> None:
+    """SysTick's 40 kHz step tick (stm32f4/steppers.c) turns the core's rates into steps: at a steady
+    speed the drive channels step at speed x steps/m in the firmware's own time, backwards for a negative
+    speed, and a turn of the heading gives about heading x steps/rad of steering steps. What QEMU cannot
+    show (the pins: it models no GPIO; pulse widths, jitter, DIR set-up) is the bench's."""
+    host = _Host(qemu_firmware)
+    speed = 0.02  # 1,600 steps/s: the emulated tick must come at least twice as often, even on a loaded host
+    expected = speed * DRIVE_STEPS_PER_M
+    host.hold(speed, 0.0, 0.2)  # ramped (10 ms at 2 m/s^2) and steady
+    assert qemu_firmware.read_i32("drive_steps_per_s", 0) == round(expected)
+    forward = host.drive_rate(speed, 0.0, 1.0)
+    host.hold(-speed, 0.0, 0.2)  # the belt runs backwards: no steering, the shorter way
+    backward = host.drive_rate(-speed, 0.0, 1.0)
+    print(f"\nQEMU step rate: {forward:.1f} and {backward:.1f} steps/s for ±{expected:.0f} commanded")
+    assert forward == pytest.approx(expected, rel=0.01) and backward == pytest.approx(-expected, rel=0.01)
+
+    before, _ = host.positions()
+    host.hold(speed, 0.5, 0.5)  # 0.5 rad at 3 rad/s: 0.17 s of steering, then still
+    after, _ = host.positions()
+    turned = [b - a for a, b in zip(before[1::2], after[1::2], strict=True)]
+    # The core sets a rate each millisecond and the tick steps at it until the next: an emulated poll that
+    # comes late stretches one rate, so the count is held to 5 %, not to the step.
+    print(f"QEMU steering steps for 0.5 rad: {turned} (0.5 x {STEER_STEPS_PER_RAD:.1f} steps/rad)")
+    assert turned == [turned[0]] * len(turned) and turned[0] == pytest.approx(
+        0.5 * STEER_STEPS_PER_RAD, rel=0.05
+    )
+    host.hold(0.0, 0.5, 0.1)
+
+
+def _still(host: _Host) -> bool:
+    """No channel steps over 100 ms."""
+    before, _ = host.positions()
+    time.sleep(0.1)
+    return host.positions()[0] == before
+
+
+def test_the_estop_and_the_watchdog_stop_the_steps(qemu_firmware: QemuFirmware, firmware_port: str) -> None:
+    host = _Host(qemu_firmware)
+    host.hold(0.05, 0.0, 0.2)
+    assert not _still(host)
+    host.send(wire.MsgType.ESTOP)  # the drivers cut: steps owed are dropped, none issued after
+    time.sleep(0.05)
+    assert qemu_firmware.read_u8("drivers_enabled") == 0 and _still(host)
+    host.send(wire.MsgType.ESTOP_CLEAR)
+    host.hold(0.05, 0.0, 0.2)
+    assert qemu_firmware.read_u8("drivers_enabled") == 1 and not _still(host)
+    time.sleep(2 * WATCHDOG_S)  # silence: the watchdog's controlled stop, to no steps at all
+    assert _still(host) and qemu_firmware.read_i32("drive_steps_per_s", 0) == 0
+    assert qemu_firmware.read_u8("drivers_enabled") == 1  # a stop, not a cut

@@ -5,13 +5,15 @@
  *   milliseconds. Not a count of SysTick interrupts: QEMU merges timer interrupts the guest is too slow
  *   to take, and on this project's test machines a tick count fell 4 % behind the host's clock when idle
  *   and over 30 % behind under load, which stretched the 250 ms watchdog past 300 ms; TIM2's count is
- *   computed from QEMU's clock itself. (On silicon neither drifts.) SysTick still interrupts every
- *   millisecond: it wakes the main loop, so the ramps and the watchdog advance while no byte arrives.
+ *   computed from QEMU's clock itself. (On silicon neither drifts.) SysTick interrupts at STEP_TICK_HZ
+ *   (40 kHz): it is the step tick, and it wakes the main loop, so the ramps and the watchdog advance while
+ *   no byte arrives.
  * - the serial line: USART1 (PA9 TX, PA10 RX, AF7), the first -serial of QEMU's machine. Received bytes
  *   go into a ring from the RXNE interrupt and fw_poll drains it; sent bytes are written out by polling
  *   TXE (an ACK is 8 bytes on the wire: ~90 us at 921600 baud).
- * - the steppers: the rates are recorded in arrays, as in the host build. Step pulse generation (a timer
- *   per STEP pin) is board-specific and not written here; QEMU models no stepper either.
+ * - the steppers: steppers.c, STEP/DIR pulses from SysTick's interrupt at 40 kHz. (TIM3 was the first
+ *   choice; QEMU 7.2's model of TIM2..TIM5 reschedules its update interrupt wrongly once it has fired,
+ *   so a periodic TIMx interrupt cannot be tested there; its SysTick is right.)
  * - the drivers' ENABLE line: PB0, active low (the usual ENN input of a stepper driver).
  * - the hardware e-stop input: PA1, pulled up, high while the chain is open (docs/hardware.md, section 3:
  *   the safety relay's SAFE_EN holds it low through an optocoupler, so a broken wire reads as open too).
@@ -49,7 +51,6 @@
 #error "define BOARD_CLOCKS_QEMU or BOARD_CLOCKS_HSI (the Makefile's STM32_CLOCKS)"
 #endif
 #define SERIAL_BAUD 921600u /* clothd's stepper.baud default */
-#define TICK_HZ 1000u
 #define MICROSECONDS_PER_MS 1000u
 
 #define DRIVERS_ENABLE_PIN 0u /* PB0 */
@@ -76,8 +77,10 @@ static volatile uint32_t rx_dropped;
 static volatile uint32_t estop_edges;
 static uint32_t estop_edges_seen;
 
-static int32_t drive_steps_per_s[FW_MAX_MODULES];
-static int32_t steer_steps_per_s[FW_MAX_MODULES];
+/* SysTick interrupts taken, and their count when the main loop last polled. */
+static volatile uint32_t systick_count;
+static uint32_t polled_at_tick;
+
 static volatile bool drivers_enabled; /* read back by tests/test_firmware_qemu.py through QEMU */
 
 /* -- set-up -------------------------------------------------------------------------------------- */
@@ -143,20 +146,21 @@ static void microsecond_timer_init(void)
 
 static void systick_init(void)
 {
-    SYST_RVR = SYSCLK_HZ / TICK_HZ - 1u;
+    SYST_RVR = SYSCLK_HZ / STEP_TICK_HZ - 1u;
     SYST_CVR = 0u;
     SYST_CSR = SYST_CSR_ENABLE | SYST_CSR_TICKINT | SYST_CSR_CLKSOURCE_CPU;
 }
 
 void board_init(void)
 {
-    RCC_AHB1ENR |= RCC_AHB1ENR_GPIOAEN | RCC_AHB1ENR_GPIOBEN;
+    RCC_AHB1ENR |= RCC_AHB1ENR_GPIOAEN | RCC_AHB1ENR_GPIOBEN | RCC_AHB1ENR_GPIOCEN;
     RCC_APB1ENR |= RCC_APB1ENR_TIM2EN;
     RCC_APB2ENR |= RCC_APB2ENR_USART1EN | RCC_APB2ENR_SYSCFGEN;
     (void)RCC_APB2ENR; /* RM0090: wait a bus cycle after enabling a peripheral's clock before using it */
     drivers_pin_init();
     estop_input_init();
     microsecond_timer_init();
+    steppers_init();
     usart1_init();
     systick_init();
 }
@@ -168,9 +172,11 @@ void board_drivers_off(void)
 
 /* -- interrupts ------------------------------------------------------------------------------------ */
 
-/* Nothing to do: taking the interrupt is what wakes the main loop's wfi every millisecond. */
+/* The step tick; taking the interrupt also wakes the main loop's wfi. */
 void board_systick_handler(void)
 {
+    steppers_tick();
+    systick_count = systick_count + 1u;
 }
 
 void board_usart1_handler(void)
@@ -196,13 +202,20 @@ void board_exti1_handler(void)
     if (EXTI_PR & (1u << ESTOP_INPUT_PIN)) {
         EXTI_PR = 1u << ESTOP_INPUT_PIN;
         drivers_pin_write(false);
+        steppers_enable(false);
         estop_edges = estop_edges + 1u;
     }
 }
 
-bool board_serial_pending(void)
+bool board_work_pending(void)
 {
-    return rx_head != rx_tail;
+    return rx_head != rx_tail || estop_edges != estop_edges_seen ||
+           systick_count - polled_at_tick >= STEP_TICK_HZ / 1000u;
+}
+
+void board_polling(void)
+{
+    polled_at_tick = systick_count;
 }
 
 /* -- hal.h ------------------------------------------------------------------------------------------ */
@@ -241,23 +254,10 @@ void hal_serial_write(const uint8_t *data, size_t len)
     }
 }
 
-void hal_drive_set_rate(uint16_t module, int32_t steps_per_s)
-{
-    if (module < FW_MAX_MODULES) {
-        drive_steps_per_s[module] = steps_per_s;
-    }
-}
-
-void hal_steer_set_rate(uint16_t module, int32_t steps_per_s)
-{
-    if (module < FW_MAX_MODULES) {
-        steer_steps_per_s[module] = steps_per_s;
-    }
-}
-
 void hal_drivers_enable(bool enabled)
 {
     drivers_enabled = enabled;
+    steppers_enable(enabled);
     drivers_pin_write(enabled);
 }
 

@@ -1,6 +1,6 @@
 /*
  * clothd-fw on the STM32F405: the board set up, the core initialised, then fw_poll() forever, sleeping
- * between interrupts when no byte waits.
+ * until a byte, an e-stop edge or the next millisecond.
  */
 #include <stdint.h>
 
@@ -12,15 +12,18 @@
  * stack. */
 static fw_state fw;
 
-/* Sleep until the next interrupt (a received byte, or the 1 ms tick that advances the ramps and the
- * watchdog), unless bytes already wait. Interrupts are masked around the check so a byte landing between
- * the check and the wfi cannot be slept through: wfi still wakes on an interrupt that is pending while
+/* Sleep until there is work: a received byte, an e-stop edge, or the next millisecond (the ramps and the
+ * watchdog advance then). The step tick interrupts 40 times a millisecond; between polls the loop goes
+ * back to sleep after each. Interrupts are masked around the check so an interrupt landing between the
+ * check and the wfi cannot be slept through: wfi still wakes on an interrupt that is pending while
  * masked, and it is taken as soon as they are unmasked. */
-static void wait_for_interrupt_unless_bytes_wait(void)
+static void wait_for_work(void)
 {
     __asm__ volatile("cpsid i" ::: "memory");
-    if (!board_serial_pending()) {
+    while (!board_work_pending()) {
         __asm__ volatile("wfi");
+        __asm__ volatile("cpsie i" ::: "memory"); /* the pending interrupt is taken here */
+        __asm__ volatile("cpsid i" ::: "memory");
     }
     __asm__ volatile("cpsie i" ::: "memory");
 }
@@ -37,7 +40,8 @@ int main(void)
         }
     }
     for (;;) {
+        board_polling();
         fw_poll(&fw);
-        wait_for_interrupt_unless_bytes_wait();
+        wait_for_work();
     }
 }

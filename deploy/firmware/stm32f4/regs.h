@@ -17,6 +17,7 @@
 #define RCC_APB2ENR REG32(RCC_BASE + 0x44u)
 #define RCC_AHB1ENR_GPIOAEN (1u << 0)
 #define RCC_AHB1ENR_GPIOBEN (1u << 1)
+#define RCC_AHB1ENR_GPIOCEN (1u << 2)
 #define RCC_APB1ENR_TIM2EN (1u << 0)
 #define RCC_APB2ENR_USART1EN (1u << 4)
 #define RCC_APB2ENR_SYSCFGEN (1u << 14)
@@ -34,6 +35,7 @@
 /* -- GPIO (RM0090 8.4) ------------------------------------------------------------------------------ */
 #define GPIOA_BASE 0x40020000u
 #define GPIOB_BASE 0x40020400u
+#define GPIOC_BASE 0x40020800u
 #define GPIO_MODER(base) REG32((base) + 0x00u)
 #define GPIO_PUPDR(base) REG32((base) + 0x0Cu)
 #define GPIO_IDR(base) REG32((base) + 0x10u)
