@@ -16,7 +16,6 @@ import taichi as ti
 from hwsim.belt_geometry import belt_at, belt_hit
 from hwsim.cloth_constants import (
     FLAT_CELL,
-    FOLD_STRAIN,
     GRAVITY_M_S2,
     LAY_IN_DAMPING_1_S,
     LAY_IN_S,
@@ -24,6 +23,7 @@ from hwsim.cloth_constants import (
     VIBRATION_REF_SPEED_M_S,
     YARN_FRICTION_STIFFNESS,
 )
+from hwsim.cloth_constraints import ClothConstraints
 from hwsim.cloth_grid import FLAP_THICKNESS_M, ClothGrid, bends_in_own_frames
 from hwsim.scenario import ClothSpec, Pose, TableSpec
 
@@ -36,19 +36,38 @@ def _swept(k: ti.i32, n: ti.i32, flip: ti.i32) -> ti.i32:
     return ti.select(flip == 1, n - 1 - k, k)
 
 
-@ti.data_oriented
-class ClothSim:
-    """XPBD cloth. Positions are world metres; call `advance(dt_s, module_speed, module_heading)`."""
+def _put(field: ti.Field, values: np.ndarray) -> None:
+    """Write values into the leading corner of a field that may be larger (a reused cloth's capacity)."""
+    shape = tuple(field.shape) + tuple(values.shape[2:])
+    if tuple(values.shape) != shape:
+        padded = np.zeros(shape, dtype=values.dtype)
+        padded[tuple(slice(0, n) for n in values.shape[:2])] = values
+        values = padded
+    field.from_numpy(np.ascontiguousarray(values))
 
-    def __init__(self, spec: ClothSpec, table: TableSpec, pose: Pose, substep_s: float, seed: int) -> None:
-        self.spec = spec
+
+@ti.data_oriented
+class ClothSim(ClothConstraints):
+    """XPBD cloth. Positions are world metres; call `advance(dt_s, module_speed, module_heading)`.
+
+    `capacity` (ny, nx): allocate for a grid that large, so that `reuse` can take another piece of cloth
+    up to that size without compiling the solver again (several seconds a time); the grid's own size is
+    a kernel argument."""
+
+    def __init__(
+        self,
+        spec: ClothSpec,
+        table: TableSpec,
+        pose: Pose,
+        substep_s: float,
+        seed: int,
+        capacity: tuple[int, int] | None = None,
+    ) -> None:
         self.substep_s = substep_s
-        self._substeps_done = 0
         self.table = table
-        self.grid = ClothGrid.from_spec(spec)
-        g = self.grid
-        shape = (g.ny, g.nx)
-        self._rng = np.random.default_rng(seed)
+        g = ClothGrid.from_spec(spec)
+        shape = capacity or (g.ny, g.nx)
+        self.capacity = shape
         self.x = ti.Vector.field(3, ti.f64, shape=shape)
         self.v = ti.Vector.field(3, ti.f64, shape=shape)
         self.x_prev = ti.Vector.field(3, ti.f64, shape=shape)
@@ -62,14 +81,29 @@ class ClothSim:
         self.folded = ti.field(ti.i32, shape=shape)  # 1: folded over by a flap
         # Where the yarns' friction holds each bend (its stick point, a second difference), in the bend's own
         # frame (along its chord, across it, up) so that it turns with the cloth.
-        self.set_along_s = ti.Vector.field(3, ti.f64, shape=(g.ny, g.nx - 2))
-        self.set_along_t = ti.Vector.field(3, ti.f64, shape=(g.ny - 2, g.nx))
+        self.set_along_s = ti.Vector.field(3, ti.f64, shape=(shape[0], shape[1] - 2))
+        self.set_along_t = ti.Vector.field(3, ti.f64, shape=(shape[0] - 2, shape[1]))
         n_mod = table.modules_x * table.modules_y
         self.mod_speed = ti.field(ti.f64, shape=n_mod)
         self.mod_direction = ti.Vector.field(2, ti.f64, shape=n_mod)  # cos, sin of heading
-        self.mass_kg = g.node_masses_kg(spec.areal_density_kg_m2)
-        self.inv_mass.from_numpy(1.0 / self.mass_kg)
-        self.lay(pose, np.zeros(n_mod))
+        # A flow's infeed conveyor (hwsim/infeed.py): x below its end, |y| within its half width, its speed.
+        self.infeed_belt = ti.field(ti.f64, shape=3)
+        self.infeed_belt.from_numpy(np.array([-math.inf, 0.0, 0.0]))
+        self.reuse(spec, pose, seed, np.zeros(n_mod))
+
+    def reuse(self, spec: ClothSpec, pose: Pose, seed: int, module_heading_rad: np.ndarray) -> None:
+        """Become a new piece of cloth of `spec` (its grid within the capacity), laid at `pose`."""
+        grid = ClothGrid.from_spec(spec)
+        if grid.ny > self.capacity[0] or grid.nx > self.capacity[1]:
+            raise ValueError(f"a {grid.ny} x {grid.nx} grid exceeds this cloth's capacity {self.capacity}")
+        self.spec, self.grid = spec, grid
+        self._substeps_done = 0
+        self._rng = np.random.default_rng(seed)
+        self.mass_kg = grid.node_masses_kg(spec.areal_density_kg_m2)
+        inv_mass = np.ones(self.capacity)  # beyond the grid: never read, but no division by zero
+        inv_mass[: grid.ny, : grid.nx] = 1.0 / self.mass_kg
+        self.inv_mass.from_numpy(inv_mass)
+        self.lay(pose, module_heading_rad)
 
     def lay(self, pose: Pose, module_heading_rad: np.ndarray) -> None:
         """Lay the cloth down at rest at `pose` on the stopped belts (at the given headings), as a hand does:
@@ -78,10 +112,10 @@ class ClothSim:
         self.held.fill(0)
         self.set_positions(x)
         folded = self.grid.folded(pose)
-        self.folded.from_numpy(folded.astype(np.int32))
+        _put(self.folded, folded.astype(np.int32))
         floor = np.where(folded, FLAP_THICKNESS_M, 0.0)
-        self.floor.from_numpy(floor)
-        self.stuck.from_numpy((x[..., 2] < floor + ON_TABLE_M).astype(np.int32))
+        _put(self.floor, floor)
+        _put(self.stuck, (x[..., 2] < floor + ON_TABLE_M).astype(np.int32))
         if pose.ridges or pose.flaps:
             stopped = np.zeros(len(module_heading_rad))
             self.advance(LAY_IN_S, stopped, module_heading_rad, damping_1_s=LAY_IN_DAMPING_1_S)
@@ -91,32 +125,35 @@ class ClothSim:
         """Place the cloth at rest at the given node positions (ny, nx, 3), its yarns settled in that shape
         (the frictional element holds every bend as it is); nothing sticks until it has come to rest on a
         belt."""
-        self.x.from_numpy(np.ascontiguousarray(x_m, dtype=np.float64))
+        _put(self.x, np.asarray(x_m, dtype=np.float64))
         self.v.fill(0.0)
         self.stuck.fill(0)
-        self.set_along_s.from_numpy(bends_in_own_frames(x_m))
-        self.set_along_t.from_numpy(bends_in_own_frames(x_m.transpose(1, 0, 2)).transpose(1, 0, 2))
+        _put(self.set_along_s, bends_in_own_frames(x_m))
+        _put(self.set_along_t, bends_in_own_frames(x_m.transpose(1, 0, 2)).transpose(1, 0, 2))
 
     def hold(self, held: np.ndarray, velocity_m_s: np.ndarray) -> None:
         """Hands hold the nodes where `held` (ny, nx) is set and move them at velocity_m_s (ny, nx, 3) until
         `release`."""
-        self.held.from_numpy(held.astype(np.int32))
-        self.hand_v.from_numpy(np.ascontiguousarray(velocity_m_s, dtype=np.float64))
+        _put(self.held, held.astype(np.int32))
+        _put(self.hand_v, np.asarray(velocity_m_s, dtype=np.float64))
 
     def release(self) -> None:
         """The hands let go where they stopped. The cloth comes to rest with them (what they dragged along
         slid no faster than they moved), so whatever lies on a belt stays there, held by static friction:
         a hand lifts off a cloth at rest; it does not throw it."""
-        on_table = self.positions_m()[..., 2] < self.floor.to_numpy() + ON_TABLE_M
+        on_table = self.positions_m()[..., 2] < self._node_values(self.floor) + ON_TABLE_M
         self.v.fill(0.0)
-        self.stuck.from_numpy(on_table.astype(np.int32))
+        _put(self.stuck, on_table.astype(np.int32))
         self.held.fill(0)
 
+    def _node_values(self, field: ti.Field) -> np.ndarray:
+        return np.asarray(field.to_numpy()[: self.grid.ny, : self.grid.nx])
+
     def positions_m(self) -> np.ndarray:
-        return np.asarray(self.x.to_numpy())
+        return self._node_values(self.x)
 
     def velocities_m_s(self) -> np.ndarray:
-        return np.asarray(self.v.to_numpy())
+        return self._node_values(self.v)
 
     def advance(
         self,
@@ -130,9 +167,7 @@ class ClothSim:
         self.mod_speed.from_numpy(np.asarray(module_speed_m_s, dtype=np.float64))
         heading = np.asarray(module_heading_rad, dtype=np.float64)
         self.mod_direction.from_numpy(np.stack([np.cos(heading), np.sin(heading)], axis=1))
-        self.kick.from_numpy(
-            self._rng.standard_normal((self.grid.ny, self.grid.nx)) * self.spec.vibration_m_s
-        )
+        _put(self.kick, self._rng.standard_normal((self.grid.ny, self.grid.nx)) * self.spec.vibration_m_s)
         s, t = self.spec, self.table
         substeps = max(1, round(dt_s / self.substep_s))
         friction_k = YARN_FRICTION_STIFFNESS * s.bending_stiffness_n_m if s.bending_hysteresis_n > 0 else 0.0
@@ -140,7 +175,17 @@ class ClothSim:
         # Sweep directions alternate across calls too, so no direction wins over a run.
         parity = self._substeps_done % 2, (self._substeps_done * s.stretch_iterations) % 2
         self._substeps_done += substeps
+        g = self.grid
+        # The rest lengths were compile-time constants, which Taichi takes at its default precision, f32;
+        # kept so, the truth stays bit-for-bit what it was.
+        dx, dy, diag = (np.float32(r) for r in (g.dx_m, g.dy_m, (g.dx_m**2 + g.dy_m**2) ** 0.5))
         self._advance(
+            g.nx,
+            g.ny,
+            float(dx),
+            float(dy),
+            float(diag),
+            FLAT_CELL * (g.dx_m**2 + g.dy_m**2) ** 0.5,
             substeps,
             parity[0],
             parity[1],
@@ -167,152 +212,6 @@ class ClothSim:
         return self.spec.bending_hysteresis_n * spacing_m**2 / friction_k if friction_k > 0 else math.inf
 
     @ti.func
-    def _free_inv_mass(self, a: ti.template()) -> ti.f64:
-        """A stuck node is anchored to its belt, a held one to its hand: the solve moves them not at all."""
-        return self.inv_mass[a] * ti.cast(1 - ti.max(self.stuck[a], self.held[a]), ti.f64)
-
-    @ti.func
-    def _distance(self, a: ti.template(), b: ti.template(), rest: ti.f64, alpha: ti.f64):
-        """An edge across a flap's fold is bent round the crease, not compressed: it only resists stretch."""
-        wa, wb = self._free_inv_mass(a), self._free_inv_mass(b)
-        d = self.x[a] - self.x[b]
-        length = d.norm()
-        slack_in_crease = self.folded[a] != self.folded[b] and length < rest
-        if length > 1e-12 and wa + wb > 0.0 and not slack_in_crease:
-            dlam = -(length - rest) / (wa + wb + alpha)
-            n = d / length
-            self.x[a] += wa * dlam * n
-            self.x[b] -= wb * dlam * n
-            # The anchor of a stuck end supplies the impulse the constraint asks of it.
-            self.reaction[a] += ti.cast(self.stuck[a], ti.f64) * dlam * n
-            self.reaction[b] -= ti.cast(self.stuck[b], ti.f64) * dlam * n
-
-    @ti.func
-    def _anchored_spring(self, a: ti.template(), b: ti.template(), rest: ti.f64, k_h2: ti.f64):
-        """Neither end of an edge between two anchors (stuck, or held by a hand) can move, so the solve skips
-        it; its true elastic force k·C acts on each stuck end instead."""
-        if ti.max(self.stuck[a], self.held[a]) == 1 and ti.max(self.stuck[b], self.held[b]) == 1:
-            d = self.x[a] - self.x[b]
-            length = d.norm()
-            if length > 1e-12:
-                impulse = -k_h2 * (length - rest) * d / length
-                self.reaction[a] += ti.cast(self.stuck[a], ti.f64) * impulse
-                self.reaction[b] -= ti.cast(self.stuck[b], ti.f64) * impulse
-
-    @ti.func
-    def _diagonal(
-        self, j: ti.i32, i: ti.i32, second: ti.template(), rest: ti.f64, alpha: ti.f64, k_h2: ti.f64
-    ):
-        """Shear on one diagonal of cell (j, i) (00-11, or 10-01 when `second`): its length along the cloth,
-        which is the straight length unless the cell is bent across it, and then the path through the other
-        diagonal's midpoint (on the bend). In a flat cell (the diagonals bisect each other) the two agree,
-        so which diagonal counts as bent (the shorter) matters only in a bent cell; the choice is blended
-        over FOLD_STRAIN, and both diagonals are always held. Free ends move as XPBD moves them; when every
-        end that could move is anchored, the true elastic force k·C goes to the stuck ones' reactions."""
-        cell = ti.Matrix([[j, i], [j, i + 1], [j + 1, i], [j + 1, i + 1]])  # 00, 10 (along s), 01, 11
-        ends = ti.Vector([0, 3, 1, 2])  # this diagonal's ends, then the other's
-        if ti.static(second):
-            ends = ti.Vector([1, 2, 0, 3])
-        a, b = self.x[cell[ends[0], 0], cell[ends[0], 1]], self.x[cell[ends[1], 0], cell[ends[1], 1]]
-        c, d = self.x[cell[ends[2], 0], cell[ends[2], 1]], self.x[cell[ends[3], 0], cell[ends[3], 1]]
-        straight = (a - b).norm()
-        mid = (c + d) / 2.0
-        via = (a - mid).norm() + (b - mid).norm()
-        bent = 1.0 / (
-            1.0 + ti.exp(-ti.math.clamp(((c - d).norm() - straight) / (FOLD_STRAIN * rest), -50.0, 50.0))
-        )
-        n = (a - b) / straight
-        ua, ub = (a - mid).normalized(), (b - mid).normalized()
-        grad = ti.Matrix.zero(ti.f64, 4, 3)  # rows in the order of `ends`
-        grad[0, :] = bent * ua + (1.0 - bent) * n
-        grad[1, :] = bent * ub - (1.0 - bent) * n
-        grad[2, :] = -bent * (ua + ub) / 2.0
-        grad[3, :] = grad[2, :]
-        constraint = bent * via + (1.0 - bent) * straight - rest
-        free = ti.f64(0.0)
-        for k in ti.static(range(4)):
-            node = ti.Vector([cell[ends[k], 0], cell[ends[k], 1]])
-            free += self._free_inv_mass(node) * grad[k, :].norm_sqr()
-        scale = -k_h2 * constraint
-        if free > 0.0:
-            scale = -constraint / (free + alpha)
-        for k in ti.static(range(4)):
-            node = ti.Vector([cell[ends[k], 0], cell[ends[k], 1]])
-            step = grad[k, :] * scale
-            if free > 0.0:
-                self.x[node] += self._free_inv_mass(node) * step
-            self.reaction[node] += ti.cast(self.stuck[node], ti.f64) * step
-
-    @ti.func
-    def _bend_frame(self, a: ti.template(), c: ti.template()) -> ti.types.matrix(3, 3, ti.f64):
-        """Rows: along the bend's chord a -> c (level), across it (level), up. A stick point kept in this
-        frame turns with the cloth on the table."""
-        chord = vec2d(self.x[c][0] - self.x[a][0], self.x[c][1] - self.x[a][1]).normalized(1e-24)
-        return ti.Matrix([[chord[0], chord[1], 0.0], [-chord[1], chord[0], 0.0], [0.0, 0.0, 1.0]])
-
-    @ti.func
-    def _bend(
-        self,
-        a: ti.template(),
-        b: ti.template(),
-        c: ti.template(),
-        set_local: ti.template(),
-        alpha: ti.f64,
-        set_share: ti.f64,
-    ):
-        """The elastic bend towards straight and the yarns' frictional element towards its stick point
-        set_local, as one constraint towards set_local·set_share (set_share = k_f / (B + k_f)). Across a
-        flap's fold the crease is set (a plastic crease): it carries no bending moment."""
-        wa, wb, wc = self._free_inv_mass(a), self._free_inv_mass(b), self._free_inv_mass(c)
-        creased = self.folded[a] != self.folded[b] or self.folded[b] != self.folded[c]
-        if wa + wb + wc > 0.0 and not creased:
-            rest = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
-            if set_share > 0.0:
-                rest = self._bend_frame(a, c).transpose() @ set_local * set_share
-            dlam = -(self.x[a] - 2.0 * self.x[b] + self.x[c] - rest) / (wa + 4.0 * wb + wc + alpha)
-            self.x[a] += wa * dlam
-            self.x[b] -= 2.0 * wb * dlam
-            self.x[c] += wc * dlam
-            self.reaction[a] += ti.cast(self.stuck[a], ti.f64) * dlam
-            self.reaction[b] -= 2.0 * ti.cast(self.stuck[b], ti.f64) * dlam
-            self.reaction[c] += ti.cast(self.stuck[c], ti.f64) * dlam
-
-    @ti.func
-    def _elastic_bend(self, a: ti.template(), b: ti.template(), c: ti.template(), set_local: ti.template()):
-        """How far the bend a-b-c is from its stick point, in its own frame; zero across a flap's crease,
-        which bends freely."""
-        elastic = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
-        if self.folded[a] == self.folded[b] and self.folded[b] == self.folded[c]:
-            elastic = self._bend_frame(a, c) @ (self.x[a] - 2.0 * self.x[b] + self.x[c]) - set_local
-        return elastic
-
-    @ti.func
-    def _slip_yarns(self, j: ti.i32, i: ti.i32, yield_s: ti.f64, yield_t: ti.f64):
-        """Let the yarns at node (j, i) slip as far as its bend asks. The frictional couples of the two bends
-        centred there (along s and t) slip together, on their size: sqrt((Ms/HB)² + (Mt/HB)²) <= 1, an
-        ellipse in the stretch of the frictional elements with semi-axes yield_s and yield_t: one node's
-        yarns slip as one, whatever the direction of the bend. The return mapping scales both stretches
-        back onto the ellipse and moves the stick points by the rest."""
-        nx, ny = ti.static(self.grid.nx, self.grid.ny)
-        along_s = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
-        along_t = ti.Vector([0.0, 0.0, 0.0], dt=ti.f64)
-        if 0 < i < nx - 1:
-            along_s = self._elastic_bend(
-                ti.Vector([j, i - 1]), ti.Vector([j, i]), ti.Vector([j, i + 1]), self.set_along_s[j, i - 1]
-            )
-        if 0 < j < ny - 1:
-            along_t = self._elastic_bend(
-                ti.Vector([j - 1, i]), ti.Vector([j, i]), ti.Vector([j + 1, i]), self.set_along_t[j - 1, i]
-            )
-        size = ti.sqrt(along_s.norm_sqr() / yield_s**2 + along_t.norm_sqr() / yield_t**2)
-        if size > 1.0:
-            slip = 1.0 - 1.0 / size
-            if 0 < i < nx - 1:
-                self.set_along_s[j, i - 1] += slip * along_s
-            if 0 < j < ny - 1:
-                self.set_along_t[j - 1, i] += slip * along_t
-
-    @ti.func
     def _belt_velocity(self, p: ti.template(), pitch: ti.f64, half_belt: ti.f64) -> belt_hit:
         """(vx, vy, on_belt, 0): surface velocity of the belt under world point p; zero over the deck."""
         hit = belt_at(
@@ -323,11 +222,19 @@ class ClothSim:
             m = ti.cast(hit[0], ti.i32)
             speed = self.mod_speed[m]
             vel = belt_hit(speed * self.mod_direction[m][0], speed * self.mod_direction[m][1], 1.0, 0.0)
+        elif p[0] < self.infeed_belt[0] and ti.abs(p[1]) < self.infeed_belt[1]:
+            vel = belt_hit(self.infeed_belt[2], 0.0, 1.0, 0.0)
         return vel
 
     @ti.kernel
     def _advance(
         self,
+        nx: ti.i32,
+        ny: ti.i32,
+        dx: ti.f64,
+        dy: ti.f64,
+        diag: ti.f64,
+        flat_bisect: ti.f64,
         substeps: ti.i32,
         substeps_done: ti.i32,
         sweeps_done: ti.i32,
@@ -347,9 +254,6 @@ class ClothSim:
         pitch: ti.f64,
         half_belt: ti.f64,
     ):
-        nx, ny = ti.static(self.grid.nx, self.grid.ny)
-        dx, dy = ti.static(self.grid.dx_m, self.grid.dy_m)
-        diag = ti.static((self.grid.dx_m**2 + self.grid.dy_m**2) ** 0.5)
         ti.loop_config(serialize=True)
         for step in range(substeps):
             for j, i in ti.ndrange(ny, nx):
@@ -388,7 +292,7 @@ class ClothSim:
                     + self.folded[j + 1, i + 1]
                 )
                 bisect = (self.x[j, i] + self.x[j + 1, i + 1] - self.x[j, i + 1] - self.x[j + 1, i]).norm()
-                if 0 < flap < 4 or bisect < FLAT_CELL * diag:
+                if 0 < flap < 4 or bisect < flat_bisect:
                     # Flat (its diagonals bisect each other), where the two measures agree, or across a
                     # flap's crease: plain distances (slack in the crease).
                     self._distance(ti.Vector([j, i]), ti.Vector([j + 1, i + 1]), diag, alpha_shear)
@@ -412,7 +316,7 @@ class ClothSim:
                 self._bend(a, b, c, self.set_along_t[j, i], alpha_bend, set_share)
             if set_share > 0.0:
                 for j, i in ti.ndrange(ny, nx):
-                    self._slip_yarns(j, i, yield_s, yield_t)
+                    self._slip_yarns(j, i, nx, ny, yield_s, yield_t)
             for j, i in ti.ndrange(ny, nx - 1):
                 self._anchored_spring(ti.Vector([j, i]), ti.Vector([j, i + 1]), dx, stretch_k_h2)
             for j, i in ti.ndrange(ny - 1, nx):

@@ -26,7 +26,7 @@ from tqdm import tqdm
 from hwsim.camera import Camera
 from hwsim.paths import frame_path
 from hwsim.renderer import Renderer, to_sensor_bgr8
-from hwsim.scenario import Scenario
+from hwsim.scenario import Scenario, ScenarioError
 from hwsim.world import World
 
 # PNG level 1: about 3x faster than the default with files ~15 % larger; still lossless.
@@ -89,6 +89,8 @@ def noise_rng(scenario: Scenario, index: int) -> np.random.Generator:
 
 
 def record(scenario: Scenario, out_dir: Path, arch: str = "cpu") -> RecordStats:
+    if scenario.infeed is not None:  # truth.npz holds one cloth; a flow's pieces come and go
+        raise ScenarioError(f"{scenario.name}: a flow (infeed) cannot be recorded; run it with hwsim serve")
     out_dir.mkdir(parents=True, exist_ok=True)
     world = World(scenario, arch)
     specs = scenario.camera_specs

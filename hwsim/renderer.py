@@ -10,7 +10,8 @@ Per frame, at `supersample` times the output resolution:
 Motion blur averages several such renders across the exposure. Sensor noise is added last.
 
 The cloth surface is the truth mesh split into triangles along each cell's (j, i)-(j+1, i+1) diagonal,
-exactly as docs/recording-format.md states for grading.
+exactly as docs/recording-format.md states for grading. Several pieces of cloth (a flow's) each take a slot
+of fixed capacity, their grids' sizes and fabrics being data, so a new piece compiles nothing.
 """
 
 import numpy as np
@@ -19,7 +20,9 @@ import taichi as ti
 from hwsim.belt_geometry import belt_at
 from hwsim.camera import Camera
 from hwsim.cloth_grid import ClothGrid
-from hwsim.scenario import Scenario
+from hwsim.infeed import fabric_textures, largest_specs
+from hwsim.pieces import capacity_for
+from hwsim.scenario import Scenario, TextureSpec
 from hwsim.scene import SceneState
 from hwsim.texture import (
     belt_texture,
@@ -37,6 +40,8 @@ DECK_TILE_M = 0.3  # deck texture tile; it repeats (small, so it stays in cache)
 _EMPTY_KEY = 2**62
 _TRI_BITS = 21  # triangle index bits in a z-buffer key; depth in micrometres above them
 _VISIBLE_DEPTH_TOL_M = 0.003
+# Per-node fields of every slot, with their channels.
+_VERTEX_ARRAYS = (("vpx", 2), ("vdepth", 1), ("vnormal", 3), ("vtan_s", 3), ("vtan_t", 3))
 ARM_BGR = (0.30, 0.42, 0.55)  # a sleeve
 vec3f = ti.types.vector(3, ti.f32)
 
@@ -96,7 +101,11 @@ class Renderer:
         self.ss = scenario.supersample
         self.camera = camera
         self.hi = camera.scaled(self.ss)
-        self.grid = grid
+        self.grid = grid  # the lead piece's at the start: the visibility `render` returns is the lead's
+        # One slot per piece on the table, each a grid of this capacity.
+        self.slots = scenario.infeed.max_pieces if scenario.infeed else 1
+        self.cap = capacity_for(largest_specs(scenario)) if scenario.infeed else (grid.ny, grid.nx)
+        self.tris_per_slot = 2 * (self.cap[0] - 1) * (self.cap[1] - 1)
         tab = scenario.table
         self.table_spec = tab
         H, W = self.hi.height, self.hi.width
@@ -106,7 +115,9 @@ class Renderer:
         table_xy = np.nan_to_num(self.hi.table_points(), nan=1e3).astype(np.float32)
         self.table_xy = ti.Vector.field(2, ti.f32, shape=(H, W))
         self.table_xy.from_numpy(table_xy)
-        shape = (grid.ny, grid.nx)
+        shape = (self.slots, *self.cap)
+        self.slot_dims = ti.field(ti.i32, shape=(self.slots, 3))  # nx, ny, texture
+        self.slot_spacing = ti.field(ti.f32, shape=(self.slots, 2))  # dx, dy
         self.vpx = ti.Vector.field(2, ti.f32, shape=shape)
         self.vdepth = ti.field(ti.f32, shape=shape)
         self.vnormal = ti.Vector.field(3, ti.f32, shape=shape)
@@ -122,29 +133,38 @@ class Renderer:
         light = np.asarray(scenario.light.direction, dtype=float)
         self.light = light / np.linalg.norm(light)
         self.ambient = scenario.light.ambient
-        self._load_textures(scenario)
+        # Pixel density on a flat cloth under the camera: f / distance, at the render's resolution.
+        px_per_m = self.hi.K[0, 0] / abs(self.hi.centre_m[2])
+        self.cloth_tex: list[ti.MatrixField] = []
+        self.cloth_texels_per_m: list[float] = []
+        self.cloth_slopes: list[ti.MatrixField] = []
+        self.relief: list[bool] = []
+        for spec, size in fabric_textures(scenario):
+            self._load_fabric(spec, size, px_per_m)
+        self._load_table(scenario, px_per_m)
 
-    def _load_textures(self, scenario: Scenario) -> None:
-        spec, size = scenario.texture, scenario.cloth.size_m
+    def _load_fabric(self, spec: TextureSpec, size: tuple[float, float], px_per_m: float) -> None:
         if spec.kind == "image":
             assert spec.path is not None
             tex = image_texture(spec.path, size, spec.texels_per_m)
         else:
             tex = cloth_texture(spec.kind, spec.seed, size, spec.texels_per_m)
-        # Pixel density on a flat cloth under the camera: f / distance, at the render's resolution.
-        px_per_m = self.hi.K[0, 0] / abs(self.hi.centre_m[2])
         level = mip_level_for(spec.texels_per_m, px_per_m)
-        self.cloth_tex = _texture_field(mip_pyramid(tex, level + 1)[level])
-        self.cloth_texels_per_m = spec.texels_per_m / 2**level
+        self.cloth_tex.append(_texture_field(mip_pyramid(tex, level + 1)[level]))
+        self.cloth_texels_per_m.append(spec.texels_per_m / 2**level)
         # The relief's slopes, low-passed to the same mip level as the colour (a 1 x 1 dummy without).
-        self.relief = spec.relief_m > 0
+        self.relief.append(spec.relief_m > 0)
         slopes = np.zeros((1, 1, 2), np.float32)
-        if self.relief:
+        if spec.relief_m > 0:
             assert spec.kind != "image"
             slopes = weave_slopes(spec.kind, spec.seed, size, spec.texels_per_m, spec.relief_m)
             slopes = mip_pyramid(slopes, level + 1)[level]
-        self.cloth_slopes = ti.Vector.field(2, ti.f32, shape=slopes.shape[:2])
-        self.cloth_slopes.from_numpy(np.ascontiguousarray(slopes, dtype=np.float32))
+        field = ti.Vector.field(2, ti.f32, shape=slopes.shape[:2])
+        field.from_numpy(np.ascontiguousarray(slopes, dtype=np.float32))
+        self.cloth_slopes.append(field)
+
+    def _load_table(self, scenario: Scenario, px_per_m: float) -> None:
+        spec = scenario.texture
         belt_tpm = max(px_per_m, 500.0)
         belt = belt_texture(spec.seed + 1, BELT_LOOP_M, self.table_spec.module_size_m, belt_tpm)
         self.belt_tex = _texture_field(belt)
@@ -160,32 +180,35 @@ class Renderer:
         for state in states:
             self._upload(state)
             self._clear()
-            self._raster()
+            self._raster(len(state.cloths))
             self._shade(weight, len(state.arms), *self._lighting())
         self._downsample()
-        self._node_visibility(len(states[-1].arms))
-        return self.out.to_numpy(), self.visible.to_numpy().astype(bool)
+        cloths = states[-1].cloths
+        self._node_visibility(len(states[-1].arms), len(cloths))
+        ny, nx = cloths[0].nodes_m.shape[:2] if cloths else (self.grid.ny, self.grid.nx)
+        return self.out.to_numpy(), self.visible.to_numpy()[0, :ny, :nx].astype(bool)
 
     def _lighting(self) -> tuple[float, float, float, float, float]:
         flat = self.ambient + (1.0 - self.ambient) * max(0.0, float(self.light[2]))
         return (float(self.light[0]), float(self.light[1]), float(self.light[2]), self.ambient, flat)
 
     def _upload(self, state: SceneState) -> None:
+        if len(state.cloths) > self.slots:
+            raise ValueError(f"at most {self.slots} pieces of cloth in view at once, got {len(state.cloths)}")
+        arrays = {name: np.zeros((self.slots, *self.cap, n), np.float32) for name, n in _VERTEX_ARRAYS}
+        dims = np.zeros((self.slots, 3), np.int32)
+        spacing = np.ones((self.slots, 2), np.float32)
+        for k, cloth in enumerate(state.cloths):
+            ny, nx = cloth.nodes_m.shape[:2]
+            dims[k], spacing[k] = (nx, ny, cloth.texture), cloth.spacing_m
+            for name, values in self._vertex_values(cloth.nodes_m).items():
+                arrays[name][k, :ny, :nx] = values.reshape(ny, nx, -1)
+        self.slot_dims.from_numpy(dims)
+        self.slot_spacing.from_numpy(spacing)
+        for name, _ in _VERTEX_ARRAYS:
+            values = arrays[name]
+            getattr(self, name).from_numpy(values[..., 0] if values.shape[-1] == 1 else values)
         hi = self.hi
-        self.vpx.from_numpy(hi.project(state.nodes_m).astype(np.float32))
-        self.vdepth.from_numpy(hi.to_camera(state.nodes_m)[..., 2].astype(np.float32))
-        normals = vertex_normals(state.nodes_m)
-        # Light the side that faces the camera: the cloth's back is the same fabric.
-        to_cam = hi.centre_m - state.nodes_m
-        flip = np.sign(np.sum(normals * to_cam, axis=-1, keepdims=True))
-        sign = np.where(flip == 0, 1, flip)
-        self.vnormal.from_numpy((normals * sign).astype(np.float32))
-        if self.relief:
-            # The relief stands out of the sheet's front: seen from its back, tangents flip with the normal.
-            for field, axis in ((self.vtan_s, 1), (self.vtan_t, 0)):
-                tan = np.gradient(state.nodes_m, axis=axis)
-                tan = tan / np.maximum(np.linalg.norm(tan, axis=-1, keepdims=True), 1e-12)
-                field.from_numpy((tan * sign).astype(np.float32))
         self.direction.from_numpy(np.stack([np.cos(state.heading_rad), np.sin(state.heading_rad)], axis=1))
         self.travel.from_numpy(state.travel_m.astype(np.float32))
         seg = np.zeros((MAX_ARMS, 4), np.float32)
@@ -199,22 +222,41 @@ class Renderer:
         self.arm_seg.from_numpy(seg)
         self.arm_radius.from_numpy(radius)
 
+    def _vertex_values(self, nodes_m: np.ndarray) -> dict[str, np.ndarray]:
+        """One cloth's per-node data for the render: pixels, depth, normals and (for relief) tangents."""
+        hi = self.hi
+        out = {"vpx": hi.project(nodes_m), "vdepth": hi.to_camera(nodes_m)[..., 2:]}
+        normals = vertex_normals(nodes_m)
+        # Light the side that faces the camera: the cloth's back is the same fabric.
+        to_cam = hi.centre_m - nodes_m
+        flip = np.sign(np.sum(normals * to_cam, axis=-1, keepdims=True))
+        sign = np.where(flip == 0, 1, flip)
+        out["vnormal"] = normals * sign
+        if any(self.relief):
+            # The relief stands out of the sheet's front: seen from its back, tangents flip with the normal.
+            for name, axis in (("vtan_s", 1), ("vtan_t", 0)):
+                tan = np.gradient(nodes_m, axis=axis)
+                out[name] = tan / np.maximum(np.linalg.norm(tan, axis=-1, keepdims=True), 1e-12) * sign
+        return {k: v.astype(np.float32) for k, v in out.items()}
+
     @ti.func
-    def _corners(self, tri: ti.i32) -> ti.types.matrix(3, 2, ti.i32):
-        """(j, i) of the three nodes of triangle `tri`; cell (j, i) splits along (j, i)-(j+1, i+1)."""
-        nxc = ti.static(self.grid.nx - 1)
-        cell, upper = tri // 2, tri % 2
+    def _corners(self, tri: ti.i32) -> ti.types.matrix(3, 3, ti.i32):
+        """(slot, j, i) of the three nodes of triangle `tri` (slot-major); cell (j, i) splits along
+        (j, i)-(j+1, i+1). A triangle past its slot's grid has j beyond it."""
+        slot, local = tri // ti.static(self.tris_per_slot), tri % ti.static(self.tris_per_slot)
+        nxc = self.slot_dims[slot, 0] - 1
+        cell, upper = local // 2, local % 2
         j, i = cell // nxc, cell % nxc
-        m = ti.Matrix([[j, i], [j, i + 1], [j + 1, i + 1]], ti.i32)
+        m = ti.Matrix([[slot, j, i], [slot, j, i + 1], [slot, j + 1, i + 1]], ti.i32)
         if upper == 1:
-            m = ti.Matrix([[j, i], [j + 1, i + 1], [j + 1, i]], ti.i32)
+            m = ti.Matrix([[slot, j, i], [slot, j + 1, i + 1], [slot, j + 1, i]], ti.i32)
         return m
 
     @ti.func
     def _barycentric(self, c: ti.template(), u: ti.f32, v: ti.f32) -> vec3f:
-        a = self.vpx[c[0, 0], c[0, 1]]
-        b = self.vpx[c[1, 0], c[1, 1]]
-        d = self.vpx[c[2, 0], c[2, 1]]
+        a = self.vpx[c[0, 0], c[0, 1], c[0, 2]]
+        b = self.vpx[c[1, 0], c[1, 1], c[1, 2]]
+        d = self.vpx[c[2, 0], c[2, 1], c[2, 2]]
         area = (b[0] - a[0]) * (d[1] - a[1]) - (b[1] - a[1]) * (d[0] - a[0])
         w0 = ((b[0] - u) * (d[1] - v) - (b[1] - v) * (d[0] - u)) / area
         w1 = ((d[0] - u) * (a[1] - v) - (d[1] - v) * (a[0] - u)) / area
@@ -226,14 +268,16 @@ class Renderer:
             self.key[v, u] = ti.i64(_EMPTY_KEY)
 
     @ti.kernel
-    def _raster(self):
+    def _raster(self, n_cloths: ti.i32):
         H, W = ti.static(self.hi.height, self.hi.width)
-        for tri in range(2 * (self.grid.nx - 1) * (self.grid.ny - 1)):
+        for tri in range(n_cloths * ti.static(self.tris_per_slot)):
             c = self._corners(tri)
+            if c[2, 1] >= self.slot_dims[c[0, 0], 1]:
+                continue  # past this slot's grid
             lo = ti.Vector([1e9, 1e9])
             hi = ti.Vector([-1e9, -1e9])
             for k in ti.static(range(3)):
-                p = self.vpx[c[k, 0], c[k, 1]]
+                p = self.vpx[c[k, 0], c[k, 1], c[k, 2]]
                 lo = ti.min(lo, p)
                 hi = ti.max(hi, p)
             u0, v0 = ti.max(0, ti.cast(ti.ceil(lo[0]), ti.i32)), ti.max(0, ti.cast(ti.ceil(lo[1]), ti.i32))
@@ -245,7 +289,7 @@ class Renderer:
                     if w.min() >= -1e-6 and w.max() <= 1.0 + 1e-6:
                         inv_z = 0.0
                         for k in ti.static(range(3)):
-                            inv_z += w[k] / self.vdepth[c[k, 0], c[k, 1]]
+                            inv_z += w[k] / self.vdepth[c[k, 0], c[k, 1], c[k, 2]]
                         depth_um = ti.cast(1e6 / inv_z, ti.i64)
                         ti.atomic_min(self.key[v, u], (depth_um << _TRI_BITS) | ti.cast(tri, ti.i64))
 
@@ -256,26 +300,32 @@ class Renderer:
         # Perspective-correct weights: interpolate attribute/z and 1/z linearly on screen.
         pw = vec3f(0.0, 0.0, 0.0)
         for k in ti.static(range(3)):
-            pw[k] = w[k] / self.vdepth[c[k, 0], c[k, 1]]
+            pw[k] = w[k] / self.vdepth[c[k, 0], c[k, 1], c[k, 2]]
         pw /= pw.sum()
         s, t = 0.0, 0.0
         n = vec3f(0.0, 0.0, 0.0)
+        slot = c[0, 0]
         for k in ti.static(range(3)):
-            s += pw[k] * c[k, 1] * self.grid.dx_m
-            t += pw[k] * c[k, 0] * self.grid.dy_m
-            n += pw[k] * self.vnormal[c[k, 0], c[k, 1]]
-        tpm = ti.static(self.cloth_texels_per_m)
-        if ti.static(self.relief):
-            # Tilt the normal by the relief's slopes: n - dh/ds T_s - dh/dt T_t (a height field on the sheet).
-            ts = vec3f(0.0, 0.0, 0.0)
-            tt = vec3f(0.0, 0.0, 0.0)
-            for k in ti.static(range(3)):
-                ts += pw[k] * self.vtan_s[c[k, 0], c[k, 1]]
-                tt += pw[k] * self.vtan_t[c[k, 0], c[k, 1]]
-            g = _bilinear2(self.cloth_slopes, s * tpm - 0.5, t * tpm - 0.5)
-            n = n.normalized() - g[0] * ts.normalized() - g[1] * tt.normalized()
+            s += pw[k] * c[k, 2] * self.slot_spacing[slot, 0]
+            t += pw[k] * c[k, 1] * self.slot_spacing[slot, 1]
+            n += pw[k] * self.vnormal[c[k, 0], c[k, 1], c[k, 2]]
+        fabric = self.slot_dims[slot, 2]
+        albedo = vec3f(0.0, 0.0, 0.0)
+        for q in ti.static(range(len(self.cloth_tex))):
+            if fabric == q:
+                tpm = ti.static(self.cloth_texels_per_m[q])
+                if ti.static(self.relief[q]):
+                    # Tilt the normal by the relief's slopes: n - dh/ds T_s - dh/dt T_t (a height field on
+                    # the sheet).
+                    ts = vec3f(0.0, 0.0, 0.0)
+                    tt = vec3f(0.0, 0.0, 0.0)
+                    for k in ti.static(range(3)):
+                        ts += pw[k] * self.vtan_s[c[k, 0], c[k, 1], c[k, 2]]
+                        tt += pw[k] * self.vtan_t[c[k, 0], c[k, 1], c[k, 2]]
+                    g = _bilinear2(self.cloth_slopes[q], s * tpm - 0.5, t * tpm - 0.5)
+                    n = n.normalized() - g[0] * ts.normalized() - g[1] * tt.normalized()
+                albedo = _bilinear(self.cloth_tex[q], s * tpm - 0.5, t * tpm - 0.5, False)
         n = n.normalized()
-        albedo = _bilinear(self.cloth_tex, s * tpm - 0.5, t * tpm - 0.5, False)
         return albedo * (ambient + (1.0 - ambient) * ti.max(0.0, n.dot(light)))
 
     @ti.func
@@ -357,21 +407,22 @@ class Renderer:
             self.out[v, u] = total / (ss * ss)
 
     @ti.kernel
-    def _node_visibility(self, n_arms: ti.i32):
+    def _node_visibility(self, n_arms: ti.i32, n_cloths: ti.i32):
         H, W = ti.static(self.hi.height, self.hi.width)
-        for j, i in self.visible:
-            p = self.vpx[j, i]
+        for slot, j, i in self.visible:
+            p = self.vpx[slot, j, i]
             u, v = ti.cast(ti.round(p[0]), ti.i32), ti.cast(ti.round(p[1]), ti.i32)
             seen = 0
-            if 0 <= u < W and 0 <= v < H and self._arm_cover(p[0], p[1], n_arms) < 0.0:
+            in_grid = slot < n_cloths and j < self.slot_dims[slot, 1] and i < self.slot_dims[slot, 0]
+            if in_grid and 0 <= u < W and 0 <= v < H and self._arm_cover(p[0], p[1], n_arms) < 0.0:
                 seen = 1
                 key = self.key[v, u]
                 # An empty pixel means the node sits on the silhouette with nothing in front of it.
                 if key != ti.i64(_EMPTY_KEY):
                     front_m = ti.cast(key >> _TRI_BITS, ti.f32) * 1e-6
-                    if self.vdepth[j, i] - front_m > _VISIBLE_DEPTH_TOL_M:
+                    if self.vdepth[slot, j, i] - front_m > _VISIBLE_DEPTH_TOL_M:
                         seen = 0
-            self.visible[j, i] = seen
+            self.visible[slot, j, i] = seen
 
 
 def to_sensor_bgr8(image: np.ndarray, noise_sigma: float, rng: np.random.Generator) -> np.ndarray:

@@ -15,6 +15,8 @@ from typing import Annotated, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from hwsim.scenario_flow import Flow, Infeed
+
 SCENARIO_DIR = Path(__file__).parent / "scenarios"
 MAX_CAMERAS = 4
 
@@ -293,6 +295,8 @@ class Scenario(_Strict):
     timeline: list[SetCommand] = []
     random_drives: list[RandomDrive] = []
     occluders: list[Occluder] = []
+    infeed: Infeed | None = Field(None, description="pieces laid at the -x edge at a rate (a flow)")
+    flow: Flow | None = Field(None, description="the placement a flow's outfeed judges against")
 
     @property
     def frame_count(self) -> int:
@@ -327,6 +331,11 @@ class Scenario(_Strict):
         return self
 
     @model_validator(mode="after")
+    def _flow_fits(self) -> Scenario:
+        _check_flow(self)
+        return self
+
+    @model_validator(mode="after")
     def _module_ids_exist(self) -> Scenario:
         n_modules = self.table.modules_x * self.table.modules_y
         for i, cmd in enumerate(self.timeline):
@@ -334,6 +343,22 @@ class Scenario(_Strict):
             if bad:
                 raise ValueError(f"timeline[{i}].modules.ids: {bad} out of range (table has {n_modules})")
         return self
+
+
+def _check_flow(sc: Scenario) -> None:
+    """A flow's pieces and placement lie on its table; `flow` judges what an infeed lays."""
+    half_x, half_y = sc.table.modules_x * sc.table.pitch_m / 2, sc.table.modules_y * sc.table.pitch_m / 2
+    if sc.flow is not None and sc.infeed is None:
+        raise ValueError("flow: needs an infeed, whose pieces it judges")
+    if sc.infeed is not None:
+        if max(abs(y) for y in sc.infeed.y_m) > half_y:
+            raise ValueError(f"infeed.y_m: must lie within the table's ±{half_y:g} m")
+        if sc.infeed.lead_m > 2 * half_x:
+            raise ValueError(f"infeed.lead_m: must be at most the table's length, {2 * half_x:g} m")
+    if sc.flow is not None:
+        p = sc.flow.placement
+        if abs(p.x_m) > half_x or abs(p.y_m) > half_y:
+            raise ValueError(f"flow.placement: ({p.x_m}, {p.y_m}) is off the table ±{half_x:g}, ±{half_y:g}")
 
 
 def check_flap(flap: Flap, cloth: ClothSpec, key: str) -> None:

@@ -1,4 +1,4 @@
-"""What the camera sees at one instant: the cloth, the belts and any arms reaching over the table."""
+"""What the camera sees at one instant: every piece of cloth, the belts and any arms over the table."""
 
 from __future__ import annotations
 
@@ -19,11 +19,26 @@ class Arm:
 
 
 @dataclass(frozen=True)
+class SceneCloth:
+    """One piece of cloth: its truth nodes (ny, nx, 3), world, their material spacing, and which of the
+    renderer's fabrics it shows (0: the scenario's texture; hwsim.infeed.fabric_textures)."""
+
+    nodes_m: np.ndarray
+    spacing_m: tuple[float, float]  # the grid's material spacing along s and t
+    texture: int = 0
+
+
+@dataclass(frozen=True)
 class SceneState:
-    nodes_m: np.ndarray  # (ny, nx, 3) truth nodes, world
+    cloths: tuple[SceneCloth, ...]  # the lead piece first
     heading_rad: np.ndarray  # (n_modules,)
     travel_m: np.ndarray  # (n_modules,) belt surface travelled, for scrolling the belt texture
     arms: tuple[Arm, ...]
+
+    @property
+    def nodes_m(self) -> np.ndarray:
+        """The lead piece's truth nodes (ny, nx, 3)."""
+        return self.cloths[0].nodes_m
 
 
 def arms_at(occluders: list[Occluder], t_s: float) -> tuple[Arm, ...]:

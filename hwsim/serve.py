@@ -4,7 +4,9 @@
   the symlink STATE_DIR/ttyCELL.
 - Every camera as MJPEG over HTTP on 127.0.0.1 (GET /video/NAME.mjpg; GET /video.mjpg is the first),
   which OpenCV's FFmpeg backend reads.
-- Ground truth and module states at GET /truth (JSON), for tests and the truth overlay.
+- Ground truth and module states at GET /truth (JSON), for tests and the truth overlay: the lead piece's
+  pose and sheet measures (null while a flow has emptied the table) and `pieces`, every piece on the
+  table; GET /outfeed, the pieces a flow's outfeed judged (hwsim/outfeed.py).
 - Test hooks: POST /unplug?seconds=S (serial cable), POST /camera/drop?seconds=S (video stream),
   POST /fault?code=C&module=M (a controller fault report), POST /cloth with a JSON pose as in a
   scenario's `initial_pose` (lay the cloth down again there, ridges and all; 409 while a belt runs),
@@ -33,6 +35,7 @@ import numpy as np
 
 from hwsim.camera import Camera
 from hwsim.firmware_process import FirmwareProcess
+from hwsim.pieces import piece_truth
 from hwsim.recording import write_table
 from hwsim.scenario import Pose, Push, Scenario
 from hwsim.sensor import Sensor
@@ -158,9 +161,13 @@ class Cell:
     def truth(self, with_nodes: bool) -> dict[str, Any]:
         with self.lock:
             out = dict(self._truth_cache)
-            if with_nodes:
+            if with_nodes and self.world.pieces:
                 out["nodes_m"] = self.world.cloth.positions_m().round(5).tolist()
         return out
+
+    def outfeed(self) -> list[dict[str, object]]:
+        with self.lock:
+            return list(self.world.outfeed)
 
     def _run(self) -> None:
         """Step at absolute deadlines. A world held up (a loaded PC) catches up by stepping without
@@ -191,16 +198,20 @@ class Cell:
 
     def _update_truth(self) -> None:
         t = self.world.table
+        lead: dict[str, Any] = {"pose": None, **dict.fromkeys(("max_height_m", "area_ratio", "folded_ratio"))}
+        if self.world.pieces:
+            lead = {"pose": self.world.cloth_pose().tolist(), **self.world.sheet_measures()}
         self._truth_cache = {
             "t_s": self.world.t_s,
-            "pose": self.world.cloth_pose().tolist(),
+            "pose": lead["pose"],
             "module_speed_m_s": t.speed_m_s.tolist(),
             "module_heading_rad": t.heading_rad.tolist(),
             "module_cmd_speed_m_s": t.cmd_speed_m_s.tolist(),
             **self.firmware.counters(),
             "camera_frames_dropped": self.camera_frames_dropped,
             "behind_real_time_s": self.behind_real_time_s,
-            **self.world.sheet_measures(),
+            **{k: v for k, v in lead.items() if k != "pose"},
+            "pieces": [piece_truth(p) for p in self.world.pieces],
         }
 
     def _publish_frames(self, force: bool = False) -> None:
@@ -239,6 +250,8 @@ class _Handler(BaseHTTPRequestHandler):
             self._stream(stream)
         elif url.path == "/truth":
             self._json(self.cell.truth(with_nodes="nodes" in parse_qs(url.query)))
+        elif url.path == "/outfeed":
+            self._json(self.cell.outfeed())
         elif url.path[1:] in json_names:
             self._bytes((self.cell.state_dir / url.path[1:]).read_bytes(), "application/json")
         elif url.path == "/healthz":

@@ -1,5 +1,10 @@
 """The simulated cell: table, ground-truth cloth and the scenario's operator, stepped frame by frame.
 
+The cloth is piece 0, laid at the scenario's initial_pose. A scenario with an `infeed` lays more pieces at
+the -x edge and judges and takes off each piece that reaches the +x edge (hwsim/infeed.py,
+hwsim/outfeed.py); the single-cloth calls (`cloth`, `cloth_pose`, `lay`, `push`, ...) then act on the
+lead piece, the one that has been on the table longest.
+
 Frame k shows the world at t_k = k / fps. `step()` issues the commands due at t_k and advances the world
 to t_{k+1}; the module dynamics run at `MODULE_STEPS_PER_FRAME` times the frame rate so the steppers'
 acceleration ramps reach the cloth smoothly.
@@ -9,13 +14,18 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from hwsim.cloth import ClothSim
 from hwsim.cloth_constants import LAY_IN_DAMPING_1_S
+from hwsim.infeed import InfeedPlan, largest_specs
+from hwsim.outfeed import judge, leading_x_m, past_edge
+from hwsim.pieces import ClothPool, Piece, capacity_for, cloth_pose, sheet_measures
 from hwsim.scenario import Pose, Push, Scenario, check_flap
-from hwsim.scene import SceneState, arms_at
+from hwsim.scenario_flow import Placement
+from hwsim.scene import SceneCloth, SceneState, arms_at
 from hwsim.table import Table
 from hwsim.taichi_runtime import ensure_taichi
 from hwsim.timeline import Operator
@@ -45,19 +55,29 @@ class _PushInProgress:
     wall_velocity_m_s: np.ndarray  # (ny, nx, 3)
 
 
-def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return np.asarray(u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0])
-
-
 class World:
     def __init__(self, scenario: Scenario, arch: str = "cpu", log_commands: bool = True) -> None:
         ensure_taichi(arch)
         self.scenario = scenario
         self.dt_s = 1.0 / scenario.fps
         self.table = Table(scenario.table)
-        self.cloth = ClothSim(
-            scenario.cloth, scenario.table, scenario.initial_pose, scenario.cloth.substep_s, scenario.seed
+        # Without an infeed the one cloth is sized to itself, as it always was.
+        capacity = capacity_for(largest_specs(scenario)) if scenario.infeed else None
+        first = ClothSim(
+            scenario.cloth,
+            scenario.table,
+            scenario.initial_pose,
+            scenario.cloth.substep_s,
+            scenario.seed,
+            capacity,
         )
+        self.pieces = [Piece(0, first, "cloth", 0, 0.0)]
+        self.infeed = InfeedPlan(scenario, scenario.infeed) if scenario.infeed else None
+        belt = self.infeed.conveyor() if self.infeed else (-math.inf, 0.0, 0.0)
+        first.infeed_belt.from_numpy(np.array(belt))
+        self.pool = ClothPool(scenario.table, capacity or (first.grid.ny, first.grid.nx), belt)
+        self.placement = scenario.flow.placement if scenario.flow else Placement()
+        self.outfeed: list[dict[str, Any]] = []  # the judged pieces, in the order they left
         self.operator = Operator(scenario, self.table)
         self.frame_index = 0
         self.log_commands = log_commands  # a live cell runs for hours: it keeps no log
@@ -73,35 +93,24 @@ class World:
     def t_s(self) -> float:
         return self.frame_index * self.dt_s
 
+    @property
+    def cloth(self) -> ClothSim:
+        """The lead piece's cloth; a LookupError while the table is empty (only a flow empties it)."""
+        if not self.pieces:
+            raise LookupError("no piece on the table")
+        return self.pieces[0].cloth
+
     def cloth_centre_m(self) -> np.ndarray:
-        """Mean x, y of the truth nodes, (2,)."""
+        """Mean x, y of the lead piece's truth nodes, (2,)."""
         return np.asarray(self.cloth.positions_m()[..., :2].reshape(-1, 2).mean(axis=0))
 
     def cloth_pose(self) -> np.ndarray:
-        """[X_m, Y_m, theta_rad]: the centre of the truth nodes and the rotation that best maps the cloth's
-        material axes onto them (2-D Kabsch)."""
-        xy = self.cloth.positions_m()[..., :2].reshape(-1, 2)
-        st = self.cloth.grid.st_m.reshape(-1, 2)
-        c = xy.mean(axis=0)
-        M = (st - st.mean(axis=0)).T @ (xy - c)
-        return np.array([c[0], c[1], math.atan2(M[0, 1] - M[1, 0], M[0, 0] + M[1, 1])])
+        """The lead piece's pose, [X_m, Y_m, theta_rad] (hwsim.pieces.cloth_pose)."""
+        return cloth_pose(self.cloth)
 
     def sheet_measures(self) -> dict[str, float]:
-        """How flat and how stretched the truth cloth is: its highest node (m), its area projected on the
-        table over its rest area (the quads' shoelace areas, a folded-over quad's counted where it lies),
-        the share of that area folded over (quads the wrong way up), and its most stretched grid edge."""
-        x = self.cloth.positions_m()
-        g = self.cloth.grid
-        p = x[..., :2]
-        a, b, c, d = p[:-1, :-1], p[:-1, 1:], p[1:, 1:], p[1:, :-1]
-        signed = 0.5 * (_cross(a, b) + _cross(b, c) + _cross(c, d) + _cross(d, a))
-        rest_area = (g.nx - 1) * g.dx_m * (g.ny - 1) * g.dy_m
-        return {
-            "max_height_m": float(x[..., 2].max()),
-            "area_ratio": float(np.abs(signed).sum() / rest_area),
-            "folded_ratio": float(-signed[signed < 0].sum() / rest_area),
-            "max_strain": float(g.edge_strains(x).max()),
-        }
+        """How flat and how stretched the lead piece is (hwsim.pieces.sheet_measures)."""
+        return sheet_measures(self.cloth)
 
     def push(self, push: Push) -> None:
         """Start two hands pushing a ridge into the cloth (hwsim.scenario.Push); they let go by themselves.
@@ -137,7 +146,7 @@ class World:
         """Lay the cloth down again at `pose` (its ridges laid in, its flaps folded over) on the belts as
         they are turned now. A flap larger than the cloth allows is a ValueError naming it."""
         for i, flap in enumerate(pose.flaps):
-            check_flap(flap, self.scenario.cloth, f"flaps.{i}")
+            check_flap(flap, self.cloth.spec, f"flaps.{i}")
         self._push = None
         self._letting_go_until_s = -math.inf
         self.cloth.lay(pose, self.table.heading_rad)
@@ -146,15 +155,24 @@ class World:
         """What the camera sees `before_s` before now; motion blur looks a few ms back, extrapolating the
         cloth and belts at their current velocities."""
         return SceneState(
-            self.cloth.positions_m() - before_s * self.cloth.velocities_m_s(),
+            tuple(
+                SceneCloth(
+                    p.cloth.positions_m() - before_s * p.cloth.velocities_m_s(),
+                    (p.cloth.grid.dx_m, p.cloth.grid.dy_m),
+                    p.texture,
+                )
+                for p in self.pieces
+            ),
             self.table.heading_rad.copy(),
             self.table.travel_m - before_s * self.table.speed_m_s,
             arms_at(self.scenario.occluders, self.t_s - before_s),
         )
 
     def step(self) -> None:
-        """Issue the commands due at t_k, then advance to t_{k+1}."""
-        self.operator.apply(self.t_s, self.dt_s, self.cloth_centre_m())
+        """Issue the commands due at t_k, then advance to t_{k+1}; then the outfeed takes what reached it
+        and the infeed lays what is due."""
+        centre = self.cloth_centre_m() if self.pieces else np.zeros(2)
+        self.operator.apply(self.t_s, self.dt_s, centre)
         if self.log_commands:
             self._log_commands()
         self._advance()
@@ -166,13 +184,44 @@ class World:
                 self._letting_go_until_s = self.t_s + LET_GO_S
             else:
                 self._drive_hands()
+        if self.infeed is not None:
+            self._outfeed()
+            self._infeed()
 
     def _advance(self) -> None:
         dt = self.dt_s / MODULE_STEPS_PER_FRAME
         damping_1_s = LAY_IN_DAMPING_1_S if self.t_s < self._letting_go_until_s - 1e-9 else None
         for _ in range(MODULE_STEPS_PER_FRAME):
             self.table.step(dt)
-            self.cloth.advance(dt, self.table.speed_m_s, self.table.heading_rad, damping_1_s)
+            for k, piece in enumerate(self.pieces):  # the hands hold the lead piece only
+                piece.cloth.advance(
+                    dt, self.table.speed_m_s, self.table.heading_rad, damping_1_s if k == 0 else None
+                )
+
+    def _outfeed(self) -> None:
+        """Judge each piece whose leading edge reached the +x edge; take off those past it."""
+        x_max_m = self.table.half_extent_m[0]
+        for piece in self.pieces:
+            if not piece.judged and leading_x_m(piece) >= x_max_m:
+                self.outfeed.append(judge(piece, self.t_s, self.placement))
+                piece.judged = True
+        for piece in [p for p in self.pieces if p.judged and past_edge(p, x_max_m)]:
+            if piece is self.pieces[0]:  # the hands were on it
+                self._push, self._letting_go_until_s = None, -math.inf
+            self.pieces.remove(piece)
+            self.pool.park(piece.cloth)
+
+    def _infeed(self) -> None:
+        """Lay the next due piece once its place is clear (one a frame)."""
+        plan = self.infeed
+        assert plan is not None
+        others = [float(p.cloth.positions_m()[..., 0].min()) for p in self.pieces]
+        if plan.waiting(self.t_s) > 0 and plan.entry_clear(others):
+            drawn = plan.draw()
+            cloth = self.pool.take(drawn.spec, drawn.pose, drawn.seed, self.table.heading_rad)
+            self.pieces.append(
+                Piece(plan.laid_count, cloth, drawn.fabric, drawn.texture, self.t_s, drawn.flap)
+            )
 
     def _log_commands(self) -> None:
         t = self.table
