@@ -102,12 +102,20 @@ def serve_cell(tmp_path_factory: pytest.TempPathFactory, scenario: str = "cell")
 
 
 def start_daemon(
-    cell: Cell, tmp_path: Path, env: dict[str, str] | None = None, config: dict[str, Any] | None = None
+    cell: Cell,
+    tmp_path: Path,
+    env: dict[str, str] | None = None,
+    config: dict[str, Any] | None = None,
+    cameras: int | None = None,
 ) -> Daemon:
-    """`clothd run` against the cell; `config` adds sections to its configuration."""
+    """`clothd run` against the cell; `config` adds sections to its configuration. It reads every camera
+    of the cell, as `clothd run --sim` does, or the first `cameras`."""
     port = _free_port()
     cfg: dict[str, Any] = {
-        "camera": {"source": cell.ready["video_url"], "calibration": cell.ready["camera_json"]},
+        "cameras": [
+            {"name": c["name"], "source": c["video_url"], "calibration": c["camera_json"]}
+            for c in cell.ready["cameras"][:cameras]
+        ],
         "stepper": {"port": cell.ready["serial"]},
         "api": {"port": port},
         "opcua": {"endpoint": f"opc.tcp://127.0.0.1:{_free_port()}/clothd/"},  # never the shared 4840

@@ -93,6 +93,17 @@ def test_page_loads_and_shows_the_live_state(page: Page) -> None:
         "document.getElementById('flatness').textContent.startsWith('flat ·')", timeout=10000
     )
     assert "0 ridges" in (page.text_content("#flatness") or "")
+    # Beside it, what the flatness rests on (the status's flatness.basis), in words.
+    page.wait_for_function(
+        "document.getElementById('basis').textContent.startsWith('· basis: ')", timeout=10000
+    )
+    assert (page.text_content("#basis") or "").removeprefix("· basis: ") in ("measured", "since start")
+    # Both cameras of the default cell, the second with its skew to the first measured.
+    page.wait_for_function(
+        "/^cam0 streaming \\| cam1 streaming · skew [+-]\\d+\\.\\d ms/"
+        ".test(document.getElementById('cameras').textContent)",
+        timeout=20000,
+    )
     assert page.is_visible("#estop")  # always visible at 1280 x 720
     box = page.locator("#estop").bounding_box()
     assert box is not None and box["y"] + box["height"] <= 720 and box["x"] + box["width"] <= 1280

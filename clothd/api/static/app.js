@@ -71,6 +71,16 @@ function showFaults(faults) {
   }));
 }
 
+const BASIS_WORDS = { measured: "measured", since_start: "since start" }; // status flatness.basis
+
+// Every camera's state; a further one's skew to the first (median, ms) and the share of frames paired.
+function showCameras(cameras) {
+  $("cameras").textContent = cameras.map((c, i) => `${c.name} ${c.state}` + (i === 0 ? "" :
+    ` · skew ${c.skew_ms === null ? "–" : `${c.skew_ms >= 0 ? "+" : ""}${fmt(c.skew_ms, 1)}`} ms, ` +
+    `${fmt(c.paired_pct, 0)} % paired`)).join(" | ") || "–";
+  $("cameras").className = `small${cameras.some((c) => !c.healthy) ? " warn" : ""}`;
+}
+
 function show(s) {
   const stateCls = s.state === "tracking" ? "ok" : s.state === "starting" ? "warn" : "bad";
   pill($("state"), s.state, stateCls);
@@ -93,6 +103,8 @@ function show(s) {
     `${fmt(f.compressed_area_pct, 1)} % holds slack · ${f.ridges.length} ridge${f.ridges.length === 1 ? "" : "s"}` +
     (f.flaps.length ? ` · ${f.flaps.length} flap${f.flaps.length === 1 ? "" : "s"} (fold back by hand)` : "");
   $("flatness").className = f && !f.flat ? "warn" : "";
+  $("basis").textContent = !f ? "" : `· basis: ${BASIS_WORDS[f.basis] || f.basis}`;
+  showCameras(s.cameras || []);
   $("residual").textContent = `${fmt(s.residual.mean_px, 2)} / ${fmt(s.residual.worst_px, 2)} px`;
   const tick = s.timing.stages.compute || {};
   $("missed").textContent = s.timing.missed_ticks;
