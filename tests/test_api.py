@@ -141,7 +141,10 @@ def test_metrics_and_health(client: TestClient) -> None:
 
 def test_stream_sends_the_status_at_once(client: TestClient) -> None:
     with client.websocket_connect("/api/v1/stream?hz=5", headers=WS_OWN) as ws:
-        assert ws.receive_json()["mode"] == "idle"
+        first = ws.receive_json()
+    assert first["mode"] == "idle"
+    assert first["cameras"] == client.get("/api/v1/status").json()["cameras"]  # the same status
+    assert [c["name"] for c in first["cameras"]] == ["cam0"]
 
 
 def test_slow_subscriber_drops_instead_of_queueing() -> None:
