@@ -1,0 +1,262 @@
+"""`clothd run` driving the STM32 firmware in QEMU: hwsim's rendered camera for the cloth, and
+`stepper.port` on a pty that taps the line between the daemon and QEMU's USART (every frame timestamped
+both ways). A move's COMMANDs reach the firmware (its ACKs on the wire, its step rates and step counts
+read from its memory through qtest), `POST /api/v1/estop` latches it (the ESTOP frame and the ACK with
+the e-stop flag on the wire, the drivers cut in its memory), and killing the daemon stops it through its
+watchdog. The cloth does not move: the firmware drives no table; what is checked is the link.
+
+Figures are printed (the e-stop on the wire, the watchdog's FAULT after the last frame); the test holds
+them to their order and to "not early", never to a wall-clock upper bound: the machine is shared."""
+
+from __future__ import annotations
+
+import os
+import select
+import signal
+import threading
+import time
+import tty
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+import pytest
+from firmware_links import QemuFirmware, boot_qemu, build_stm32
+from live_cell import Cell, Daemon, serve_cell, start_daemon, wait
+
+from clothd.drivers import wire
+
+pytestmark = pytest.mark.slow
+N = 48  # BOARD_MODULES, and hwsim's cell
+WATCHDOG_S = 0.25  # docs/serial-protocol.md
+FAULT_WATCHDOG = 1
+T = wire.MsgType
+
+
+@dataclass(frozen=True)
+class Seen:
+    t_s: float  # time.monotonic() when the tap read it
+    to_firmware: bool
+    msg: wire.Message
+
+
+class WireTap:
+    """A pty for the daemon, copied byte for byte to and from QEMU's pty by a thread that decodes and
+    timestamps every frame on the way."""
+
+    def __init__(self, firmware_fd: int) -> None:
+        self.firmware_fd = firmware_fd
+        self.master, self.slave = os.openpty()  # the slave held open: the daemon may close and reopen it
+        tty.setraw(self.slave)
+        self.path = os.ttyname(self.slave)
+        self.frames: list[Seen] = []
+        self.lock = threading.Lock()
+        self.stop_r, self.stop_w = os.pipe()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _copy(self, src: int, dst: int, splitter: wire.FrameSplitter, to_firmware: bool) -> None:
+        data = os.read(src, 4096)
+        t_s = time.monotonic()
+        view = memoryview(data)
+        while view:
+            select.select([], [dst], [], 1.0)
+            view = view[os.write(dst, view) :]
+        for packet in splitter.feed(data):
+            try:
+                seen = Seen(t_s, to_firmware, wire.decode(packet))
+            except ValueError:
+                continue  # counted by the link's own 'invalid'; nothing to time
+            with self.lock:
+                self.frames.append(seen)
+
+    def _run(self) -> None:
+        out, back = wire.FrameSplitter(), wire.FrameSplitter()
+        while True:
+            ready = select.select([self.master, self.firmware_fd, self.stop_r], [], [])[0]
+            if self.stop_r in ready:
+                return
+            if self.master in ready:
+                self._copy(self.master, self.firmware_fd, out, to_firmware=True)
+            if self.firmware_fd in ready:
+                self._copy(self.firmware_fd, self.master, back, to_firmware=False)
+
+    def since(self, t_s: float) -> list[Seen]:
+        with self.lock:
+            return [f for f in self.frames if f.t_s >= t_s]
+
+    def first(self, t_s: float, match: Callable[[Seen], bool], what: str, timeout_s: float = 20.0) -> Seen:
+        found: list[Seen] = []
+
+        def seen() -> bool:
+            found[:] = [f for f in self.since(t_s) if match(f)]
+            return bool(found)
+
+        wait(seen, timeout_s, what, every_s=0.001)
+        return found[0]
+
+    def close(self) -> None:
+        os.write(self.stop_w, b"x")
+        self.thread.join(timeout=5)
+        for fd in (self.master, self.slave, self.stop_r, self.stop_w):
+            os.close(fd)
+
+
+@pytest.fixture(scope="module")
+def firmware(tmp_path_factory: pytest.TempPathFactory) -> Iterator[QemuFirmware]:
+    with boot_qemu(build_stm32(), tmp_path_factory.mktemp("qemu")) as booted:
+        yield booted
+
+
+@pytest.fixture(scope="module")
+def tap(firmware: QemuFirmware) -> Iterator[WireTap]:
+    wire_tap = WireTap(firmware.holder)
+    yield wire_tap
+    wire_tap.close()
+
+
+@pytest.fixture(scope="module")
+def hwsim_cell(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cell]:
+    """hwsim serve for its camera only: the daemon's stepper link goes to the tap, not to hwsim's pty."""
+    yield from serve_cell(tmp_path_factory)
+
+
+def _rates(firmware: QemuFirmware) -> list[int]:
+    """The drive step rates the core last set, for every module (steps/s)."""
+    return [firmware.read_i32("drive_steps_per_s", m) for m in range(N)]
+
+
+def _positions(firmware: QemuFirmware) -> list[int]:
+    """Steps issued on the 8 stepper channels that have pins (modules 0-3)."""
+    return [firmware.read_i32("step_position", c) for c in range(8)]
+
+
+def _is(msg_type: int, to_firmware: bool) -> Callable[[Seen], bool]:
+    return lambda f: f.msg.type == msg_type and f.to_firmware == to_firmware
+
+
+def _moving_command(f: Seen) -> bool:
+    if not (f.to_firmware and f.msg.type == T.COMMAND):
+        return False
+    speeds = [int.from_bytes(f.msg.payload[2 + 4 * i : 4 + 4 * i], "little", signed=True) for i in range(N)]
+    return any(speeds)
+
+
+def _acked(tap: WireTap, command: Seen) -> Seen:
+    return tap.first(
+        command.t_s,
+        lambda f: f.msg.type == T.ACK and not f.to_firmware and f.msg.seq == command.msg.seq,
+        f"the ACK of COMMAND seq {command.msg.seq}",
+    )
+
+
+def _move(daemon: Daemon, tap: WireTap, firmware: QemuFirmware) -> Seen:
+    """A move: its COMMANDs with speeds on the wire, ACKed, and the firmware's rates set from them."""
+    t0 = time.monotonic()
+    refusals: list[str] = []
+
+    def accepted() -> bool:
+        # On a loaded machine the link may be reconnecting, or tracking starting again, for a moment.
+        try:
+            daemon.put_setpoint({"mode": "move", "x_m": 0.05, "y_m": 0.03, "theta_rad": 0.25})
+        except httpx.HTTPStatusError as err:
+            refusals.append(err.response.text)
+            return False
+        return True
+
+    wait(accepted, 30, "a move accepted", every_s=0.5)
+    if refusals:
+        print(f"\nmove refused {len(refusals)} time(s) first: {refusals[-1]}")
+    command = tap.first(t0, _moving_command, "a COMMAND with a speed")
+    ack = _acked(tap, command)
+    assert wire.parse_ack(ack.msg.payload) == 0
+    wait(lambda: any(_rates(firmware)), 5, "the firmware stepping from the host's COMMANDs")
+    return command
+
+
+def _start(hwsim_cell: Cell, tap: WireTap, tmp_path: Path) -> Daemon:
+    return start_daemon(hwsim_cell, tmp_path, config={"stepper": {"port": tap.path}})
+
+
+def test_clothd_run_drives_the_qemu_firmware_and_its_estop_latches(
+    hwsim_cell: Cell, tap: WireTap, firmware: QemuFirmware, tmp_path: Path
+) -> None:
+    daemon = _start(hwsim_cell, tap, tmp_path)
+    try:
+        hello = tap.first(0.0, _is(T.HELLO_ACK, to_firmware=False), "the firmware's HELLO_ACK")
+        assert wire.parse_hello_ack(hello.msg.payload).n_modules == N
+        _move(daemon, tap, firmware)
+        acked_before = daemon.status()["link"]["counters"]["acked"]
+
+        t_post = time.monotonic()
+        daemon.post("/estop")
+        estop = tap.first(t_post, _is(T.ESTOP, to_firmware=True), "the ESTOP frame")
+        latched = tap.first(
+            estop.t_s,
+            lambda f: f.msg.type == T.ACK and not f.to_firmware and f.msg.seq == estop.msg.seq,
+            "the ESTOP's ACK",
+        )
+        assert wire.parse_ack(latched.msg.payload) & wire.FLAG_ESTOP
+        assert t_post <= estop.t_s <= latched.t_s
+        print(
+            "\nclothd run -> QEMU e-stop on the wire: POST to ESTOP frame "
+            f"{(estop.t_s - t_post) * 1e3:.1f} ms, "
+            f"to its ACK with the e-stop flag {(latched.t_s - t_post) * 1e3:.1f} ms "
+            f"(ESTOP frame to ACK {(latched.t_s - estop.t_s) * 1e3:.1f} ms)"
+        )
+        assert firmware.read_u8("drivers_enabled") == 0 and not any(_rates(firmware))
+        held = _positions(firmware)
+        time.sleep(0.3)  # held: the daemon PINGs, sends no COMMAND, and no step is issued
+        assert not [f for f in tap.since(latched.t_s) if f.to_firmware and f.msg.type == T.COMMAND]
+        assert firmware.read_u8("drivers_enabled") == 0 and _positions(firmware) == held
+
+        def reported() -> bool:
+            s = daemon.status()
+            return bool(
+                s["estop"] and s["link"]["controller_estop"] and s["link"]["counters"]["acked"] > acked_before
+            )
+
+        wait(reported, 20, "the daemon's status reporting the controller's e-stop")
+
+        t_clear = time.monotonic()
+        daemon.post("/estop/clear")
+        clear = tap.first(t_clear, _is(T.ESTOP_CLEAR, to_firmware=True), "the ESTOP_CLEAR frame")
+        cleared = _acked(tap, clear)
+        assert wire.parse_ack(cleared.msg.payload) == 0 and firmware.read_u8("drivers_enabled") == 1
+    finally:
+        daemon.stop()
+
+
+def test_killing_clothd_run_stops_the_qemu_firmware_through_its_watchdog(
+    hwsim_cell: Cell, tap: WireTap, firmware: QemuFirmware, tmp_path: Path
+) -> None:
+    daemon = _start(hwsim_cell, tap, tmp_path)
+    try:
+        _move(daemon, tap, firmware)
+        os.kill(daemon.proc.pid, signal.SIGKILL)
+        daemon.proc.wait()
+        last = max((f for f in tap.since(0.0) if f.to_firmware), key=lambda f: f.t_s)
+        assert last.msg.type == T.COMMAND, last  # a moving daemon sends a COMMAND each tick
+        # The last COMMAND's ACK: a FAULT after it on the line was sent after the COMMAND re-armed the
+        # watchdog (a stalled daemon on a loaded machine may have tripped it just before).
+        ack = _acked(tap, last)
+        fault = tap.first(
+            ack.t_s,
+            lambda f: f.msg.type == T.FAULT and not f.to_firmware and f.msg.payload[0] == FAULT_WATCHDOG,
+            "the watchdog's FAULT",
+        )
+        took_s = fault.t_s - last.t_s
+        print(
+            f"\nclothd run killed -> QEMU watchdog FAULT {took_s * 1e3:.1f} ms "
+            "after the last frame on the wire"
+        )
+        # The firmware times from when the last frame arrived, after the tap passed it on: never sooner.
+        assert took_s >= WATCHDOG_S
+        wait(lambda: not any(_rates(firmware)), 2, "every module ramped to a stop")
+        assert firmware.read_u8("drivers_enabled") == 1  # a controlled stop, not a cut
+        still = _positions(firmware)
+        time.sleep(0.1)
+        assert _positions(firmware) == still
+    finally:
+        daemon.stop()
