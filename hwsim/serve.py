@@ -216,7 +216,10 @@ class Cell:
 
     def _publish_frames(self, force: bool = False) -> None:
         """Every camera due at this step renders the same world instant (plus its capture skew); a camera
-        other than the first renders only while a client streams it."""
+        other than the first renders only while a client streams it. The frames of one instant go out
+        together, as two cameras exposing at once deliver theirs: published one by one, the second camera's
+        frame left a render and an encode after the first's, a skew no real pair of that instant has."""
+        rendered = []
         for i, stream in enumerate(self.streams):
             if not force and self.world.frame_index % stream.every != 0:
                 continue
@@ -224,9 +227,16 @@ class Cell:
                 stream.frame = None  # a client that comes waits for a fresh frame, not an old one
                 continue
             k = self.world.frame_index // stream.every
-            jpeg = stream.sensor.jpeg(self.world, k)
+            rendered.append(
+                (
+                    stream,
+                    VideoFrame(k, stream.sensor.jpeg(self.world, k), self.world.t_s + stream.sensor.skew_s),
+                )
+            )
+        if rendered:
             with self.frame_cond:
-                stream.frame = VideoFrame(k, jpeg, self.world.t_s + stream.sensor.skew_s)
+                for stream, frame in rendered:
+                    stream.frame = frame
                 self.frame_cond.notify_all()
 
 
