@@ -371,3 +371,19 @@ def coverage_holes(mask: np.ndarray, px: np.ndarray, cell_px: int) -> np.ndarray
         return np.zeros((h, w), np.uint8)
     full = np.repeat(np.repeat(holes, cell_px, axis=0), cell_px, axis=1)[:h, :w]
     return np.where(full & (mask > 0), np.uint8(255), np.uint8(0))
+
+
+SELF_SIMILARITY_SAMPLE = 200  # the first features whose windows tell a repeating pattern
+
+
+def classify_texture(gray: np.ndarray, px: np.ndarray, cfg: FeatureConfig) -> tuple[bool, bool]:
+    """(periodic, repetitive) from a cloth's first features px (n, 2). A periodic weave: stripes
+    everywhere, so their structure tensors are nearly rank one (the aperture problem); it takes a wider LK
+    window and the outline as a measurement. A repeating pattern with corners (a check): its windows match
+    themselves a few pixels away; LK takes no coarser level."""
+    ratios, _ = structure_ratios(gray, px, cfg.lk_window_px)
+    periodic = len(px) > 0 and float(np.nanmedian(np.nan_to_num(ratios, posinf=1e12))) >= cfg.periodic_ratio
+    if periodic:
+        return True, False
+    similar = self_similarity(gray, px[:SELF_SIMILARITY_SAMPLE], cfg.lk_window_px)
+    return False, bool(np.isfinite(similar).any()) and float(np.nanmedian(similar)) >= cfg.repetitive_ncc

@@ -128,6 +128,11 @@ class QuadMesh:
         """(dx, dy): node spacing along the first and second axis, metres."""
         return self.width_m / (self.nx - 1), self.height_m / (self.ny - 1)
 
+    @property
+    def centre_m(self) -> np.ndarray:
+        """(2,): the rectangle's centre in cloth space, metres."""
+        return np.asarray(self.origin_m + np.array([self.width_m, self.height_m]) @ self.axes / 2.0)
+
     def rest_nodes_m(self) -> np.ndarray:
         """(ny, nx, 2): node positions in cloth space, metres."""
         dx, dy = self.spacing_m

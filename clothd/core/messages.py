@@ -99,6 +99,25 @@ class Estimate:
     # What the mesh's rest shape rests on: a surface measured through a second view, or the first frame's.
     flatness_basis: FlatnessBasis = FlatnessBasis.SINCE_START
 
+    @classmethod
+    def lost(cls, t_s: float, timing_s: dict[str, float]) -> Estimate:
+        """The estimate of a frame the cloth was not found in."""
+        empty = np.zeros((0, 2))
+        return cls(
+            frame_t_s=t_s,
+            status="lost",
+            pose=np.full(3, np.nan),
+            pose_cov=np.full((3, 3), np.nan),
+            nodes_m=None,
+            outline_m=None,
+            cloth_size_m=None,
+            feature_id=np.zeros(0, np.int64),
+            meas_px=empty,
+            pred_px=empty,
+            stats=UpdateStats(0, 0, 0.0),
+            timing_s=timing_s,
+        )
+
     @property
     def tracking(self) -> bool:
         return self.status == "tracking"

@@ -30,12 +30,12 @@ from clothd.core.features import (
     FeatureEngine,
     GrayFrame,
     aperture_whitening,
+    classify_texture,
     coverage_holes,
-    self_similarity,
-    structure_ratios,
 )
 from clothd.core.mesh import QuadMesh
 from clothd.core.messages import Detections, Estimate, ModuleCommands, PairedView
+from clothd.core.modes import FlatnessBasis
 from clothd.core.outline_edges import OutlineEdges
 from clothd.core.segmentation import (
     ClothColour,
@@ -44,6 +44,8 @@ from clothd.core.segmentation import (
     find_cloth,
     full_frame_region,
 )
+from clothd.core.stereo import fit_height_field, measure_surface
+from clothd.core.unfold import unfold
 
 Clock = Callable[[], float]
 MIN_DT_S = 1e-3  # two frames with the same time stamp still advance the model a little
@@ -52,7 +54,9 @@ MIN_FEATURES_TO_RESAMPLE = 3  # an outline through fewer features means nothing
 # On a repeating pattern, a feature whose two LK starts land this far apart landed on two look-alikes.
 AMBIGUOUS_PX = 1.0
 AMBIGUOUS_NEAR_PX = 2.0  # ... and is kept if one of them lies this near where the others put the cloth
-SELF_SIMILARITY_SAMPLE = 200  # the first features whose windows tell a repeating pattern
+# Tracking begins on a frame a further view pairs (its surface is measured then): this many frames are
+# waited for one before tracking begins on one view.
+PAIR_WAIT_FRAMES = 8
 
 
 class Tracker:
@@ -123,6 +127,8 @@ class Tracker:
         # The cloth is a repeating pattern with corners, a check (FeatureConfig.repetitive_ncc).
         self.repetitive = False
         self.engine = self._engine_default
+        self.flatness_basis = FlatnessBasis.SINCE_START  # the rest shape: the first frame's, or measured
+        self._pair_waits = 0  # frames waited for a further view's pair to begin tracking on
         self.anchors.reset()
         self._upkeep_frame: GrayFrame | None = None  # the tracked frame whose upkeep is still to do
         self._detected: list[Detections] = []  # features detected since the last estimate
@@ -143,6 +149,11 @@ class Tracker:
             estimate.timing_s["resample"] = upkeep_s
             estimate.timing_s["tick"] += upkeep_s
         return estimate
+
+    @property
+    def initialising(self) -> bool:
+        """The next frame begins tracking afresh (the further cameras' views are used then)."""
+        return self.features is None or self.prev is None
 
     def upkeep(self) -> float | None:
         """The last tracked frame's upkeep, which its estimate does not need: new features where the cloth
@@ -171,7 +182,7 @@ class Tracker:
         frame = self.engine.prepare(image)
         u = self._advance_modules(frame_t_s, commands)
         if self.features is None or self.prev is None:
-            return self._initialise(frame, image, frame_t_s, timing, t0)
+            return self._initialise(frame, image, frame_t_s, views, timing, t0)
         features = self.features
         dt_s = max(frame_t_s - self.prev_t_s, MIN_DT_S)
         t1 = self.clock()
@@ -214,7 +225,7 @@ class Tracker:
         estimate = self._estimate(frame_t_s, meas, stats, timing, image)
         if self._diverged(stats):
             self.reset()
-            estimate = _lost(frame_t_s, timing)
+            estimate = Estimate.lost(frame_t_s, timing)
         else:
             self._upkeep_frame = frame
         self.prev, self.prev_t_s = frame, frame_t_s
@@ -260,40 +271,34 @@ class Tracker:
         return BeltField(self.layout, speed, heading)
 
     def _initialise(
-        self, frame: GrayFrame, image: np.ndarray, t_s: float, timing: dict[str, float], t0: float
+        self,
+        frame: GrayFrame,
+        image: np.ndarray,
+        t_s: float,
+        views: Sequence[PairedView | None],
+        timing: dict[str, float],
+        t0: float,
     ) -> Estimate:
         h, w = image.shape[:2]
         region: ClothRegion | None = full_frame_region(w, h) if self.roi == "full" else find_cloth(image)
-        if region is None:
-            return _lost(t_s, timing)
-        corners_world = self.camera_model.backproject_to_plane(region.corners_px.astype(np.float64))[:, :2]
-        self.mesh = QuadMesh.covering(corners_world, self.cfg.mesh.nodes_x, self.cfg.mesh.nodes_y)
-        self.estimator.start(self.mesh, np.array([*corners_world.mean(axis=0), self.mesh.theta_rad]))
-        self.features = FeatureSet(self.mesh, self._next_feature_id)
-        self.prev, self.prev_t_s = frame, t_s
+        if region is None or self._awaits_pair(t_s, views):
+            return Estimate.lost(t_s, timing)
         f = self.cfg.features
-        self.colour = region.colour
         # Features on the cloth seen, not on whatever its rectangle holds besides (a folded-over corner's
         # place shows the belts).
         outline_mask = cloth_mask_from_outline(region.corners_px, w, h, int(f.edge_margin_px))
         mask = cv2.bitwise_and(outline_mask, region.mask)
         px = self.engine.detect(frame, mask, f.max_features).astype(np.float64)
         self.initial_features = len(px)
-        # A periodic weave: stripes everywhere, so the first features' structure tensors are nearly
-        # rank one (the aperture problem). Then a wider LK window, and the outline as a measurement.
-        ratios, _ = structure_ratios(frame.gray, px, f.lk_window_px)
-        self.periodic = (
-            len(px) > 0 and float(np.nanmedian(np.nan_to_num(ratios, posinf=1e12))) >= f.periodic_ratio
-        )
-        if self.periodic:
-            self.engine = self._engine_periodic
-        else:
-            similar = self_similarity(frame.gray, px[:SELF_SIMILARITY_SAMPLE], f.lk_window_px)
-            self.repetitive = (
-                bool(np.isfinite(similar).any()) and float(np.nanmedian(similar)) >= f.repetitive_ncc
-            )
-            if self.repetitive:
-                self.engine = self._engine_repetitive
+        nodes_m = self._lay_mesh(frame, region, px, t_s, views)
+        assert self.mesh is not None
+        self.estimator.start(self.mesh, np.array([*self.mesh.centre_m, self.mesh.theta_rad]), nodes_m)
+        self.features = FeatureSet(self.mesh, self._next_feature_id)
+        self.prev, self.prev_t_s = frame, t_s
+        self.colour = region.colour
+        self.periodic, self.repetitive = classify_texture(frame.gray, px, f)
+        if self.periodic or self.repetitive:
+            self.engine = self._engine_periodic if self.periodic else self._engine_repetitive
         state = self.estimator.estimate()
         if (
             self.periodic
@@ -305,13 +310,53 @@ class Tracker:
                 self.mesh, region.colour, self.camera_model, f.outline_per_side, f.outline_search_px, 100.0
             )
             self.outline.measure(image, state.nodes_m.reshape(-1, 3))  # the points' offsets at the start
-        # Cloth space is where the cloth lies now.
-        self._add_features(px, self.camera_model.backproject_to_plane(px)[:, :2], np.ones(len(px), bool), t_s)
+        if nodes_m is None:  # cloth space is where the cloth lies now
+            self._add_features(
+                px, self.camera_model.backproject_to_plane(px)[:, :2], np.ones(len(px), bool), t_s
+            )
+        else:  # ... or where the measured surface's material points lie flat
+            self._add_features(px, *self.estimator.cloth_coordinates(px), t_s)
         if f.anchor:
             self.anchors.adopt(frame, self.features)
         timing["tick"] = self.clock() - t0
         stats = UpdateStats(len(self.features), 0, 0.0)
         return self._estimate(t_s, self.features.px.astype(np.float64), stats, timing, image)
+
+    def _awaits_pair(self, t_s: float, views: Sequence[PairedView | None]) -> bool:
+        """No further view pairs this frame closely enough: wait for one, PAIR_WAIT_FRAMES at most."""
+        if not self.other_cameras or not self.cfg.estimates_shape:
+            return False
+        skew_s = self.cfg.stereo.max_skew_ms * 1e-3
+        paired = any(v is not None and abs(v.t_s - t_s) <= skew_s for v in views)
+        if paired or self._pair_waits >= PAIR_WAIT_FRAMES:
+            self._pair_waits = 0
+            return False
+        self._pair_waits += 1
+        return True
+
+    def _lay_mesh(
+        self,
+        frame: GrayFrame,
+        region: ClothRegion,
+        px: np.ndarray,
+        t_s: float,
+        views: Sequence[PairedView | None],
+    ) -> np.ndarray | None:
+        """The tracking mesh (self.mesh) over the cloth found in the first frame: over its footprint, or,
+        where a second view measures the surface, over the cloth as it would lie flat. The nodes' positions
+        now (n, 3) in the second case, None in the first (they lie on the footprint)."""
+        corners_world = self.camera_model.backproject_to_plane(region.corners_px.astype(np.float64))[:, :2]
+        footprint = QuadMesh.covering(corners_world, self.cfg.mesh.nodes_x, self.cfg.mesh.nodes_y)
+        self.mesh, self.flatness_basis = footprint, FlatnessBasis.SINCE_START
+        points = None
+        if self.cfg.estimates_shape:
+            cams = self.other_cameras
+            points = measure_surface(frame.gray, px, t_s, self.camera_model, cams, views, self.cfg.stereo)
+        if points is None:
+            return None
+        self.mesh, nodes_m = unfold(footprint, fit_height_field(points, footprint))
+        self.flatness_basis = FlatnessBasis.MEASURED
+        return nodes_m
 
     def _diverged(self, stats: UpdateStats) -> bool:
         """Lost: too few features survive, or the innovations are far beyond what the filter expects."""
@@ -387,22 +432,5 @@ class Tracker:
             timing_s=timing,
             quad_seen=quad_seen,
             detected=detected.subset(np.isin(detected.ids, self.features.ids)),  # the dropped never reach one
+            flatness_basis=self.flatness_basis,
         )
-
-
-def _lost(t_s: float, timing: dict[str, float]) -> Estimate:
-    empty = np.zeros((0, 2))
-    return Estimate(
-        frame_t_s=t_s,
-        status="lost",
-        pose=np.full(3, np.nan),
-        pose_cov=np.full((3, 3), np.nan),
-        nodes_m=None,
-        outline_m=None,
-        cloth_size_m=None,
-        feature_id=np.zeros(0, np.int64),
-        meas_px=empty,
-        pred_px=empty,
-        stats=UpdateStats(0, 0, 0.0),
-        timing_s=timing,
-    )

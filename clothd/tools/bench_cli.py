@@ -29,7 +29,12 @@ def _cmd_bench_flatten(args: argparse.Namespace) -> int:
     from clothd.tools.bench_flatten import format_result, run_bench, write_json
 
     result = run_bench(
-        starts=args.starts, seed=args.seed, flatten_s=args.flatten_seconds, lockstep=args.lockstep
+        starts=args.starts,
+        seed=args.seed,
+        flatten_s=args.flatten_seconds,
+        lockstep=args.lockstep,
+        start=args.start,
+        cameras=args.cameras,
     )
     print(format_result(result))
     if args.json:
@@ -299,8 +304,15 @@ def _add_loop(bsub: Subparsers) -> None:
 
 
 def _add_flatten(bsub: Subparsers) -> None:
-    bfl = bsub.add_parser(
-        "flatten", help="the closed loop flattens pushed-in ridges, judged by hwsim's truth"
+    bfl = bsub.add_parser("flatten", help="the closed loop flattens wrinkled cloth, judged by hwsim's truth")
+    bfl.add_argument(
+        "--start",
+        choices=["pushed", "laid"],
+        default="pushed",
+        help="ridges pushed in while tracking (pushed) or laid before it begins, as a piece arrives (laid)",
+    )
+    bfl.add_argument(
+        "--cameras", type=int, choices=[1, 2], help="the simulated cell's first N cameras (default: all)"
     )
     bfl.add_argument("--starts", type=int, default=20, help="seeded starting states")
     bfl.add_argument("--seed", type=int, default=0)

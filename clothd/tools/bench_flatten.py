@@ -5,6 +5,10 @@
 tracker reset onto it; then hands push one or two ridges into it (POST /cloth/push) while the daemon
 watches, as wrinkles arise in handling. Then:
 
+With `--start laid` the ridges (5-20 mm high, on the same lines) are laid into the cloth before tracking
+begins instead: the wrinkles a piece arrives with, which only a second view can see (clothd/core/stereo.py).
+One second after tracking begins, the status's estimated height is read beside the truth's.
+
 1. `flatten` (PUT /setpoint): time to flat is the first time the true cloth is at most 1 mm high and
    covers at least 99.5 % of its rest area; a start succeeds when that comes within `flatten_s`.
 2. `move` to a target 100 mm and 30° away: the final true pose error once it has held within 5 mm and
@@ -31,7 +35,7 @@ from tqdm import tqdm
 
 from clothd.config import load_config, with_overrides
 from clothd.tools.bench_loop import ANGLE_TOL_RAD, POS_TOL_M, DaemonProcess, free_port, pose_error
-from clothd.tools.flatten_starts import draw_start
+from clothd.tools.flatten_starts import draw_start, laid_ridges
 from clothd.tools.lockstep import LockstepCell
 
 FLAT_HEIGHT_M = 0.001
@@ -67,7 +71,7 @@ class Cell(Protocol):
     def status(self) -> dict[str, Any]: ...
     def truth(self) -> dict[str, Any]: ...
     def setpoint_request(self, body: dict[str, Any]) -> None: ...
-    def lay(self, pose: list[float]) -> None: ...
+    def lay(self, pose: list[float], ridges: list[dict[str, Any]] | None = None) -> None: ...
     def push(self, push: dict[str, Any], then_s: float) -> None: ...
 
 
@@ -103,10 +107,11 @@ class LiveCell:
                 raise RuntimeError(f"{what}: not within {timeout_s} s")
             time.sleep(POLL_S)
 
-    def lay(self, pose: list[float]) -> None:
+    def lay(self, pose: list[float], ridges: list[dict[str, Any]] | None = None) -> None:
         self.setpoint_request({"mode": "idle"})
         self.wait(lambda: not any(self.truth()["module_speed_m_s"]), 5, "belts stopped")
-        r = self.http.post(f"{self.hwsim}/cloth", json={"x_m": pose[0], "y_m": pose[1], "theta_rad": pose[2]})
+        laid = {"x_m": pose[0], "y_m": pose[1], "theta_rad": pose[2], "ridges": ridges or []}
+        r = self.http.post(f"{self.hwsim}/cloth", json=laid)
         r.raise_for_status()
         self.http.post(f"{self.d.base}/api/v1/reset").raise_for_status()
         time.sleep(0.5)
@@ -125,13 +130,25 @@ def _wrinkle(cell: Cell, start: dict[str, Any]) -> dict[str, Any]:
     """Lay the cloth, push its ridges in, and check that the cloth keeps them while the belts stand still.
     A ridge that slides out by itself is no start to flatten: hwsim's cloth keeps one only with enough
     cloth beside it along its whole length (docs/hwsim.md, "Holding a wrinkle")."""
-    cell.lay(start["pose"])
-    for push in start["pushes"]:
+    laid = start.get("laid")
+    cell.lay(start["pose"], laid)
+    seen: dict[str, Any] = {}
+    if laid:  # what tracking sees of the ridges 1 s after it began
+        cell.sleep(1.0)
+        flatness = cell.status()["flatness"] or {"max_height_mm": math.nan, "basis": None}
+        truth_mm = cell.truth()["max_height_m"] * 1e3
+        seen = {
+            "basis": flatness["basis"],
+            "height_at_start_mm": flatness["max_height_mm"],
+            "height_error_at_start_mm": abs(flatness["max_height_mm"] - truth_mm),
+        }
+    for push in start["pushes"] if not laid else []:
         cell.push(_world_push(start["pose"], push), PUSH_S + LET_GO_WAIT_S)
     pushed_m = cell.truth()["max_height_m"]
     cell.sleep(KEPT_S)
     kept_m = cell.truth()["max_height_m"]
     return {
+        **seen,
         "wrinkled": pushed_m >= WRINKLED_M and kept_m >= KEPT_RATIO * pushed_m,
         "pushed_height_mm": pushed_m * 1e3,
         "kept_height_mm": kept_m * 1e3,
@@ -222,10 +239,23 @@ def _summary(runs: list[dict[str, Any]], flatten_s: float) -> dict[str, Any]:
         "final_err_mm_max": max(r["final_err_mm"] for r in rows),
         "final_err_deg_max": max(r["final_err_deg"] for r in rows),
         "final_err_mm_p50": float(np.median([r["final_err_mm"] for r in rows])),
+        **_seen_at_start(rows),
         "start_height_mm_range": [
             min(r["start_height_mm"] for r in rows),
             max(r["start_height_mm"] for r in rows),
         ],
+    }
+
+
+def _seen_at_start(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Laid starts: how far the estimated height was off the truth's 1 s after tracking began."""
+    errors = [r["height_error_at_start_mm"] for r in rows if "height_error_at_start_mm" in r]
+    if not errors:
+        return {}
+    return {
+        "height_error_at_start_mm_p50": float(np.median(errors)),
+        "height_error_at_start_mm_max": float(np.max(errors)),
+        "measured_pct": 100.0 * float(np.mean([r["basis"] == "measured" for r in rows])),
     }
 
 
@@ -250,19 +280,29 @@ def _run_starts(
 
 
 def run_bench(
-    starts: int = 20, seed: int = 0, flatten_s: float = 10.0, move_s: float = 15.0, lockstep: bool = False
+    starts: int = 20,
+    seed: int = 0,
+    flatten_s: float = 10.0,
+    move_s: float = 15.0,
+    lockstep: bool = False,
+    start: str = "pushed",
+    cameras: int | None = None,
 ) -> dict[str, Any]:
     """Each controller runs the same seeded sequence of starts until `starts` of them were wrinkled (or
     MAX_DRAWS_PER_START x starts were drawn). In lockstep, `realtime_factor` is the simulated seconds
-    per wall second over both controllers."""
+    per wall second over both controllers. start: "pushed" or "laid"; cameras: the cell's first this
+    many (None: all)."""
     plan = [draw_start(np.random.default_rng([seed, k])) for k in range(MAX_DRAWS_PER_START * starts)]
+    if start == "laid":  # the same lines, laid: the pushed plan's draws stay as they are
+        for k, drawn in enumerate(plan):
+            drawn["laid"] = laid_ridges(drawn, np.random.default_rng([seed, k, 1]))
     result: dict[str, Any] = {"starts": plan}
     simulated_s = wall_s = 0.0
     for variant, mode, flatten in (("flatten", "flatten", True), ("rigid", "hold", False)):
         if lockstep:
             cfg = with_overrides(load_config(None), {"control": {"flatten": flatten}})
             t_wall = time.perf_counter()
-            twin = LockstepCell(cfg)
+            twin = LockstepCell(cfg, cameras=cameras)
             rows = _run_starts(twin, plan, starts, variant, mode, flatten_s, move_s)
             wall_s += time.perf_counter() - t_wall
             simulated_s += twin.now()
@@ -270,7 +310,7 @@ def run_bench(
             with tempfile.TemporaryDirectory(prefix="clothd-bench-flatten-") as tmp:
                 config = Path(tmp) / "clothd.yaml"
                 config.write_text(f"control:\n  flatten: {'true' if flatten else 'false'}\n")
-                d = DaemonProcess(config, free_port())
+                d = DaemonProcess(config, free_port(), cameras)
                 try:
                     d.wait_ready()
                     rows = _run_starts(LiveCell(d), plan, starts, variant, mode, flatten_s, move_s)

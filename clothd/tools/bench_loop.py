@@ -50,10 +50,13 @@ class DaemonProcess:
     """`clothd run --sim` in its own process group; its first lines name the URLs. Its OPC UA server
     listens on a free port of its own (opcua_url), so that benches and tests never share 4840."""
 
-    def __init__(self, config: Path | None, port: int) -> None:
+    def __init__(self, config: Path | None, port: int, cameras: int | None = None) -> None:
+        """cameras: `clothd run --cameras N`, the simulated cell's first N (None: all of them)."""
         self.opcua_url = f"opc.tcp://127.0.0.1:{free_port()}/clothd/"
         cmd = [sys.executable, "-m", "clothd.cli", "run", "--sim", "--port", str(port)]
         cmd += ["--opcua-endpoint", self.opcua_url]
+        if cameras is not None:
+            cmd += ["--cameras", str(cameras)]
         if config is not None:
             cmd += ["--config", str(config)]
         self.base = f"http://127.0.0.1:{port}"

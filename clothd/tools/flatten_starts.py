@@ -22,6 +22,7 @@ from hwsim import scenario as scenarios
 MOVE_OFFSET_M = 0.10
 MOVE_TURN_RAD = math.radians(30.0)
 SLACK_M = (0.002, 0.014)  # pushed-in slack: ridges of about 5-20 mm
+LAID_HEIGHT_M = (0.005, 0.020)  # ridges laid before tracking begins (--start laid)
 RIDGE_INSET_M = 0.06  # a ridge's line passes this far inside the cloth's edges (docs/benchmarks.md)
 RIDGES_APART_M = 0.065  # a second push's hands (reach 45 mm) stay off the first ridge (about 20 mm wide)
 FLATTEN_ROOM_M = 0.02  # the outline grows by the slack pulled out: keep this clear of the workspace's edge
@@ -105,3 +106,16 @@ def draw_start(rng: np.random.Generator) -> dict[str, Any]:
     half = cloth_half_m()
     pose, target = _pose_and_target(rng, half, Workspace.of_cell(CellConfig()))
     return {"pose": pose, "pushes": _pushes(rng, half), "target": target}
+
+
+def laid_ridges(start: dict[str, Any], rng: np.random.Generator) -> list[dict[str, Any]]:
+    """The start's ridges laid into the cloth before tracking begins (hwsim's Pose.ridges, cloth frame):
+    along its pushes' lines, each of a height drawn from LAID_HEIGHT_M."""
+    return [
+        {
+            "height_m": rng.uniform(*LAID_HEIGHT_M),
+            "at_m": list(p["at_cloth_m"]),
+            "direction_rad": p["direction_cloth_rad"],
+        }
+        for p in start["pushes"]
+    ]

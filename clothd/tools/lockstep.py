@@ -30,7 +30,7 @@ from clothd.core.cell_controller import CellController
 from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.flatness import Flatness
-from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.messages import Estimate, ModuleCommands, PairedView
 from clothd.core.modes import LoopState, Mode
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
@@ -50,21 +50,26 @@ CAMERA_FPS = 15.0  # as `hwsim serve` streams it
 class LockstepCell:
     """hwsim's scenario and clothd's loop, advanced together by `sleep`."""
 
-    def __init__(self, cfg: Config, scenario: str = "cell") -> None:
+    def __init__(self, cfg: Config, scenario: str = "cell", cameras: int | None = None) -> None:
+        """cameras: the scenario's first this many (None: all of them)."""
         start_taichi(cfg.taichi.arch)
         sc = scenarios.load(scenario)
         self.world = World(sc, log_commands=False)
         self.period_s = cfg.loop.period_s
         if not math.isclose(self.world.dt_s, self.period_s):
             raise ValueError(f"lockstep needs the world's step ({self.world.dt_s:g} s) to be the tick")
-        camera = Camera.from_spec(sc.camera)
-        self.sensor = Sensor(sc, camera, self.world.cloth.grid)
-        self.camera_every = max(1, round(sc.fps / CAMERA_FPS))
+        specs = sc.camera_specs[:cameras]
+        self.sensors: list[Sensor] = []
+        models = []
         with tempfile.TemporaryDirectory(prefix="clothd-lockstep-") as tmp:
-            camera.save(Path(tmp) / "camera.json")  # the interface between them, as live
-            camera_model = read_camera(Path(tmp) / "camera.json")
+            for index, spec in enumerate(specs):
+                camera = Camera.from_spec(spec)
+                camera.save(Path(tmp) / f"camera{index}.json")  # the interface between them, as live
+                models.append(read_camera(Path(tmp) / f"camera{index}.json"))
+                self.sensors.append(Sensor(sc, camera, self.world.cloth.grid, index, spec.capture_skew_s))
+        self.camera_every = max(1, round(sc.fps / CAMERA_FPS))
         layout = ConveyorLayout.of_cell(cfg.cell)
-        self.tracker = Tracker(cfg.tracker, camera_model, layout)
+        self.tracker = Tracker(cfg.tracker, models[0], layout, other_cameras=models[1:])
         self.cell = CellController(
             cfg.control,
             cfg.cell,
@@ -141,12 +146,23 @@ class LockstepCell:
         self.setpoint = Setpoint(mode, target, started_mono_s=self.now())
         self.halt_reason = None
 
-    def lay(self, pose: list[float], flaps: list[dict[str, Any]] | None = None) -> None:
-        """hwsim's POST /cloth (flaps as a scenario's pose gives them), then a reset of tracking onto it,
-        as the benches do it live."""
+    def lay(
+        self,
+        pose: list[float],
+        ridges: list[dict[str, Any]] | None = None,
+        flaps: list[dict[str, Any]] | None = None,
+    ) -> None:
+        """hwsim's POST /cloth (flaps and ridges as a scenario's pose gives them), then a reset of tracking
+        onto it, as the benches do it live."""
         self.setpoint_request({"mode": "idle"})
         self.wait(lambda: not self.world.table.speed_m_s.any(), 5, "belts stopped")
-        laid = {"x_m": pose[0], "y_m": pose[1], "theta_rad": pose[2], "flaps": flaps or []}
+        laid = {
+            "x_m": pose[0],
+            "y_m": pose[1],
+            "theta_rad": pose[2],
+            "flaps": flaps or [],
+            "ridges": ridges or [],
+        }
         self.world.lay(Pose.model_validate(laid))
         self.reset()
         self.wait(lambda: self.state == LoopState.TRACKING, 30, "tracking again")
@@ -160,6 +176,11 @@ class LockstepCell:
         self.cell.reset()
         self.estimate = self.flatness = None
 
+    def _frame(self, sensor: Sensor, k: int) -> np.ndarray:
+        image = cv2.imdecode(np.frombuffer(sensor.jpeg(self.world, k), np.uint8), cv2.IMREAD_COLOR)
+        assert image is not None  # hwsim's own JPEG
+        return image
+
     # -- one tick ------------------------------------------------------------------------------------
 
     def _tick(self) -> None:
@@ -172,10 +193,15 @@ class LockstepCell:
         self.ticks += 1
         if self.world.frame_index % self.camera_every == 0:
             k = self.world.frame_index // self.camera_every
-            jpeg = np.frombuffer(self.sensor.jpeg(self.world, k), np.uint8)
-            image = cv2.imdecode(jpeg, cv2.IMREAD_COLOR)
-            assert image is not None  # hwsim's own JPEG
-            self.estimate = self.tracker.track(image, self.world.t_s, in_force)
+            # The further cameras matter only when tracking begins (clothd/core/stereo.py): rendering
+            # them for every frame would only slow the lockstep.
+            sensors = self.sensors if self.tracker.initialising else self.sensors[:1]
+            images = [self._frame(sensor, k) for sensor in sensors]
+            views = [
+                PairedView(image, self.world.t_s + s.skew_s)
+                for image, s in zip(images[1:], sensors[1:], strict=True)
+            ]
+            self.estimate = self.tracker.track(images[0], self.world.t_s, in_force, views)
             self.flatness = self.cell.read_flatness(self.estimate)
         have_frame = self.world.frame_index >= self.camera_every
         step = self.cell.step(have_frame, self.estimate, self.setpoint, self.flatness, self.now())

@@ -49,8 +49,10 @@ class StateEstimate:
 
 
 class Estimator(Protocol):
-    def start(self, mesh: QuadMesh, pose0: np.ndarray) -> None:
-        """Begin from the rest mesh laid over the first frame, the cloth at pose0 [X_m, Y_m, theta_rad]."""
+    def start(self, mesh: QuadMesh, pose0: np.ndarray, nodes_m: np.ndarray | None = None) -> None:
+        """Begin from the rest mesh, the cloth at pose0 [X_m, Y_m, theta_rad]. nodes_m (n, 3): where the
+        mesh's nodes lie now, when a measured surface says (clothd/core/unfold.py); None: the rest mesh is
+        the first frame's footprint, and the nodes lie on it, flat."""
 
     def predict(self, u: BeltField | None, dt_s: float) -> None:
         """Advance the state by dt_s under the belts u (None: no input known)."""

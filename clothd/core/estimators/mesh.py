@@ -51,11 +51,15 @@ class MeshEstimator:
         self.mesh: QuadMesh | None = None
         self.belief: NodeBelief | None = None
 
-    def start(self, mesh: QuadMesh, pose0: np.ndarray) -> None:
+    def start(self, mesh: QuadMesh, pose0: np.ndarray, nodes_m: np.ndarray | None = None) -> None:
         self.mesh = mesh
         rest = mesh.rest_nodes_m()
         self.sim.set_rest(rest)
-        nodes = np.column_stack([rest.reshape(-1, 2), np.zeros(mesh.n_nodes)])
+        nodes = (
+            np.column_stack([rest.reshape(-1, 2), np.zeros(mesh.n_nodes)])
+            if nodes_m is None
+            else np.array(nodes_m, float)
+        )
         self.belief = NodeBelief(
             np.column_stack([nodes, np.zeros_like(nodes)]),
             np.tile(self._P0, (mesh.n_nodes, 1, 1)),

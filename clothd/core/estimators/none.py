@@ -20,7 +20,8 @@ class NoModel:
         self.camera_model = camera_model
         self.pose0 = np.zeros(3)
 
-    def start(self, mesh: QuadMesh, pose0: np.ndarray) -> None:
+    def start(self, mesh: QuadMesh, pose0: np.ndarray, nodes_m: np.ndarray | None = None) -> None:
+        """nodes_m, a measured layout, is for a mesh of the cloth's own shape: a rigid body has none."""
         self.pose0 = pose0
 
     def predict(self, u: BeltField | None, dt_s: float) -> None:

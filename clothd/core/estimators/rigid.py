@@ -38,7 +38,8 @@ class RigidEstimator:
         self._rest_body = np.zeros((0, 2))
         self._mesh_shape = (0, 0)
 
-    def start(self, mesh: QuadMesh, pose0: np.ndarray) -> None:
+    def start(self, mesh: QuadMesh, pose0: np.ndarray, nodes_m: np.ndarray | None = None) -> None:
+        """nodes_m, a measured layout, is for a mesh of the cloth's own shape: a rigid body has none."""
         self.pose0 = pose0
         self.x = np.concatenate([pose0, np.zeros(3)])
         self.P = rigid.initial_covariance(self.ekf)

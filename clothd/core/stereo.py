@@ -1,0 +1,211 @@
+"""The cloth's surface measured through two calibrated views: features of the first view found in the
+second along their epipolar lines, triangulated, and a smooth height field fitted through the points.
+
+Matching: a feature on the table (z = 0) would be seen in the second view where the table-plane point
+under it projects; a feature at height h lies further along its epipolar line, by about f·b·h/Z² pixels
+(b the baseline, Z the distance). Pyramidal Lucas–Kanade starts at the table-plane guess and searches
+the rest; the match must come back to where it started (forward–backward), and lie on the epipolar line:
+a match off the line is a look-alike, whatever LK says.
+
+Triangulation: the midpoint of the shortest segment between the two viewing rays (their undistorted
+directions through each camera's centre).
+
+The height field: node heights on a regular grid over the cloth's footprint, in the footprint mesh's
+own axes, fitted to the points by least squares with a curvature penalty (second differences), so that
+the field runs smoothly through the gaps between features and a stray point cannot spike it. Points
+the first fit leaves far out are dropped and the field fitted again.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import scipy.sparse as sps
+import scipy.sparse.linalg as spla
+
+from clothd.config import StereoConfig
+from clothd.core.camera_model import CameraModel
+from clothd.core.mesh import QuadMesh
+from clothd.core.messages import PairedView
+
+MATCH_WINDOW_PX = 21  # wider than tracking's: the two views see a patch from different angles
+MATCH_LEVELS = 3  # pyramid levels: a match up to ~60 px along its line from the table-plane guess
+MATCH_FB_MAX_PX = 1.0  # forward-backward: the match must lead back within this
+FIELD_PITCH_M = 0.004  # the height field's grid spacing, finer than a ridge (hwsim's σ is 12 mm)
+POINT_SIGMA_M = 0.001  # one triangulated height, about (0.2 px at the default cell's geometry)
+CURVATURE_SIGMA_M = 0.0015  # a second difference over FIELD_PITCH_M: a 20 mm ridge of σ 12 mm has ~2.2
+ZERO_SIGMA_M = 0.05  # far from any point the field settles to the table
+OUTLIER_SIGMA = 4.0  # the refit drops points this many robust sigmas off the first fit
+MIN_OUTLIER_M = 0.0015  # ... but never tighter than this
+
+
+def epipolar_distance_px(
+    cam0: CameraModel, px0: np.ndarray, cam1: CameraModel, px1: np.ndarray, reach_m: float
+) -> np.ndarray:
+    """(n,): how far each px1 lies from the epipolar line of px0 in the second view, the line through the
+    projections of the ray's points on the table and reach_m above it (lens distortion bends the line a
+    fraction of a pixel over that span)."""
+    lo = cam1.project(cam0.backproject_to_plane(px0, 0.0))
+    hi = cam1.project(cam0.backproject_to_plane(px0, reach_m))
+    d = hi - lo
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    r = px1 - lo
+    return np.asarray(np.abs(r[:, 0] * d[:, 1] - r[:, 1] * d[:, 0]))
+
+
+def match_across(
+    gray0: np.ndarray,
+    gray1: np.ndarray,
+    px0: np.ndarray,
+    cam0: CameraModel,
+    cam1: CameraModel,
+    cfg: StereoConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels px0 (n, 2) of the first view found in the second: (px1 (n, 2), ok (n,))."""
+    n = len(px0)
+    if n == 0:
+        return np.zeros((0, 2)), np.zeros(0, bool)
+    guess = cam1.project(cam0.backproject_to_plane(px0, 0.0))
+    window, criteria = (
+        (MATCH_WINDOW_PX, MATCH_WINDOW_PX),
+        (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
+    )
+    flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+    p0 = px0.astype(np.float32).reshape(-1, 1, 2)
+    g = np.nan_to_num(guess, nan=-1.0).astype(np.float32).reshape(-1, 1, 2)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(
+        gray0, gray1, p0, g, winSize=window, maxLevel=MATCH_LEVELS, criteria=criteria, flags=flags
+    )
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(
+        gray1, gray0, p1, p0.copy(), winSize=window, maxLevel=MATCH_LEVELS, criteria=criteria, flags=flags
+    )
+    px1 = p1.reshape(-1, 2).astype(np.float64)
+    fb = np.linalg.norm(back.reshape(-1, 2) - px0, axis=1)
+    h, w = gray1.shape[:2]
+    inside = (px1[:, 0] >= 0) & (px1[:, 0] <= w - 1) & (px1[:, 1] >= 0) & (px1[:, 1] <= h - 1)
+    ok = st1.ravel().astype(bool) & st2.ravel().astype(bool) & np.isfinite(guess).all(axis=1) & inside
+    ok &= fb < MATCH_FB_MAX_PX
+    ok &= epipolar_distance_px(cam0, px0, cam1, px1, cfg.max_height_m) < cfg.epipolar_max_px
+    return px1, ok
+
+
+def measure_surface(
+    gray0: np.ndarray,
+    px0: np.ndarray,
+    t_s: float,
+    cam0: CameraModel,
+    cameras: Sequence[CameraModel],
+    views: Sequence[PairedView | None],
+    cfg: StereoConfig,
+) -> np.ndarray | None:
+    """Points of the surface (m, 3) at the first view's features px0 (n, 2) (its frame gray0, taken at
+    t_s), through the first further view paired within cfg.max_skew_ms that finds at least
+    cfg.min_matches of them; None when none does."""
+    for camera, view in zip(cameras, views, strict=False):
+        if view is None or abs(view.t_s - t_s) > cfg.max_skew_ms * 1e-3:
+            continue
+        image = view.image
+        gray1 = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+        px1, ok = match_across(gray0, gray1, px0, cam0, camera, cfg)
+        if ok.sum() >= cfg.min_matches:
+            return triangulate(cam0, px0[ok], camera, px1[ok])
+    return None
+
+
+def triangulate(cam0: CameraModel, px0: np.ndarray, cam1: CameraModel, px1: np.ndarray) -> np.ndarray:
+    """World points (n, 3): the midpoints of the shortest segments between the rays through px0 and px1."""
+    c0, c1 = cam0.centre_m, cam1.centre_m
+    d0 = _rays(cam0, px0)
+    d1 = _rays(cam1, px1)
+    w = c0 - c1
+    a, b, c = (d0 * d0).sum(1), (d0 * d1).sum(1), (d1 * d1).sum(1)
+    d, e = d0 @ w, d1 @ w
+    den = np.maximum(a * c - b * b, 1e-18)
+    s = (b * e - c * d) / den
+    t = (a * e - b * d) / den
+    return np.asarray(0.5 * ((c0 + s[:, None] * d0) + (c1 + t[:, None] * d1)))
+
+
+def _rays(cam: CameraModel, px: np.ndarray) -> np.ndarray:
+    xy = cam.undistort(px)
+    return np.asarray(np.column_stack([xy, np.ones(len(xy))]) @ cam.T_cam_world[:3, :3])
+
+
+@dataclass(frozen=True)
+class HeightField:
+    """Heights z (gy, gx), metres, on a grid over a footprint mesh's rectangle: node (j, i) at the mesh's
+    origin + i·pitch along its first axis + j·pitch along its second."""
+
+    footprint: QuadMesh
+    pitch_m: float
+    z_m: np.ndarray
+
+    def at(self, xy_m: np.ndarray) -> np.ndarray:
+        """Heights (n,) at table points xy_m (n, 2), bilinear; points off the grid take its border's."""
+        w, b = _grid_weights(self.footprint, self.pitch_m, self.z_m.shape, xy_m)
+        return np.asarray((w * self.z_m.ravel()[b]).sum(axis=1))
+
+
+def _grid_shape(footprint: QuadMesh, pitch_m: float) -> tuple[int, int]:
+    return (
+        max(2, int(np.ceil(footprint.height_m / pitch_m)) + 1),
+        max(2, int(np.ceil(footprint.width_m / pitch_m)) + 1),
+    )
+
+
+def _grid_weights(
+    footprint: QuadMesh, pitch_m: float, shape: tuple[int, int], xy_m: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear weights (n, 4) and flat grid indices (n, 4) of table points (n, 2)."""
+    gy, gx = shape
+    f = (np.asarray(xy_m, float).reshape(-1, 2) - footprint.origin_m) @ footprint.axes.T / pitch_m
+    f = np.clip(f, 0.0, [gx - 1, gy - 1])
+    cell = np.minimum(np.floor(f), [gx - 2, gy - 2]).astype(np.int64)
+    u, v = (f - cell).T
+    i, j = cell.T
+    base = j * gx + i
+    idx = np.stack([base, base + 1, base + gx, base + gx + 1], axis=1)
+    w = np.stack([(1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v], axis=1)
+    return w, idx
+
+
+def fit_height_field(
+    points_m: np.ndarray, footprint: QuadMesh, pitch_m: float = FIELD_PITCH_M
+) -> HeightField:
+    """The smooth height field through triangulated points (n, 3) over the footprint's rectangle."""
+    shape = _grid_shape(footprint, pitch_m)
+    gy, gx = shape
+    w, idx = _grid_weights(footprint, pitch_m, shape, points_m[:, :2])
+    keep = np.ones(len(points_m), bool)
+    z = np.zeros(gy * gx)
+    for _ in range(2):
+        z = _solve_field(w[keep], idx[keep], points_m[keep, 2], shape)
+        residual = (w * z[idx]).sum(axis=1) - points_m[:, 2]
+        spread = 1.4826 * float(np.median(np.abs(residual[keep] - np.median(residual[keep]))))
+        keep = np.abs(residual) < max(OUTLIER_SIGMA * spread, MIN_OUTLIER_M)
+    return HeightField(footprint, pitch_m, z.reshape(gy, gx))
+
+
+def _solve_field(w: np.ndarray, idx: np.ndarray, z_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    gy, gx = shape
+    n = gy * gx
+    rows = np.repeat(np.arange(len(w)), 4)
+    data = sps.csr_matrix((w.ravel() / POINT_SIGMA_M, (rows, idx.ravel())), shape=(len(w), n))
+    curvature = _second_differences(gy, gx) / CURVATURE_SIGMA_M
+    A = (data.T @ data + curvature.T @ curvature + sps.identity(n) / ZERO_SIGMA_M**2).tocsc()
+    rhs = data.T @ (z_m / POINT_SIGMA_M)
+    return np.asarray(spla.spsolve(A, rhs))
+
+
+def _second_differences(gy: int, gx: int) -> sps.csr_matrix:
+    """The grid's second differences along both axes, as rows of a sparse matrix on the flat heights."""
+
+    def along(n: int) -> sps.csr_matrix:
+        return sps.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(n - 2, n))
+
+    x = sps.kron(sps.identity(gy), along(gx))
+    y = sps.kron(along(gy), sps.identity(gx))
+    return sps.vstack([x, y]).tocsr()

@@ -1,0 +1,92 @@
+"""The cloth as it would lie flat, from its measured surface: the tracking mesh's rest shape, and where its
+nodes lie now.
+
+A cloth laid down wrinkled covers less of the table than it would flat: across a ridge, the table
+distance between two points is shorter than the cloth between them. With the surface measured (a height
+field over the footprint, clothd/core/stereo.py), each edge of a grid laid over the footprint has its
+length along the surface (the arc over the field). Unfolding lays that grid out flat with those lengths
+(least squares over its sides and diagonals, Gauss–Newton from the footprint itself): the cloth's own,
+material layout. The tracking mesh is a regular grid over that material rectangle, and its nodes start
+where the material points lie on the table now, at the surface's height. Its rest shape then holds the
+slack the piece arrived with: seen from the first tick, reported, and flattened like slack pushed in
+later (docs/flattening.md).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sps
+import scipy.sparse.linalg as spla
+
+from clothd.core.binding import cloth_coordinates
+from clothd.core.mesh import QuadMesh
+from clothd.core.stereo import HeightField
+
+ARC_SAMPLES = 12  # points along each edge to follow the surface over it (a ridge can be narrower than one)
+GAUSS_NEWTON_STEPS = 4
+ANCHOR_WEIGHT = 1e-3  # holds the layout's place and turn (a gauge), far too weak to undo any stretch
+
+
+def surface_lengths_m(field: HeightField, a_m: np.ndarray, b_m: np.ndarray) -> np.ndarray:
+    """The length along the surface of the straight table segments a_m -> b_m (k, 2): (k,)."""
+    t = np.linspace(0.0, 1.0, ARC_SAMPLES + 1)
+    xy = a_m[:, None, :] + t[None, :, None] * (b_m - a_m)[:, None, :]  # (k, s, 2)
+    z = field.at(xy.reshape(-1, 2)).reshape(len(a_m), -1)
+    steps = np.concatenate([np.diff(xy, axis=1), np.diff(z, axis=1)[..., None]], axis=2)
+    return np.asarray(np.linalg.norm(steps, axis=2).sum(axis=1))
+
+
+def _edges(ny: int, nx: int) -> np.ndarray:
+    """(e, 2) flat node pairs: every side and both diagonals of every quad of an ny x nx grid."""
+    idx = np.arange(ny * nx).reshape(ny, nx)
+    pairs = [
+        (idx[:, :-1], idx[:, 1:]),
+        (idx[:-1, :], idx[1:, :]),
+        (idx[:-1, :-1], idx[1:, 1:]),
+        (idx[:-1, 1:], idx[1:, :-1]),
+    ]
+    return np.concatenate([np.stack([a.ravel(), b.ravel()], axis=1) for a, b in pairs])
+
+
+def unfold_layout(grid_m: np.ndarray, lengths_m: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """Node positions (n, 2) in the plane whose edges have the given lengths, as near as least squares
+    gets them, starting from grid_m (n, 2)."""
+    x = grid_m.copy()
+    n, k = len(x), len(edges)
+    a, b = edges[:, 0], edges[:, 1]
+    rows = np.repeat(np.arange(k), 4)
+    anchor = sps.identity(2 * n) * ANCHOR_WEIGHT
+    for _ in range(GAUSS_NEWTON_STEPS):
+        d = x[b] - x[a]
+        length = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
+        u = d / length[:, None]
+        cols = np.stack([2 * a, 2 * a + 1, 2 * b, 2 * b + 1], axis=1).ravel()
+        J = sps.csr_matrix((np.concatenate([-u, u], axis=1).ravel(), (rows, cols)), shape=(k, 2 * n))
+        r = lengths_m - length
+        A = (J.T @ J + anchor.T @ anchor).tocsc()
+        rhs = J.T @ r - anchor.T @ (anchor @ (x - grid_m).ravel())
+        x = x + np.asarray(spla.spsolve(A, rhs)).reshape(n, 2)
+    return x
+
+
+def unfold(footprint: QuadMesh, field: HeightField) -> tuple[QuadMesh, np.ndarray]:
+    """The material mesh (a regular grid over the cloth laid flat, nx x ny like the footprint's) and its
+    nodes' positions now (n, 3): on the table where the material points lie, at the surface's height."""
+    nx, ny = footprint.nx, footprint.ny
+    grid = footprint.rest_nodes_m().reshape(-1, 2)
+    edges = _edges(ny, nx)
+    lengths = surface_lengths_m(field, grid[edges[:, 0]], grid[edges[:, 1]])
+    flat = unfold_layout(grid, lengths, edges)
+    a1, a2 = footprint.axes
+    laid = flat.reshape(ny, nx, 2)
+    width = float(np.mean((laid[:, -1] - laid[:, 0]) @ a1))
+    height = float(np.mean((laid[-1, :] - laid[0, :]) @ a2))
+    origin = flat.mean(axis=0) - 0.5 * width * a1 - 0.5 * height * a2
+    material = QuadMesh(nx, ny, origin, footprint.theta_rad, width, height)
+    rest = material.rest_nodes_m().reshape(-1, 2)
+    # A material node lies where the footprint point of the same place in the laid-out grid does: the
+    # laid-out grid's quads map back onto the footprint's. Nodes just past its border (the mean extents
+    # round off the rows' own) keep their offset from the nearest laid-out node.
+    xy, found = cloth_coordinates(footprint, flat, rest)
+    xy[~found] = grid[~found] + (rest[~found] - flat[~found])
+    return material, np.column_stack([xy, field.at(xy)])

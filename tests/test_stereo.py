@@ -1,0 +1,143 @@
+"""The second view: triangulation, the epipolar check, the height field, unfolding, and the tracker laying
+its mesh over a cloth that arrives wrinkled (hwsim's default cell, two cameras)."""
+
+from __future__ import annotations
+
+import math
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from clothd.config import Config
+from clothd.core.camera_model import CameraModel
+from clothd.core.conveyor import ConveyorLayout
+from clothd.core.flatness import FlatnessMonitor
+from clothd.core.mesh import QuadMesh
+from clothd.core.messages import ModuleCommands, PairedView
+from clothd.core.modes import FlatnessBasis
+from clothd.core.stereo import epipolar_distance_px, fit_height_field, triangulate
+from clothd.core.tracker import Tracker
+from clothd.core.unfold import unfold
+from clothd.formats import read_camera
+from clothd.taichi_runtime import start_taichi
+from hwsim import scenario as scenarios
+from hwsim.camera import Camera
+from hwsim.scenario import Pose
+from hwsim.sensor import Sensor
+from hwsim.world import World
+
+RIDGE_SIGMA_M = 0.012
+
+
+def _oblique(tilt_rad: float, offset_y_m: float) -> CameraModel:
+    """A camera 1 m from the table's centre, turned tilt_rad about x and looking at it from -y."""
+    down = CameraModel.ideal(640, 480, 900.0, 1.0)
+    c, s = math.cos(tilt_rad), math.sin(tilt_rad)
+    turn = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    R = turn @ down.T_cam_world[:3, :3]
+    centre = np.array([0.0, offset_y_m, math.sqrt(1.0 - offset_y_m**2)])
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = -R @ centre
+    dist = np.array([-0.05, 0.01, 0.0, 0.0, 0.0])
+    return CameraModel(down.K, dist, T, 640, 480)
+
+
+def _gaussian_ridge(xy_m: np.ndarray, height_m: float) -> np.ndarray:
+    return np.asarray(height_m * np.exp(-0.5 * (xy_m[:, 0] / RIDGE_SIGMA_M) ** 2))
+
+
+def test_triangulation_recovers_points_seen_by_two_cameras() -> None:
+    rng = np.random.default_rng(0)
+    top, side = CameraModel.ideal(640, 480, 900.0, 1.0), _oblique(0.436, -0.423)
+    points = np.column_stack([rng.uniform(-0.1, 0.1, (50, 2)), rng.uniform(0.0, 0.03, 50)])
+    px0, px1 = top.project(points), side.project(points)
+    np.testing.assert_allclose(triangulate(top, px0, side, px1), points, atol=1e-9)
+    assert epipolar_distance_px(top, px0, side, px1, 0.05).max() < 0.05
+    # A match slid across its epipolar line is off it by about as much.
+    off = epipolar_distance_px(top, px0, side, px1 + np.array([2.0, 0.0]), 0.05)
+    assert off.min() > 0.5
+
+
+def test_height_field_follows_a_ridge_through_scattered_points() -> None:
+    rng = np.random.default_rng(1)
+    footprint = QuadMesh.covering(np.array([[-0.12, -0.1], [0.12, -0.1], [0.12, 0.1], [-0.12, 0.1]]), 12, 12)
+    xy = rng.uniform([-0.12, -0.1], [0.12, 0.1], (600, 2))
+    z = _gaussian_ridge(xy, 0.012) + rng.normal(0.0, 0.0004, len(xy))
+    z[:5] += 0.03  # stray matches
+    field = fit_height_field(np.column_stack([xy, z]), footprint)
+    probe = np.column_stack([np.linspace(-0.1, 0.1, 81), np.zeros(81)])
+    assert abs(field.at(probe).max() - 0.012) < 0.001
+    assert np.abs(field.at(probe) - _gaussian_ridge(probe, 0.012)).max() < 0.0015
+
+
+def test_unfolding_lays_the_slack_of_a_ridge_out_flat() -> None:
+    footprint = QuadMesh.covering(np.array([[-0.12, -0.1], [0.12, -0.1], [0.12, 0.1], [-0.12, 0.1]]), 12, 12)
+    rng = np.random.default_rng(2)
+    xy = rng.uniform([-0.12, -0.1], [0.12, 0.1], (2000, 2))
+    height = 0.012
+    field = fit_height_field(np.column_stack([xy, _gaussian_ridge(xy, height)]), footprint)
+    material, nodes = unfold(footprint, field)
+    slack = height**2 * math.sqrt(math.pi) / (4.0 * RIDGE_SIGMA_M)  # ½∫z'² across a Gaussian
+    assert material.width_m - footprint.width_m == pytest.approx(slack, rel=0.25)
+    assert material.height_m == pytest.approx(footprint.height_m, abs=2e-4)  # along the ridge: none
+    # The nodes lie on the footprint, on the surface (those nearest the crest 11 mm either side of it).
+    assert np.abs(nodes[:, :2]).max(axis=0) == pytest.approx([0.12, 0.1], abs=0.002)
+    np.testing.assert_allclose(nodes[:, 2], field.at(nodes[:, :2]))
+    assert 0.5 * height < nodes[:, 2].max() <= height
+    flat = fit_height_field(np.column_stack([xy, np.zeros(len(xy))]), footprint)
+    same, lying = unfold(footprint, flat)
+    assert same.width_m == pytest.approx(footprint.width_m, abs=1e-6)
+    np.testing.assert_allclose(lying[:, :2], footprint.rest_nodes_m().reshape(-1, 2), atol=1e-6)
+
+
+def _wrinkled_cell(ridge_height_m: float) -> tuple[World, list[CameraModel], list[Sensor]]:
+    sc = scenarios.load("cell")
+    world = World(sc, log_commands=False)
+    ridge = {"height_m": ridge_height_m, "at_m": [0.03, 0.01], "direction_rad": 1.2}
+    world.lay(Pose.model_validate({"x_m": 0.03, "y_m": -0.02, "theta_rad": 0.3, "ridges": [ridge]}))
+    cameras, sensors = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for i, spec in enumerate(sc.camera_specs):
+            camera = Camera.from_spec(spec)
+            camera.save(Path(tmp) / f"camera{i}.json")  # the interface between them, as live
+            cameras.append(read_camera(Path(tmp) / f"camera{i}.json"))
+            sensors.append(Sensor(sc, camera, world.cloth.grid, i))
+    return world, cameras, sensors
+
+
+@pytest.mark.parametrize("n_cameras", [1, 2])
+def test_a_ridge_laid_before_tracking_is_seen_only_with_a_second_view(n_cameras: int) -> None:
+    cfg = Config()
+    start_taichi(cfg.taichi.arch)
+    world, cameras, sensors = _wrinkled_cell(0.012)
+    layout = ConveyorLayout.of_cell(cfg.cell)
+    tracker = Tracker(cfg.tracker, cameras[0], layout, other_cameras=cameras[1:n_cameras])
+    monitor = FlatnessMonitor(cfg.control.flatness)
+    stopped = ModuleCommands.all_stop(layout.n_modules)
+    for k in range(15):  # 1 s at 15 frames/s
+        world.step()
+        world.step()
+        images = [cv2.imdecode(np.frombuffer(s.jpeg(world, k), np.uint8), cv2.IMREAD_COLOR) for s in sensors]
+        views = [PairedView(image, world.t_s) for image in images[1:n_cameras]]
+        est = tracker.track(images[0], world.t_s, stopped, views)
+        assert est.tracking and est.nodes_m is not None and est.cloth_size_m is not None
+        flatness = monitor.update(est.nodes_m, est.cloth_size_m, est.quad_seen, est.flatness_basis)
+    truth_height_m = world.sheet_measures()["max_height_m"]
+    assert truth_height_m > 0.01
+    if n_cameras == 1:
+        assert flatness.basis == FlatnessBasis.SINCE_START
+        # The first frame's footprint is the rest shape: the ridge is not seen at all.
+        assert flatness.max_height_m < 0.001 and not flatness.ridges
+        return
+    assert flatness.basis == FlatnessBasis.MEASURED
+    assert not flatness.flat and flatness.ridges
+    # The ridge's line in the world: through the cloth point (0.03, 0.01) at 1.2 rad in the cloth, turned 0.3.
+    c, s = math.cos(0.3), math.sin(0.3)
+    on_line = np.array([0.03 + c * 0.03 - s * 0.01, -0.02 + s * 0.03 + c * 0.01])
+    along = np.array([math.cos(1.5), math.sin(1.5)])
+    off = np.asarray(flatness.ridges[0].position_m) - on_line
+    assert abs(off[0] * along[1] - off[1] * along[0]) < 0.02
