@@ -18,7 +18,7 @@ from clothd.core.flatness import FlatnessMonitor
 from clothd.core.mesh import QuadMesh
 from clothd.core.messages import ModuleCommands, PairedView
 from clothd.core.modes import FlatnessBasis
-from clothd.core.stereo import epipolar_distance_px, fit_height_field, triangulate
+from clothd.core.stereo import epipolar_distance_px, fit_height_field, quad_highest, triangulate
 from clothd.core.tracker import Tracker
 from clothd.core.unfold import unfold
 from clothd.formats import read_camera
@@ -74,6 +74,35 @@ def test_height_field_follows_a_ridge_through_scattered_points() -> None:
     assert np.abs(field.at(probe) - _gaussian_ridge(probe, 0.012)).max() < 0.0015
 
 
+def test_a_quads_height_is_its_highest_points_and_its_neighbours_where_it_has_none() -> None:
+    quads = np.array([0, 0, 0, 4, 4, 8])
+    z = np.array([0.001, 0.004, 0.002, 0.003, 0.0, 0.002])
+    heights = quad_highest(quads, z, (3, 3))
+    expected = [[0.004, 0.004, 0.003], [0.004, 0.003, 0.003], [0.003, 0.003, 0.002]]
+    np.testing.assert_allclose(heights, expected)
+    np.testing.assert_allclose(quad_highest(np.zeros(0, int), np.zeros(0), (2, 2)), 0.0)
+
+
+def test_measured_heights_make_a_ridge_that_shortening_alone_does_not_show() -> None:
+    cfg = Config().control.flatness
+    ny, nx = 8, 10
+    jj, ii = np.meshgrid(np.arange(ny) * 0.02, np.arange(nx) * 0.02, indexing="ij")
+    nodes = np.stack([ii, jj, np.zeros_like(ii)], axis=-1)  # at rest, not shortened anywhere
+    size = (0.02 * (nx - 1), 0.02 * (ny - 1))
+    heights = np.full((ny - 1, nx - 1), 0.0003)  # the field's noise
+    level = FlatnessMonitor(cfg).update(nodes, size, basis=FlatnessBasis.MEASURED, quad_height_m=heights)
+    assert level.flat and not level.ridges and level.max_height_m == pytest.approx(0.0003)
+    # A ridge along the second axis: its quads 1.5 % shorter across it, a third of what shortening alone
+    # counts (the slack of a 5 mm ridge of the rest shape measured when tracking began).
+    nodes[:, 5:, 0] -= 0.0003
+    heights[:, 4] = 0.005
+    ridged = FlatnessMonitor(cfg).update(nodes, size, basis=FlatnessBasis.MEASURED, quad_height_m=heights)
+    assert not ridged.flat and len(ridged.ridges) == 1
+    assert ridged.max_height_m == pytest.approx(0.005) and ridged.ridges[0].height_m == pytest.approx(0.005)
+    assert ridged.ridges[0].position_m[0] == pytest.approx(0.09, abs=0.011)
+    assert FlatnessMonitor(cfg).update(nodes, size).flat  # without the heights: nothing to see
+
+
 def test_unfolding_lays_the_slack_of_a_ridge_out_flat() -> None:
     footprint = QuadMesh.covering(np.array([[-0.12, -0.1], [0.12, -0.1], [0.12, 0.1], [-0.12, 0.1]]), 12, 12)
     rng = np.random.default_rng(2)
@@ -125,7 +154,9 @@ def test_a_ridge_laid_before_tracking_is_seen_only_with_a_second_view(n_cameras:
         views = [PairedView(image, world.t_s) for image in images[1:n_cameras]]
         est = tracker.track(images[0], world.t_s, stopped, views)
         assert est.tracking and est.nodes_m is not None and est.cloth_size_m is not None
-        flatness = monitor.update(est.nodes_m, est.cloth_size_m, est.quad_seen, est.flatness_basis)
+        flatness = monitor.update(
+            est.nodes_m, est.cloth_size_m, est.quad_seen, est.flatness_basis, est.quad_height_m
+        )
     truth_height_m = world.sheet_measures()["max_height_m"]
     assert truth_height_m > 0.01
     if n_cameras == 1:
@@ -135,6 +166,7 @@ def test_a_ridge_laid_before_tracking_is_seen_only_with_a_second_view(n_cameras:
         return
     assert flatness.basis == FlatnessBasis.MEASURED
     assert not flatness.flat and flatness.ridges
+    assert abs(flatness.max_height_m - truth_height_m) < 0.0015  # measured every frame, not inferred
     # The ridge's line in the world: through the cloth point (0.03, 0.01) at 1.2 rad in the cloth, turned 0.3.
     c, s = math.cos(0.3), math.sin(0.3)
     on_line = np.array([0.03 + c * 0.03 - s * 0.01, -0.02 + s * 0.03 + c * 0.01])

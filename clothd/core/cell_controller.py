@@ -66,7 +66,9 @@ class CellController:
         """The flatness of a new estimate; None when its model does not follow the shape or it is lost."""
         if not self.estimates_shape or not est.tracking or est.nodes_m is None or est.cloth_size_m is None:
             return None
-        return self.flatness_monitor.update(est.nodes_m, est.cloth_size_m, est.quad_seen, est.flatness_basis)
+        return self.flatness_monitor.update(
+            est.nodes_m, est.cloth_size_m, est.quad_seen, est.flatness_basis, est.quad_height_m
+        )
 
     def step(
         self,

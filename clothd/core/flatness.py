@@ -67,7 +67,12 @@ class Flatness:
     basis: FlatnessBasis = FlatnessBasis.SINCE_START
 
 
-MIN_FLAP_QUADS = 2  # one unseen quad at the border is too little to tell from an edge misplaced by a pixel
+MIN_FLAP_QUADS = 2
+# Measured heights: a quad this many times the flat height up holds slack (twice: clear of the height
+# field's noise, ~0.3 mm, and held by the hysteresis down to the flat height itself).
+RAISED_FLAT_RATIO = (
+    2.0  # one unseen quad at the border is too little to tell from an edge misplaced by a pixel
+)
 
 
 def find_flaps(
@@ -187,9 +192,20 @@ def _apexes(
     return np.asarray(height), np.asarray(at)
 
 
+def measured_apexes(nodes_m: np.ndarray, quad_height_m: np.ndarray) -> EdgeApexes:
+    """EdgeApexes from heights measured over each quad (ny-1, nx-1) (a second view): an edge is as high
+    as the higher quad beside it, at its middle."""
+    q = np.pad(quad_height_m, 1, constant_values=-np.inf)
+    x_height = np.maximum(q[:-1, 1:-1], q[1:, 1:-1])  # (ny, nx-1): the quads before and after each x edge
+    y_height = np.maximum(q[1:-1, :-1], q[1:-1, 1:])  # (ny-1, nx)
+    xy = nodes_m[..., :2]
+    return EdgeApexes(x_height, y_height, (xy[:, :-1] + xy[:, 1:]) / 2.0, (xy[:-1] + xy[1:]) / 2.0)
+
+
 VALLEY_RATIO = 0.5  # a dip across a component below this share of the peaks on both its sides parts it
 PARALLEL_GAP_M = 0.06  # parallel ridges nearer than this are one: no belt (65 mm) fits between them
 PARALLEL_DEG = 20.0  # bands of a ridge compressed within this of one direction are one ridge's
+MIN_PROFILE_SHORTENING = 1e-4  # a measured-risen quad's weight across a ridge, however little shorter
 
 
 def find_ridges(
@@ -245,7 +261,8 @@ def _part_parallel(
     offset = centres @ _across(quads, tensor)
     grid = np.arange(offset.min() - bin_m, offset.max() + bin_m, bin_m / 4.0)
     kernel = np.exp(-0.5 * ((grid[:, None] - offset[None, :]) / (bin_m / 2.0)) ** 2)
-    profile = kernel @ shortening[quads]
+    # A quad a second view measured risen may be hardly shorter: it still weighs a little.
+    profile = kernel @ np.maximum(shortening[quads], MIN_PROFILE_SHORTENING)
     best, cut_m = VALLEY_RATIO, None
     for i in range(1, len(grid) - 1):
         if not profile[i] <= min(profile[i - 1], profile[i + 1]):
@@ -319,13 +336,20 @@ class FlatnessMonitor:
         cloth_size_m: tuple[float, float],
         quad_seen: np.ndarray | None = None,
         basis: FlatnessBasis = FlatnessBasis.SINCE_START,
+        quad_height_m: np.ndarray | None = None,
     ) -> Flatness:
         """The flatness of mesh nodes_m (ny, nx, 3); quad_seen (ny-1, nx-1) where known finds flaps; basis:
-        what the mesh's rest shape rests on (the estimate's)."""
+        what the mesh's rest shape rests on (the estimate's). quad_height_m (ny-1, nx-1), each quad's
+        highest point as a second view measured it: a quad risen past RAISED_FLAT_RATIO x flat_height_m
+        holds slack however little shorter it looks, and the heights reported are the measured ones."""
         ny, nx = nodes_m.shape[:2]
         spacing = (cloth_size_m[0] / (nx - 1), cloth_size_m[1] / (ny - 1))
         shortening = quad_shortening(nodes_m[..., :2], spacing)
         compressed = shortening > self.cfg.compressed_strain
+        raised = np.zeros_like(compressed)
+        if quad_height_m is not None:
+            raised = quad_height_m > RAISED_FLAT_RATIO * self.cfg.flat_height_m
+            compressed |= raised
         # `flat` reads only what starts a ridge: a quad kept by the hysteresis below is for the regulator to
         # finish pulling; lying flat with no more than that is lying flat (the cloth's crimp, docs).
         starting_pct = float(100.0 * np.mean(compressed))
@@ -334,13 +358,19 @@ class FlatnessMonitor:
             # holding it down to the release strain.
             near = cv2.dilate(self._compressed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
             compressed |= near & (shortening > self.cfg.release_strain)
+            if quad_height_m is not None:
+                compressed |= near & (quad_height_m > self.cfg.flat_height_m)
         self._compressed = compressed
         compressed_pct = float(100.0 * np.mean(compressed))
         c = self.cfg
-        ridges = find_ridges(
-            nodes_m, spacing, shortening, compressed, edge_apexes(nodes_m, spacing, c.compressed_strain)
-        )
+        if quad_height_m is None:
+            apexes = edge_apexes(nodes_m, spacing, c.compressed_strain)
+        else:
+            apexes = measured_apexes(nodes_m, quad_height_m)
+        ridges = find_ridges(nodes_m, spacing, shortening, compressed, apexes)
         max_height = float(max(nodes_m[..., 2].max(), 0.0, *(r.height_m for r in ridges)))
+        if quad_height_m is not None:
+            max_height = float(max(quad_height_m.max(), 0.0))
         flaps = () if quad_seen is None else find_flaps(nodes_m, spacing, quad_seen)
         if self.flat:
             self.flat = max_height <= 2 * c.flat_height_m and starting_pct <= 2 * c.flat_compressed_pct

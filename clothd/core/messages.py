@@ -98,6 +98,8 @@ class Estimate:
     detected: Detections = field(default_factory=Detections.none)
     # What the mesh's rest shape rests on: a surface measured through a second view, or the first frame's.
     flatness_basis: FlatnessBasis = FlatnessBasis.SINCE_START
+    # (ny - 1, nx - 1): the highest point of each quad as a second view measured it this frame; None: not.
+    quad_height_m: np.ndarray | None = None
 
     @classmethod
     def lost(cls, t_s: float, timing_s: dict[str, float]) -> Estimate:

@@ -33,6 +33,7 @@ from clothd.core.messages import PairedView
 
 MATCH_WINDOW_PX = 21  # wider than tracking's: the two views see a patch from different angles
 MATCH_LEVELS = 3  # pyramid levels: a match up to ~60 px along its line from the table-plane guess
+TRACKING_LEVELS = 1  # from where the estimate puts a point: a few pixels to find
 MATCH_FB_MAX_PX = 1.0  # forward-backward: the match must lead back within this
 FIELD_PITCH_M = 0.004  # the height field's grid spacing, finer than a ridge (hwsim's σ is 12 mm)
 POINT_SIGMA_M = 0.001  # one triangulated height, about (0.2 px at the default cell's geometry)
@@ -63,12 +64,15 @@ def match_across(
     cam0: CameraModel,
     cam1: CameraModel,
     cfg: StereoConfig,
+    guess_m: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Pixels px0 (n, 2) of the first view found in the second: (px1 (n, 2), ok (n,))."""
+    """Pixels px0 (n, 2) of the first view found in the second: (px1 (n, 2), ok (n,)). guess_m (n, 3):
+    where the points are believed to be; None: on the table, and the search spans the whole height."""
     n = len(px0)
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
-    guess = cam1.project(cam0.backproject_to_plane(px0, 0.0))
+    levels = MATCH_LEVELS if guess_m is None else TRACKING_LEVELS
+    guess = cam1.project(cam0.backproject_to_plane(px0, 0.0) if guess_m is None else guess_m)
     window, criteria = (
         (MATCH_WINDOW_PX, MATCH_WINDOW_PX),
         (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
@@ -77,10 +81,10 @@ def match_across(
     p0 = px0.astype(np.float32).reshape(-1, 1, 2)
     g = np.nan_to_num(guess, nan=-1.0).astype(np.float32).reshape(-1, 1, 2)
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(
-        gray0, gray1, p0, g, winSize=window, maxLevel=MATCH_LEVELS, criteria=criteria, flags=flags
+        gray0, gray1, p0, g, winSize=window, maxLevel=levels, criteria=criteria, flags=flags
     )
     back, st2, _ = cv2.calcOpticalFlowPyrLK(
-        gray1, gray0, p1, p0.copy(), winSize=window, maxLevel=MATCH_LEVELS, criteria=criteria, flags=flags
+        gray1, gray0, p1, p0.copy(), winSize=window, maxLevel=levels, criteria=criteria, flags=flags
     )
     px1 = p1.reshape(-1, 2).astype(np.float64)
     fb = np.linalg.norm(back.reshape(-1, 2) - px0, axis=1)
@@ -100,18 +104,20 @@ def measure_surface(
     cameras: Sequence[CameraModel],
     views: Sequence[PairedView | None],
     cfg: StereoConfig,
-) -> np.ndarray | None:
+    guess_m: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray] | None:
     """Points of the surface (m, 3) at the first view's features px0 (n, 2) (its frame gray0, taken at
-    t_s), through the first further view paired within cfg.max_skew_ms that finds at least
-    cfg.min_matches of them; None when none does."""
+    t_s) and which features they are (n,) bool, through the first further view paired within
+    cfg.max_skew_ms that finds at least cfg.min_matches of them; None when none does. guess_m: as
+    match_across's."""
     for camera, view in zip(cameras, views, strict=False):
         if view is None or abs(view.t_s - t_s) > cfg.max_skew_ms * 1e-3:
             continue
         image = view.image
         gray1 = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-        px1, ok = match_across(gray0, gray1, px0, cam0, camera, cfg)
+        px1, ok = match_across(gray0, gray1, px0, cam0, camera, cfg, guess_m)
         if ok.sum() >= cfg.min_matches:
-            return triangulate(cam0, px0[ok], camera, px1[ok])
+            return triangulate(cam0, px0[ok], camera, px1[ok]), ok
     return None
 
 
@@ -209,3 +215,32 @@ def _second_differences(gy: int, gx: int) -> sps.csr_matrix:
     x = sps.kron(sps.identity(gy), along(gx))
     y = sps.kron(along(gy), sps.identity(gx))
     return sps.vstack([x, y]).tocsr()
+
+
+def quad_highest(quads: np.ndarray, z_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Each quad's highest point (shape), from heights z_m (m,) measured at points in quads (m,) (flat
+    indices): its highest point's (the matches passed the epipolar and forward-backward checks; the
+    second highest read a 11 mm crest 1.3 mm low). A quad with none takes the highest of the quads around
+    it, and 0 where they have none either."""
+    n = shape[0] * shape[1]
+    if len(quads) == 0:
+        return np.zeros(shape)
+    order = np.lexsort((z_m, quads))
+    q, z = quads[order], z_m[order]
+    last = np.flatnonzero(np.r_[q[1:] != q[:-1], True])  # each quad's highest
+    out = np.full(n, np.nan)
+    out[q[last]] = z[last]
+    grid = out.reshape(shape)
+    padded = np.pad(grid, 1, constant_values=np.nan)
+    around = np.stack(
+        [
+            padded[1 + dy : 1 + dy + shape[0], 1 + dx : 1 + dx + shape[1]]
+            for dy in (-1, 0, 1)
+            for dx in (-1, 0, 1)
+        ]
+    )
+    with np.errstate(all="ignore"):
+        filled = np.where(
+            np.isnan(grid), np.nanmax(np.where(np.isnan(around), -np.inf, around), axis=0), grid
+        )
+    return np.asarray(np.where(np.isfinite(filled), filled, 0.0))

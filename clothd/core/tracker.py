@@ -33,10 +33,11 @@ from clothd.core.features import (
     classify_texture,
     coverage_holes,
 )
-from clothd.core.mesh import QuadMesh
+from clothd.core.mesh import QuadMesh, blend
 from clothd.core.messages import Detections, Estimate, ModuleCommands, PairedView
 from clothd.core.modes import FlatnessBasis
 from clothd.core.outline_edges import OutlineEdges
+from clothd.core.second_view import SecondView
 from clothd.core.segmentation import (
     ClothColour,
     ClothRegion,
@@ -44,7 +45,7 @@ from clothd.core.segmentation import (
     find_cloth,
     full_frame_region,
 )
-from clothd.core.stereo import fit_height_field, measure_surface
+from clothd.core.stereo import quad_highest
 from clothd.core.unfold import unfold
 
 Clock = Callable[[], float]
@@ -54,9 +55,6 @@ MIN_FEATURES_TO_RESAMPLE = 3  # an outline through fewer features means nothing
 # On a repeating pattern, a feature whose two LK starts land this far apart landed on two look-alikes.
 AMBIGUOUS_PX = 1.0
 AMBIGUOUS_NEAR_PX = 2.0  # ... and is kept if one of them lies this near where the others put the cloth
-# Tracking begins on a frame a further view pairs (its surface is measured then): this many frames are
-# waited for one before tracking begins on one view.
-PAIR_WAIT_FRAMES = 8
 
 
 class Tracker:
@@ -79,7 +77,7 @@ class Tracker:
     ) -> None:
         self.cfg = cfg
         self.camera_model = camera_model
-        self.other_cameras = tuple(other_cameras)
+        self.second_view = SecondView(camera_model, other_cameras if cfg.estimates_shape else (), cfg.stereo)
         self.layout = layout
         self.roi = roi
         self.clock = clock or (lambda: 0.0)
@@ -128,7 +126,7 @@ class Tracker:
         self.repetitive = False
         self.engine = self._engine_default
         self.flatness_basis = FlatnessBasis.SINCE_START  # the rest shape: the first frame's, or measured
-        self._pair_waits = 0  # frames waited for a further view's pair to begin tracking on
+        self.quad_height_m: np.ndarray | None = None  # measured through a further view this frame
         self.anchors.reset()
         self._upkeep_frame: GrayFrame | None = None  # the tracked frame whose upkeep is still to do
         self._detected: list[Detections] = []  # features detected since the last estimate
@@ -222,6 +220,7 @@ class Tracker:
         t4 = self.clock()
         meas = measured[keep]
         features.keep(keep, measured)
+        self.quad_height_m = self._heights_now(frame, frame_t_s, views)
         estimate = self._estimate(frame_t_s, meas, stats, timing, image)
         if self._diverged(stats):
             self.reset()
@@ -281,7 +280,7 @@ class Tracker:
     ) -> Estimate:
         h, w = image.shape[:2]
         region: ClothRegion | None = full_frame_region(w, h) if self.roi == "full" else find_cloth(image)
-        if region is None or self._awaits_pair(t_s, views):
+        if region is None or self.second_view.awaits_pair(t_s, views):
             return Estimate.lost(t_s, timing)
         f = self.cfg.features
         # Features on the cloth seen, not on whatever its rectangle holds besides (a folded-over corner's
@@ -322,17 +321,21 @@ class Tracker:
         stats = UpdateStats(len(self.features), 0, 0.0)
         return self._estimate(t_s, self.features.px.astype(np.float64), stats, timing, image)
 
-    def _awaits_pair(self, t_s: float, views: Sequence[PairedView | None]) -> bool:
-        """No further view pairs this frame closely enough: wait for one, PAIR_WAIT_FRAMES at most."""
-        if not self.other_cameras or not self.cfg.estimates_shape:
-            return False
-        skew_s = self.cfg.stereo.max_skew_ms * 1e-3
-        paired = any(v is not None and abs(v.t_s - t_s) <= skew_s for v in views)
-        if paired or self._pair_waits >= PAIR_WAIT_FRAMES:
-            self._pair_waits = 0
-            return False
-        self._pair_waits += 1
-        return True
+    def _heights_now(
+        self, frame: GrayFrame, t_s: float, views: Sequence[PairedView | None]
+    ) -> np.ndarray | None:
+        """Each mesh quad's highest point (ny-1, nx-1) measured this frame at the features that survived it,
+        where the rest shape was measured too (heights agree with its lengths only then)."""
+        nodes = self.estimator.estimate().nodes_m if self.flatness_basis == FlatnessBasis.MEASURED else None
+        if nodes is None or self.features is None or self.mesh is None:
+            return None
+        guess_m = blend(nodes, self.features.binding)
+        points, found = self.second_view.points_now(frame.gray, self.features.px, guess_m, t_s, views)
+        if points is None:
+            return None
+        return quad_highest(
+            self.features.binding.quad[found], points[:, 2], (self.mesh.ny - 1, self.mesh.nx - 1)
+        )
 
     def _lay_mesh(
         self,
@@ -348,13 +351,10 @@ class Tracker:
         corners_world = self.camera_model.backproject_to_plane(region.corners_px.astype(np.float64))[:, :2]
         footprint = QuadMesh.covering(corners_world, self.cfg.mesh.nodes_x, self.cfg.mesh.nodes_y)
         self.mesh, self.flatness_basis = footprint, FlatnessBasis.SINCE_START
-        points = None
-        if self.cfg.estimates_shape:
-            cams = self.other_cameras
-            points = measure_surface(frame.gray, px, t_s, self.camera_model, cams, views, self.cfg.stereo)
-        if points is None:
+        field = self.second_view.surface(frame.gray, px, t_s, views, footprint)
+        if field is None:
             return None
-        self.mesh, nodes_m = unfold(footprint, fit_height_field(points, footprint))
+        self.mesh, nodes_m = unfold(footprint, field)
         self.flatness_basis = FlatnessBasis.MEASURED
         return nodes_m
 
@@ -433,4 +433,5 @@ class Tracker:
             quad_seen=quad_seen,
             detected=detected.subset(np.isin(detected.ids, self.features.ids)),  # the dropped never reach one
             flatness_basis=self.flatness_basis,
+            quad_height_m=self.quad_height_m,
         )

@@ -31,7 +31,7 @@ from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands, PairedView
-from clothd.core.modes import LoopState, Mode
+from clothd.core.modes import FlatnessBasis, LoopState, Mode
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
 from clothd.formats import read_camera
@@ -193,9 +193,10 @@ class LockstepCell:
         self.ticks += 1
         if self.world.frame_index % self.camera_every == 0:
             k = self.world.frame_index // self.camera_every
-            # The further cameras matter only when tracking begins (clothd/core/stereo.py): rendering
-            # them for every frame would only slow the lockstep.
-            sensors = self.sensors if self.tracker.initialising else self.sensors[:1]
+            # The further cameras matter when tracking begins, and after only where it began measured
+            # (clothd/core/second_view.py): rendering them otherwise would only slow the lockstep.
+            measured = self.tracker.initialising or self.tracker.flatness_basis == FlatnessBasis.MEASURED
+            sensors = self.sensors if measured else self.sensors[:1]
             images = [self._frame(sensor, k) for sensor in sensors]
             views = [
                 PairedView(image, self.world.t_s + s.skew_s)

@@ -1,0 +1,71 @@
+"""What the tracker asks of its further cameras: whether to wait for a paired frame before tracking
+begins, the surface when it begins, and its points in every frame after (clothd/core/stereo.py has the
+geometry, docs/second-view.md the method)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from clothd.config import StereoConfig
+from clothd.core.camera_model import CameraModel
+from clothd.core.mesh import QuadMesh
+from clothd.core.messages import PairedView
+from clothd.core.stereo import HeightField, fit_height_field, measure_surface
+
+# Tracking begins on a frame a further view pairs (its surface is measured then): this many frames are
+# waited for one before tracking begins on one view.
+PAIR_WAIT_FRAMES = 8
+
+
+class SecondView:
+    """The first camera's model, the further cameras' (none: mono), and the frames waited for a pair."""
+
+    def __init__(self, first: CameraModel, others: Sequence[CameraModel], cfg: StereoConfig) -> None:
+        self.first = first
+        self.others = tuple(others)
+        self.cfg = cfg
+        self._waits = 0
+
+    def awaits_pair(self, t_s: float, views: Sequence[PairedView | None]) -> bool:
+        """No further view pairs the frame taken at t_s closely enough: wait for one, PAIR_WAIT_FRAMES at
+        most (then tracking begins on one view)."""
+        if not self.others:
+            return False
+        paired = any(v is not None and abs(v.t_s - t_s) <= self.cfg.max_skew_ms * 1e-3 for v in views)
+        if paired or self._waits >= PAIR_WAIT_FRAMES:
+            self._waits = 0
+            return False
+        self._waits += 1
+        return True
+
+    def surface(
+        self,
+        gray: np.ndarray,
+        px: np.ndarray,
+        t_s: float,
+        views: Sequence[PairedView | None],
+        footprint: QuadMesh,
+    ) -> HeightField | None:
+        """The surface over `footprint` from the first view's features px (n, 2) in its frame `gray`; None
+        when no further view pairs it or finds enough of them."""
+        found = self.points_now(gray, px, None, t_s, views)
+        return None if found[0] is None else fit_height_field(found[0], footprint)
+
+    def points_now(
+        self,
+        gray: np.ndarray,
+        px: np.ndarray,
+        guess_m: np.ndarray | None,
+        t_s: float,
+        views: Sequence[PairedView | None],
+    ) -> tuple[np.ndarray | None, np.ndarray]:
+        """The surface's points (m, 3) at the features px (n, 2) a further view finds, and which they are
+        (n,) bool; (None, nothing found) when no view pairs or finds enough. guess_m (n, 3): where the
+        estimate puts them (None: on the table)."""
+        none = np.zeros(len(px), bool)
+        if len(px) < self.cfg.min_matches:
+            return None, none
+        found = measure_surface(gray, px, t_s, self.first, self.others, views, self.cfg, guess_m)
+        return (None, none) if found is None else found
