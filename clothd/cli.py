@@ -29,7 +29,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     flags = {k: v for k, v in (("host", args.host), ("port", args.port)) if v is not None}
     opcua = {"endpoint": args.opcua_endpoint} if args.opcua_endpoint else {}
     cfg = load_config(args.config, {"api": flags, "opcua": opcua})
-    return run(cfg, args.sim, args.record, args.cameras)
+    return run(cfg, args.sim, args.record, args.cameras, args.sim_controllers)
 
 
 def _cmd_export(args: argparse.Namespace) -> int:
@@ -166,6 +166,14 @@ def _add_run(sub: Subparsers) -> None:
         const="cell",
         metavar="SCENARIO",
         help="start hwsim serve (default scenario: cell) and run against it",
+    )
+    rn.add_argument(
+        "--sim-controllers",
+        type=positive_int,
+        default=1,
+        metavar="N",
+        help="with --sim: the cell's modules split among N stepper controllers, each on its own pty "
+        "(stepper.controllers; default 1)",
     )
     rn.add_argument(
         "--cameras",

@@ -43,14 +43,15 @@ from clothd.config import (
     OpcUaConfig,
     first_cameras,
     opcua_host_port,
+    parse_config,
     with_cameras,
-    with_overrides,
 )
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.module_calibration import ModuleCalibration
 from clothd.core.workspace import Workspace
 from clothd.drivers.camera import VideoCaptureSource, redact_source
+from clothd.drivers.link_group import LinkGroup
 from clothd.drivers.stepper_link import StepperLink
 from clothd.errors import ConfigError, HardwareError
 from clothd.formats import read_camera, read_module_calibration
@@ -81,10 +82,12 @@ class SimCell:
                 self.process.wait()
 
 
-def start_sim(scenario: str) -> SimCell:
-    """Start `hwsim serve` and wait for the line that says where its hardware is."""
+def start_sim(scenario: str, controllers: int = 1) -> SimCell:
+    """Start `hwsim serve` (its modules split among `controllers` firmwares) and wait for the line that
+    says where its hardware is."""
     state_dir = Path(tempfile.mkdtemp(prefix="clothd-sim-"))
     cmd = [sys.executable, "-m", "hwsim.cli", "serve", "--scenario", scenario, "--state-dir", str(state_dir)]
+    cmd += ["--controllers", str(controllers)]
     cmd.append("--exit-with-parent")  # a daemon killed with -9 takes its simulated cell with it
     # Its own session: a Ctrl-C in the terminal must not take the cell away before the daemon has
     # stopped the modules; the daemon stops it last.
@@ -107,13 +110,21 @@ def start_sim(scenario: str) -> SimCell:
 
 def sim_config(cfg: Config, ready: dict[str, Any]) -> Config:
     """Point the cameras (every camera of the cell, first first) and the stepper link at the simulated
-    cell. An hwsim that lists no cameras serves one, at video_url."""
+    cell: stepper.port at its one controller, or stepper.controllers at each of several. An hwsim that
+    lists no cameras serves one, at video_url."""
     cameras = ready.get("cameras") or [{"video_url": ready["video_url"], "camera_json": ready["camera_json"]}]
     entries = [
         {"name": c.get("name"), "source": str(c["video_url"]), "calibration": str(c["camera_json"])}
         for c in cameras
     ]
-    return with_overrides(with_cameras(cfg, entries), {"stepper": {"port": str(ready["serial"])}})
+    data = with_cameras(cfg, entries).model_dump(exclude_unset=True)
+    stepper = {k: v for k, v in data.get("stepper", {}).items() if k not in ("port", "controllers")}
+    controllers = ready.get("controllers") or []
+    if len(controllers) > 1:
+        stepper["controllers"] = [{"port": str(c["serial"]), "modules": c["modules"]} for c in controllers]
+    else:
+        stepper["port"] = str(ready["serial"])
+    return parse_config({**data, "stepper": stepper}, "<sim>")
 
 
 def camera_model_for(cfg: Config) -> CameraModel:
@@ -183,7 +194,7 @@ def build(cfg: Config) -> Parts:
         recording_dir=cfg.recording.dir,
         camera_source=redact_source(cfg.all_cameras[0].source.source),
         cameras=tuple((c.name, redact_source(c.source.source)) for c in cfg.all_cameras),
-        link_port=cfg.stepper.port,
+        link_port=cfg.stepper.links(layout.n_modules)[0].cfg.port,
         estimates_shape=cfg.tracker.estimates_shape,
         recording_format=cfg.recording.format,
         frame_lock=cfg.loop.frame_lock,
@@ -195,7 +206,13 @@ def build(cfg: Config) -> Parts:
         module_calibration=module_calibration_for(cfg, layout),
     )
     hub = StreamHub()
-    link = StepperLink(cfg.stepper, layout.n_modules)
+    link = LinkGroup(
+        [
+            (StepperLink(c.cfg, len(c.modules), n_modules_from=c.n_from), c.modules)
+            for c in cfg.stepper.links(layout.n_modules)
+        ],
+        layout.n_modules,
+    )
     daemon = Daemon(settings, link, ComputeProcess(spec), on_status=hub.publish)
     return Parts(daemon, hub, camera_model)
 
@@ -357,10 +374,15 @@ async def serve(
 
 
 def run(
-    cfg: Config, sim_scenario: str | None, record_dir: Path | None = None, cameras: int | None = None
+    cfg: Config,
+    sim_scenario: str | None,
+    record_dir: Path | None = None,
+    cameras: int | None = None,
+    sim_controllers: int = 1,
 ) -> int:
     """Run the daemon with `cfg` (loaded and validated by the caller), against hwsim when sim_scenario
-    names a scenario; with only the first `cameras` cameras when given (1: one view)."""
+    names a scenario (its modules split among `sim_controllers` controllers); with only the first
+    `cameras` cameras when given (1: one view)."""
     # The tick's thread waits at most this long for the GIL while the API's thread computes (default 5 ms).
     sys.setswitchinterval(GIL_SWITCH_S)
     listener = bind_api(cfg.api)
@@ -374,7 +396,7 @@ def run(
     # inherit its priority (clothd/loop/priority.py). hwsim inherits the nice value, not the real-time class:
     # it runs its firmware, the stand-in for a microcontroller, in that class itself.
     set_thread_nice(cfg.loop.nice, "the loop")
-    sim = start_sim(sim_scenario) if sim_scenario is not None else None
+    sim = start_sim(sim_scenario, sim_controllers) if sim_scenario is not None else None
     try:
         claim_realtime(cfg.loop.realtime_priority, "the loop")
         if sim is not None:

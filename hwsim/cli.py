@@ -139,7 +139,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     sc = scenarios.load(args.scenario)
     state_dir = args.state_dir or Path(tempfile.mkdtemp(prefix="hwsim-"))
     with contextlib.suppress(KeyboardInterrupt):
-        serve(sc, state_dir, args.port, args.camera_fps, args.arch, args.other_cameras_fps)
+        serve(sc, state_dir, args.port, args.camera_fps, args.arch, args.other_cameras_fps, args.controllers)
     return 0
 
 
@@ -155,6 +155,31 @@ def _exit_with_parent(signum: int) -> None:
         raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
     if os.getppid() != parent or parent == 1:
         raise SystemExit(0)
+
+
+def _add_serve(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    s = sub.add_parser("serve", help="run the cell in real time: firmware on a pty, camera over HTTP")
+    s.add_argument("--scenario", default="cell", help="a scenario file or shipped name (default: cell)")
+    s.add_argument("--port", type=int, default=0, help="HTTP port on 127.0.0.1 (default: any free one)")
+    s.add_argument("--state-dir", type=Path, help="for the pty link and camera.json (default: temp)")
+    s.add_argument("--camera-fps", type=float, default=15.0, help="frames served per second")
+    s.add_argument(
+        "--other-cameras-fps",
+        type=float,
+        help="frames per second of every camera but the first (default: --camera-fps)",
+    )
+    s.add_argument(
+        "--exit-with-parent", action="store_true", help="stop when the process that started it dies (Linux)"
+    )
+    s.add_argument(
+        "--controllers",
+        type=int,
+        default=1,
+        help="stepper controllers, each its own firmware process on its own pty driving an equal share "
+        "of the modules by id (default: 1)",
+    )
+    s.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "vulkan"], help="Taichi backend")
+    s.set_defaults(func=_cmd_serve)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -218,21 +243,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ch.add_argument("--seed", type=int, default=0, help="poses and sensor noise")
     ch.set_defaults(func=_cmd_charuco)
-    s = sub.add_parser("serve", help="run the cell in real time: firmware on a pty, camera over HTTP")
-    s.add_argument("--scenario", default="cell", help="a scenario file or shipped name (default: cell)")
-    s.add_argument("--port", type=int, default=0, help="HTTP port on 127.0.0.1 (default: any free one)")
-    s.add_argument("--state-dir", type=Path, help="for the pty link and camera.json (default: temp)")
-    s.add_argument("--camera-fps", type=float, default=15.0, help="frames served per second")
-    s.add_argument(
-        "--other-cameras-fps",
-        type=float,
-        help="frames per second of every camera but the first (default: --camera-fps)",
-    )
-    s.add_argument(
-        "--exit-with-parent", action="store_true", help="stop when the process that started it dies (Linux)"
-    )
-    s.add_argument("--arch", default="cpu", choices=["cpu", "cuda", "vulkan"], help="Taichi backend")
-    s.set_defaults(func=_cmd_serve)
+    _add_serve(sub)
     return p
 
 

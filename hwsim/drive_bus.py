@@ -68,16 +68,18 @@ class DriveBus:
 
     # -- the world's side ------------------------------------------------------------------------------
 
-    def apply_to(self, table: Table) -> None:
-        """Give the table what the firmware set since the last call: a cut stops every module at once
-        (drivers disabled, no ramp), new targets are commanded."""
+    def apply_to(self, table: Table, modules: np.ndarray | None = None) -> None:
+        """Give the table what the firmware set since the last call: a cut stops every module it drives at
+        once (drivers disabled, no ramp), new targets are commanded. `modules`: the table's module ids of
+        the firmware's modules 0..n-1 (a controller of several); default, the table's own."""
+        ids = np.arange(self.n_modules) if modules is None else modules
         a = self._snapshot()
         if a[_CUTS] != self._seen_cuts:
             self._seen_cuts = a[_CUTS]
-            table.speed_m_s[:] = 0.0
+            table.speed_m_s[ids] = 0.0
         if a[_TARGETS] != self._seen_targets:
             self._seen_targets = a[_TARGETS]
-            table.command(np.arange(self.n_modules), a[self._speed], a[self._heading])
+            table.command(ids, a[self._speed], a[self._heading])
 
     def counters(self) -> Counters:
         values = self._snapshot()[self._counters]

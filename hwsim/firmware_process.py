@@ -20,6 +20,8 @@ import sys
 import threading
 from pathlib import Path
 
+import numpy as np
+
 from hwsim.drive_bus import DriveBus
 from hwsim.firmware import Counters, Firmware
 
@@ -28,10 +30,14 @@ START_TIMEOUT_S = 30.0
 
 
 class FirmwareProcess:
-    """Starts the firmware's process and waits until its pty is behind `link_path`."""
+    """Starts the firmware's process and waits until its pty is behind `link_path`. `modules`: the table's
+    module ids it drives, by its own index (a cell of several controllers); default 0..n_modules-1."""
 
-    def __init__(self, n_modules: int, link_path: Path, bus_path: Path) -> None:
+    def __init__(
+        self, n_modules: int, link_path: Path, bus_path: Path, modules: np.ndarray | None = None
+    ) -> None:
         self.link_path = link_path
+        self.modules = np.arange(n_modules) if modules is None else np.asarray(modules, dtype=int)
         self.bus = DriveBus(bus_path, n_modules, create=True)
         cmd = [sys.executable, "-m", "hwsim.firmware_process", str(link_path), str(bus_path), str(n_modules)]
         self.process = subprocess.Popen(cmd, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)

@@ -1,14 +1,17 @@
 """`hwsim serve`: the simulated cell as hardware, in real time.
 
 - The stepper controller's firmware in a process of its own (hwsim.firmware_process), on a pty behind
-  the symlink STATE_DIR/ttyCELL.
+  the symlink STATE_DIR/ttyCELL; with --controllers N, N controllers, each its own firmware process on
+  its own pty (STATE_DIR/ttyCELL-K) driving an equal share of the modules, by id (the ready line's
+  `controllers` lists each one's pty and module ids).
 - Every camera as MJPEG over HTTP on 127.0.0.1 (GET /video/NAME.mjpg; GET /video.mjpg is the first),
   which OpenCV's FFmpeg backend reads.
 - Ground truth and module states at GET /truth (JSON), for tests and the truth overlay: the lead piece's
   pose and sheet measures (null while a flow has emptied the table) and `pieces`, every piece on the
   table; GET /outfeed, the pieces a flow's outfeed judged (hwsim/outfeed.py).
-- Test hooks: POST /unplug?seconds=S (serial cable), POST /camera/drop?seconds=S (video stream),
-  POST /fault?code=C&module=M (a controller fault report), POST /cloth with a JSON pose as in a
+- Test hooks: POST /unplug?seconds=S[&controller=K] (serial cable: every controller's, or K's),
+  POST /camera/drop?seconds=S (video stream), POST /fault?code=C&module=M[&controller=K] (a controller
+  fault report, M in K's own numbering; K 0 by default), POST /cloth with a JSON pose as in a
   scenario's `initial_pose` (lay the cloth down again there, ridges and all; 409 while a belt runs),
   POST /cloth/push with a JSON push (two hands push a ridge into the cloth where it lies).
 
@@ -85,6 +88,7 @@ class Cell:
         camera_fps: float,
         arch: str = "cpu",
         other_cameras_fps: float | None = None,
+        controllers: int = 1,
     ) -> None:
         self.scenario = scenario
         self.state_dir = state_dir
@@ -101,9 +105,8 @@ class Cell:
         ]
         self.camera_every = self.streams[0].every
         self.lock = threading.Lock()  # the world, between its thread and the HTTP handlers
-        self.firmware = FirmwareProcess(
-            self.world.table.n_modules, state_dir / "ttyCELL", state_dir / "drives.bin"
-        )
+        self.firmwares = start_firmwares(self.world.table.n_modules, controllers, state_dir)
+        self.firmware = self.firmwares[0]
         for stream in self.streams:
             stream.camera.save(state_dir / stream.json_name)
         write_table(self.world, state_dir / "table.json")
@@ -137,7 +140,8 @@ class Cell:
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5)
-        self.firmware.stop()
+        for firmware in self.firmwares:
+            firmware.stop()
 
     def drop_video(self, seconds: float) -> None:
         with self.frame_cond:
@@ -180,7 +184,8 @@ class Cell:
         while not self._stop.is_set():
             next_t += dt
             with self.lock:
-                self.firmware.bus.apply_to(self.world.table)
+                for firmware in self.firmwares:
+                    firmware.bus.apply_to(self.world.table, firmware.modules)
                 self.world.step()
                 self._update_truth()
             behind_s = time.monotonic() - next_t
@@ -208,6 +213,7 @@ class Cell:
             "module_heading_rad": t.heading_rad.tolist(),
             "module_cmd_speed_m_s": t.cmd_speed_m_s.tolist(),
             **self.firmware.counters(),
+            "controllers": [{"serial": str(f.link_path), **f.counters()} for f in self.firmwares],
             "camera_frames_dropped": self.camera_frames_dropped,
             "behind_real_time_s": self.behind_real_time_s,
             **{k: v for k, v in lead.items() if k != "pose"},
@@ -238,6 +244,20 @@ class Cell:
                 for stream, frame in rendered:
                     stream.frame = frame
                 self.frame_cond.notify_all()
+
+
+def start_firmwares(n_modules: int, controllers: int, state_dir: Path) -> list[FirmwareProcess]:
+    """One firmware process on STATE_DIR/ttyCELL driving every module, or `controllers` of them on
+    ttyCELL-K, controller K driving the K-th equal share of the module ids, in order."""
+    if controllers == 1:
+        return [FirmwareProcess(n_modules, state_dir / "ttyCELL", state_dir / "drives.bin")]
+    if not 1 <= controllers <= n_modules:
+        raise ValueError(f"--controllers {controllers}: the cell has {n_modules} modules")
+    shares = np.array_split(np.arange(n_modules), controllers)
+    return [
+        FirmwareProcess(len(ids), state_dir / f"ttyCELL-{k}", state_dir / f"drives-{k}.bin", ids)
+        for k, ids in enumerate(shares)
+    ]
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -274,12 +294,14 @@ class _Handler(BaseHTTPRequestHandler):
         q = {k: v[0] for k, v in parse_qs(url.query).items()}
         try:
             if url.path == "/unplug":
-                self.cell.firmware.unplug(float(q.get("seconds", "1")))
+                chosen = [self._controller(q)] if "controller" in q else self.cell.firmwares
+                for firmware in chosen:
+                    firmware.unplug(float(q.get("seconds", "1")))
             elif url.path == "/camera/drop":
                 self.cell.drop_video(float(q.get("seconds", "1")))
             elif url.path == "/fault":
                 module = int(q.get("module", "65535"))
-                self.cell.firmware.report_fault(int(q["code"]), module, q.get("text", ""))
+                self._controller(q).report_fault(int(q["code"]), module, q.get("text", ""))
             elif url.path == "/cloth/push":
                 length = int(self.headers.get("Content-Length", "0"))
                 push = Push.model_validate_json(self.rfile.read(length))
@@ -299,6 +321,12 @@ class _Handler(BaseHTTPRequestHandler):
             self.send_error(HTTPStatus.BAD_REQUEST, f"bad request: {reason}"[:300])
             return
         self._json({"ok": True})
+
+    def _controller(self, q: dict[str, str]) -> FirmwareProcess:
+        k = int(q.get("controller", "0"))
+        if not 0 <= k < len(self.cell.firmwares):
+            raise ValueError(f"controller {k}: the cell has {len(self.cell.firmwares)}")
+        return self.cell.firmwares[k]
 
     def _json(self, obj: object) -> None:
         self._bytes(json.dumps(obj).encode(), "application/json")
@@ -351,15 +379,17 @@ def serve(
     camera_fps: float,
     arch: str = "cpu",
     other_cameras_fps: float | None = None,
+    controllers: int = 1,
 ) -> None:
     """Run the cell until interrupted."""
-    cell = Cell(scenario, state_dir, camera_fps, arch, other_cameras_fps)
+    cell = Cell(scenario, state_dir, camera_fps, arch, other_cameras_fps, controllers)
     handler = type("Handler", (_Handler,), {"cell": cell})
     server = ThreadingHTTPServer(("127.0.0.1", port), handler)
     server.daemon_threads = True
     base = f"http://127.0.0.1:{server.server_address[1]}"
     ready = {
-        "serial": str(state_dir / "ttyCELL"),
+        "serial": str(cell.firmware.link_path),
+        "controllers": [{"serial": str(f.link_path), "modules": f.modules.tolist()} for f in cell.firmwares],
         "video_url": f"{base}/video.mjpg",
         "truth_url": f"{base}/truth",
         "http": base,

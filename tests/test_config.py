@@ -224,9 +224,13 @@ def test_run_takes_cameras_n(monkeypatch: pytest.MonkeyPatch) -> None:
     import clothd.run
 
     seen: list[object] = []
-    monkeypatch.setattr(clothd.run, "run", lambda cfg, sim, record, cameras: seen.append((sim, cameras)) or 0)
+    monkeypatch.setattr(
+        clothd.run,
+        "run",
+        lambda cfg, sim, record, cameras, controllers: seen.append((sim, cameras, controllers)) or 0,
+    )
     assert main(["run", "--sim", "--cameras", "1"]) == 0
-    assert main(["run", "--sim", "compress"]) == 0
-    assert seen == [("cell", 1), ("compress", None)]
+    assert main(["run", "--sim", "compress", "--sim-controllers", "2"]) == 0
+    assert seen == [("cell", 1, 1), ("compress", None, 2)]
     with pytest.raises(SystemExit):
         main(["run", "--cameras", "0"])

@@ -23,10 +23,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 from firmware_links import check_conformance, run, running, until
+from test_loop_safety import FakeCompute
 
 from clothd.cli import main
+from clothd.config import CellConfig, StepperConfig
 from clothd.core.messages import ModuleCommands
+from clothd.core.modes import Mode
+from clothd.core.workspace import Workspace
 from clothd.drivers import wire
+from clothd.drivers.link_group import LinkGroup
+from clothd.drivers.stepper_link import StepperLink
+from clothd.errors import RequestError
+from clothd.loop.daemon import Daemon, DaemonSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 FIRMWARE_DIR = ROOT / "deploy" / "firmware"
@@ -263,3 +271,54 @@ def test_the_host_build_passes_the_conformance_kit(firmware_link: Path, tmp_path
     rows = json.loads(report.read_text())["checks"]
     check_conformance(code, rows)
     assert sum(r["passed"] is not None for r in rows) >= 20
+
+
+def test_the_daemon_latches_its_own_estop_when_the_hardware_chain_opens(
+    firmware_binary: Path, tmp_path: Path
+) -> None:
+    """The daemon (its compute a fake that tracks a cloth) on clothd's link to the C firmware: the chain
+    opened (FAULT ESTOP_INPUT) stops a move and latches the daemon's e-stop, shown in its status; the
+    chain closed again releases nothing until the operator's clear."""
+    link_path = tmp_path / "ttyFW"
+    with _firmware(firmware_binary, link_path) as proc:
+
+        async def body() -> None:
+            cfg = StepperConfig(port=str(link_path), reconnect_initial_s=0.05, reconnect_max_s=0.2)
+            group = LinkGroup([(StepperLink(cfg, N), range(N))], N)
+            settings = DaemonSettings(
+                period_s=1 / 30,
+                max_stale_ticks=10,
+                n_modules=N,
+                workspace=Workspace.of_cell(CellConfig()),
+                view_period_s=0.1,
+                recording_dir=tmp_path,
+                camera_source="fake",
+                link_port=str(link_path),
+                estimates_shape=True,
+            )
+            daemon = Daemon(settings, group, FakeCompute())  # type: ignore[arg-type]
+            task = asyncio.create_task(daemon.run())
+            try:
+                await until(lambda: group.connected and daemon.state == "tracking", 10)
+                daemon.set_setpoint(Mode.MOVE, np.array([0.02, 0.0, 0.0]))
+                await until(lambda: bool(np.any(daemon.status and daemon.status.modules.speed_m_s)), 5)
+                proc.send_signal(signal.SIGUSR1)  # the chain opens
+                await until(lambda: daemon.status is not None and daemon.status.estop, 5)
+                status = daemon.status
+                assert status.mode == Mode.IDLE and not any(status.modules.speed_m_s)
+                assert status.halt_reason is not None and "ESTOP_INPUT" in status.halt_reason
+                assert status.faults[-1].code == FAULT_ESTOP_INPUT
+                await until(lambda: group.controller_estopped, 5)
+                with pytest.raises(RequestError, match="emergency stop is latched"):
+                    daemon.set_setpoint(Mode.MOVE, np.array([0.02, 0.0, 0.0]))
+                proc.send_signal(signal.SIGUSR2)  # closed again: that alone releases nothing
+                await asyncio.sleep(0.2)
+                assert daemon.status.estop and group.controller_estopped
+                daemon.estop_clear()  # the operator's clear
+                await until(lambda: not group.controller_estopped and not daemon.status.estop, 5)
+                daemon.set_setpoint(Mode.MOVE, np.array([0.02, 0.0, 0.0]))
+            finally:
+                daemon.stop()
+                await asyncio.wait_for(task, 5)
+
+        run(body(), timeout_s=30)

@@ -28,6 +28,7 @@ from clothd.config.camera import (
     cameras_of,
     check_cameras,
 )
+from clothd.config.stepper import ControllerConfig, ControllerLink, StepperConfig, check_controllers
 from clothd.config.strict import Strict
 from clothd.config.tracker import (
     EkfConfig,
@@ -42,12 +43,15 @@ from clothd.config.tracker import (
 )
 from clothd.errors import ConfigError
 
-# The tracker's sections live in clothd/config/tracker.py; importers may name them from here.
+# The tracker's sections live in clothd/config/tracker.py, the stepper's in stepper.py; importers may
+# name them from here.
 __all__ = [
     "OPCUA_SIGN_AND_ENCRYPT",
     "ApiConfig",
     "CameraConfig",
     "CameraSourceConfig",
+    "ControllerConfig",
+    "ControllerLink",
     "EkfConfig",
     "FeatureConfig",
     "IdealCameraConfig",
@@ -56,6 +60,7 @@ __all__ = [
     "NamedCamera",
     "OpcUaConfig",
     "PhysicsConfig",
+    "StepperConfig",
     "StereoConfig",
     "TaichiConfig",
     "TrackerConfig",
@@ -111,18 +116,6 @@ class LoopConfig(Strict):
     @property
     def period_s(self) -> float:
         return 1.0 / self.tick_hz
-
-
-class StepperConfig(Strict):
-    port: str = Field("/dev/ttyACM0", min_length=1, max_length=1024)
-    baud: int = Field(921600, ge=1200, le=12_000_000)
-    ack_timeout_s: float = Field(0.05, gt=0.001, le=1, description="retransmit an unacknowledged command")
-    # Unanswered for ack_timeout_s x (max_retransmits + 1), 150 ms by default, the link is lost: well inside
-    # the controller's 250 ms watchdog, so the host knows first.
-    max_retransmits: int = Field(2, ge=0, le=20, description="then the link is lost and reopened")
-    handshake_timeout_s: float = Field(0.5, gt=0.01, le=10)
-    reconnect_initial_s: float = Field(0.2, gt=0, le=60)
-    reconnect_max_s: float = Field(5.0, gt=0, le=600)
 
 
 class AreaConfig(Strict):
@@ -287,6 +280,11 @@ class Config(Strict):
     @model_validator(mode="after")
     def _cameras_agree(self) -> Config:
         check_cameras(self.camera, self.cameras)
+        return self
+
+    @model_validator(mode="after")
+    def _controllers_cover_cell(self) -> Config:
+        check_controllers(self.stepper, self.cell.modules_x * self.cell.modules_y)
         return self
 
     @property

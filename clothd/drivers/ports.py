@@ -5,6 +5,7 @@ implement them; tests and tools may plug in anything that does the same.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -84,16 +85,31 @@ class LinkCounters:
 
 
 class ModuleLink(Protocol):
-    """The stepper controller. `run` is the connection task; every other method returns at once.
+    """The stepper controllers (one, or several as one: drivers/link_group.py). `run` is the connection
+    task; every other method returns at once.
 
     The emergency stop is latched here, in one place: `estopped` is true from `estop()` until
-    `estop_clear()`, and no command goes out meanwhile."""
+    `estop_clear()`, and no command goes out meanwhile. `on_fault`, when set, is called with each fault a
+    controller reports, as it arrives."""
 
-    state: str  # starting (never up since the start) | connecting | connected | disconnected
-    last_error: str | None
-    firmware: str | None
-    counters: LinkCounters
-    faults: deque[ControllerFault]  # the newest few, oldest first
+    on_fault: Callable[[ControllerFault], None] | None
+
+    @property
+    def state(self) -> str:
+        """starting (never up since the start) | connecting | connected | disconnected"""
+
+    @property
+    def last_error(self) -> str | None: ...
+
+    @property
+    def firmware(self) -> str | None: ...
+
+    @property
+    def counters(self) -> LinkCounters: ...
+
+    @property
+    def faults(self) -> deque[ControllerFault]:
+        """The newest few, oldest first."""
 
     @property
     def connected(self) -> bool: ...

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import serial_asyncio_fast
 
 from clothd.config import StepperConfig
+from clothd.config.stepper import CELL_MODULES
 from clothd.core.messages import ModuleCommands
 from clothd.drivers import wire
 from clothd.drivers.ports import ControllerFault, LinkCounters
@@ -47,9 +48,11 @@ class StepperLink:
         cfg: StepperConfig,
         n_modules: int,
         clock: Callable[[], float] = time.monotonic,
+        n_modules_from: str = CELL_MODULES,
     ) -> None:
         self.cfg = cfg
         self.n_modules = n_modules
+        self.n_modules_from = n_modules_from  # where n_modules comes from, in words, for a mismatch
         self.clock = clock
         self.counters = LinkCounters()
         self.faults: deque[ControllerFault] = deque(maxlen=FAULTS_KEPT)
@@ -72,6 +75,8 @@ class StepperLink:
         self._waiters: dict[int, asyncio.Future[wire.Message]] = {}
         self._lost = asyncio.Event()
         self._stopping = False
+        self.on_fault: Callable[[ControllerFault], None] | None = None  # each FAULT, as it arrives
+        self.on_lost: Callable[[], None] | None = None  # the link was up and is lost
 
     # -- public -----------------------------------------------------------------------------------
 
@@ -201,7 +206,7 @@ class StepperLink:
             if hello.n_modules != self.n_modules:
                 raise HardwareError(
                     f"controller on {self.cfg.port} drives {hello.n_modules} modules, "
-                    f"the configured cell has {self.n_modules} (cell.modules_x x cell.modules_y)"
+                    + self.n_modules_from.format(n=self.n_modules)
                 )
             self.firmware = hello.firmware
             if self._estop_latched:
@@ -260,7 +265,10 @@ class StepperLink:
             fault = wire.parse_fault(frame.payload)
             self.counters.faults += 1
             log.warning("controller fault %d on module %d: %s", fault.code, fault.module, fault.text)
-            self.faults.append(ControllerFault(time.time(), fault.code, fault.module, fault.text))
+            report = ControllerFault(time.time(), fault.code, fault.module, fault.text)
+            self.faults.append(report)
+            if self.on_fault is not None:
+                self.on_fault(report)
 
     async def _supervise(self) -> None:
         """Watch the controller's answers: each `ack_timeout_s` without one, send the newest unanswered
@@ -323,6 +331,8 @@ class StepperLink:
             self._write(self._all_stop_packet())
         self.last_error = reason
         self._lost.set()
+        if was_connected and self.on_lost is not None:
+            self.on_lost()
 
     def _all_stop_packet(self) -> bytes:
         stop = ModuleCommands.all_stop(self.n_modules)

@@ -37,6 +37,8 @@ class MsgType(IntEnum):
 # Controller status flags carried in every ACK.
 FLAG_ESTOP = 0x01
 FLAG_WATCHDOG = 0x02
+FAULT_NAMES = {1: "WATCHDOG", 2: "STALL", 3: "OVERTEMP", 4: "ESTOP_INPUT"}
+FAULT_ESTOP_INPUT = 4  # the cell's hardware e-stop chain opened
 
 
 class WireError(ValueError):

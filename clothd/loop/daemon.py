@@ -6,8 +6,10 @@ tracker, control, the annotated view) run in the compute process (clothd/loop/co
 one reply per tick; this process's event loop only schedules, talks to the serial port and serves the
 API, and shares its GIL with nothing heavy.
 
-Safety: whatever goes wrong in a tick (camera lost, cloth lost, an exception in the compute), the
-modules are commanded to stop before anything else is done about it. If the compute process dies the
+Safety: whatever goes wrong in a tick (camera lost, cloth lost, an exception in the compute, a stepper
+link lost, a controller's FAULT), the modules, on every controller, are commanded to stop before anything
+else is done about it. A FAULT(ESTOP_INPUT), the cell's hardware e-stop chain opened, latches the
+daemon's own e-stop too, released only by the operator's clear. If the compute process dies the
 modules are stopped and the daemon exits (systemd restarts it). If the host itself goes silent, the
 controller's watchdog stops them.
 """
@@ -15,7 +17,6 @@ controller's watchdog stops them.
 from __future__ import annotations
 
 import asyncio
-import errno
 import logging
 import time
 from collections.abc import Callable
@@ -33,14 +34,9 @@ from clothd.core.messages import ModuleCommands
 from clothd.core.modes import LoopState, Mode
 from clothd.core.module_calibration import ModuleCalibration
 from clothd.core.workspace import Workspace, cloth_corners_m
-from clothd.drivers.ports import FrameSourceHealth, ModuleLink
-from clothd.errors import (
-    HardwareError,
-    InvalidRequestError,
-    RequestError,
-    StorageError,
-    UnreachableTargetError,
-)
+from clothd.drivers import wire
+from clothd.drivers.ports import ControllerFault, FrameSourceHealth, ModuleLink
+from clothd.errors import HardwareError, RequestError, UnreachableTargetError
 from clothd.loop.compute import InForce, TickReply, TickRequest
 from clothd.loop.compute_process import ComputeProcess
 from clothd.loop.frame_phase import FramePhaseLock
@@ -48,6 +44,7 @@ from clothd.loop.loop_stats import LoopStats
 from clothd.loop.pairing import CameraReport
 from clothd.loop.status import Status, build_status
 from clothd.notify import SystemdNotifier
+from clothd.outputs.recorder import make_recording_place
 from clothd.outputs.view import ViewBoard
 
 log = logging.getLogger(__name__)
@@ -133,6 +130,7 @@ class Daemon:
         self._ready_sent = False
         self._last_watchdog_s = 0.0
         self._last_overrun_log_s = 0.0
+        link.on_fault = self._controller_fault
         self.publish()
 
     # -- requests from the API (event loop thread) --------------------------------------------------
@@ -204,6 +202,25 @@ class Daemon:
         self.link.estop_clear()
         self.publish()
 
+    def _controller_fault(self, fault: ControllerFault) -> None:
+        """A controller's FAULT, as it arrives: every module on every controller told to stop at once, and
+        the move dropped. The hardware e-stop chain opened (ESTOP_INPUT) latches the e-stop as the API's
+        does, on every controller, until the operator clears it."""
+        name = wire.FAULT_NAMES.get(fault.code, f"code {fault.code}")
+        reason = f"controller fault {name} on module {fault.module}" + (
+            f": {fault.text}" if fault.text else ""
+        )
+        stop = ModuleCommands.all_stop(self.settings.n_modules)
+        self._commands = self._in_force = stop
+        if fault.code == wire.FAULT_ESTOP_INPUT:
+            self.link.estop()
+            log.warning("emergency stop: the hardware e-stop chain opened (%s)", reason)
+            self._halt(reason, idle_too=True)
+        else:
+            self.link.send_commands(stop)
+            self._halt(reason)
+        self.publish()
+
     def start_recording(self, out: Path) -> Path:
         """Record from the next frame into `out`, a new directory, or with recording.format mcap a new
         .mcap file (the suffix added when missing), made here and now: a place that cannot be written is
@@ -213,20 +230,7 @@ class Daemon:
             raise RequestError(f"already recording into {rec.dir}: stop it first")
         if self._recording_starting is not None:  # two requests at once: the first one wins
             raise RequestError(f"a recording is starting in {self._recording_starting}: stop it first")
-        form = self.settings.recording_format
-        if out.suffix != form.suffix:
-            out = out.with_name(out.name + form.suffix)
-        try:
-            if form == RecordingFormat.MCAP:
-                out.parent.mkdir(parents=True, exist_ok=True)
-                out.touch(exist_ok=False)  # O_EXCL: neither an existing file nor a symlink is reused
-            else:
-                out.mkdir(parents=True)
-        except FileExistsError:
-            raise RequestError(f"{out} exists: a recording needs a new {form.noun}") from None
-        except OSError as err:  # a full disk is the daemon's trouble (507); anything else is the place's
-            error = StorageError if err.errno in (errno.ENOSPC, errno.EDQUOT) else InvalidRequestError
-            raise error(f"cannot create {out}: {err.strerror or err}") from None
+        out = make_recording_place(out, self.settings.recording_format)
         self._record_start = self._recording_starting = out
         return out
 
@@ -314,6 +318,8 @@ class Daemon:
                 self._halt(f"the compute has not answered for {self._stale_ticks} ticks")
         if not self.link.connected:
             self._halt("the stepper link is down")
+        if self.setpoint.mode == Mode.IDLE:  # a reply asked for before a halt never restarts the modules
+            self._commands = ModuleCommands.all_stop(self.settings.n_modules)
         calibration = self.settings.module_calibration
         sent = self.link.send_commands(
             self._commands if calibration is None else calibration.to_send(self._commands)
@@ -393,10 +399,10 @@ class Daemon:
         self.stats.starved_restarts += 1
         log.warning("the daemon was silent %.0f ms (loop.starved_ms): the tracker started afresh", silent_ms)
 
-    def _halt(self, reason: str) -> None:
+    def _halt(self, reason: str, idle_too: bool = False) -> None:
         """A fault stopped the modules: drop the move, so that nothing restarts until a supervisor sends a
-        new setpoint (no unexpected start-up, IEC 60204-1)."""
-        if self.setpoint.mode == Mode.IDLE:
+        new setpoint (no unexpected start-up, IEC 60204-1). Said while idle too when `idle_too`."""
+        if self.setpoint.mode == Mode.IDLE and not idle_too:
             return
         log.warning("%s stopped: %s; idle until a new setpoint", self.setpoint.mode, reason)
         self.setpoint = Setpoint(Mode.IDLE, None)

@@ -9,7 +9,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import asdict
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, Field
@@ -20,6 +20,7 @@ from clothd.core.control import Setpoint
 from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.modes import FlatnessBasis, LoopState, Mode
+from clothd.drivers.link_group import LinkGroup
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
 from clothd.loop.pairing import CameraReport, PairingStats
 from clothd.outputs.recorder import RecordingStatus
@@ -146,6 +147,31 @@ class LinkState(BaseModel):
     counters: LinkCounters
 
 
+class ControllerLinkState(LinkState):
+    modules: list[int] = Field(description="the cell's module ids it drives, by its own index 0..k-1")
+
+
+def link_states(link: ModuleLink, link_port: str) -> tuple[LinkState, list[ControllerLinkState]]:
+    """The link taken together (every controller's: its state connected only when every one is, its
+    counters summed; the first controller's port) and each controller's own."""
+
+    def state(one: ModuleLink, port: str) -> dict[str, Any]:
+        counters = LinkCounters.model_validate(one.counters.snapshot())
+        return dict(
+            state=one.state,
+            port=port,
+            firmware=one.firmware,
+            last_error=one.last_error,
+            controller_estop=one.controller_estopped,
+            counters=counters,
+        )
+
+    controllers = link.controllers if isinstance(link, LinkGroup) else []
+    each = [ControllerLinkState(**state(c.link, c.port), modules=c.modules.tolist()) for c in controllers]
+    first_port = controllers[0].port if controllers else link_port
+    return LinkState(**state(link, first_port)), each
+
+
 class Modules(BaseModel):
     speed_m_s: list[float] = Field(description="each module's belt speed in force, by module id")
     heading_rad: list[float] = Field(description="each module's heading in force, by module id")
@@ -243,7 +269,13 @@ class Status(BaseModel):
     cameras: list[CameraEntry] = Field(
         description="every camera, first first; a further camera's loss leaves tracking on one view"
     )
-    link: LinkState
+    link: LinkState = Field(
+        description="every stepper controller taken together: connected when each is, counters summed, "
+        "the first controller's port"
+    )
+    links: list[ControllerLinkState] = Field(
+        description="each stepper controller, in stepper.controllers' order"
+    )
     modules: Modules = Field(description="what the modules were last told (stopped while the link is down)")
     faults: list[FaultReport]
     recording: Recording | None
@@ -302,6 +334,7 @@ def build_status(
         r = est.residual_px
         if len(r):
             residual = Residual(mean_px=float(r.mean()), worst_px=float(r.max()))
+    link_state, links = link_states(link, link_port)
     return Status(
         t_unix_s=time.time(),
         state=state,
@@ -319,14 +352,8 @@ def build_status(
         timing=Timing.model_validate(timing),
         camera=CameraState(source=camera_source, **asdict(camera)),
         cameras=camera_entries(camera, camera_source, cameras, further),
-        link=LinkState(
-            state=link.state,
-            port=link_port,
-            firmware=link.firmware,
-            last_error=link.last_error,
-            controller_estop=link.controller_estopped,
-            counters=LinkCounters.model_validate(link.counters.snapshot()),
-        ),
+        link=link_state,
+        links=links,
         modules=Modules(speed_m_s=commands.speed_m_s.tolist(), heading_rad=commands.heading_rad.tolist()),
         faults=[FaultReport(**asdict(f)) for f in link.faults],
         recording=None if recording is None else Recording(**asdict(recording)),

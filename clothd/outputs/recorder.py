@@ -20,6 +20,7 @@ loop goes on either way.
 
 from __future__ import annotations
 
+import errno
 import logging
 import time
 from dataclasses import dataclass
@@ -33,7 +34,7 @@ from clothd.config import RecordingFormat
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import Estimate, ModuleCommands
-from clothd.errors import InvalidRequestError
+from clothd.errors import InvalidRequestError, RequestError, StorageError
 from clothd.formats import RecordingLog, write_camera, write_estimates, write_layout
 
 log = logging.getLogger(__name__)
@@ -77,6 +78,26 @@ def recording_path(recording_dir: Path, requested: str | None, suffix: str = "")
             "give a name or a path relative to it"
         )
     return path
+
+
+def make_recording_place(out: Path, form: RecordingFormat) -> Path:
+    """Make the new directory, or with format mcap the new .mcap file (the suffix added when missing),
+    that a recording goes into, and return it: a place that cannot be written is refused here and now
+    (RequestError when it exists, StorageError for a full disk, InvalidRequestError otherwise)."""
+    if out.suffix != form.suffix:
+        out = out.with_name(out.name + form.suffix)
+    try:
+        if form == RecordingFormat.MCAP:
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.touch(exist_ok=False)  # O_EXCL: neither an existing file nor a symlink is reused
+        else:
+            out.mkdir(parents=True)
+    except FileExistsError:
+        raise RequestError(f"{out} exists: a recording needs a new {form.noun}") from None
+    except OSError as err:  # a full disk is the daemon's trouble (507); anything else is the place's
+        error = StorageError if err.errno in (errno.ENOSPC, errno.EDQUOT) else InvalidRequestError
+        raise error(f"cannot create {out}: {err.strerror or err}") from None
+    return out
 
 
 class Recorder:
