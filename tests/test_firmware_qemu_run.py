@@ -10,6 +10,7 @@ them to their order and to "not early", never to a wall-clock upper bound: the m
 
 from __future__ import annotations
 
+import bisect
 import os
 import select
 import signal
@@ -50,8 +51,8 @@ class WireTap:
         self.master, self.slave = os.openpty()  # the slave held open: the daemon may close and reopen it
         tty.setraw(self.slave)
         self.path = os.ttyname(self.slave)
-        self.frames: list[Seen] = []
-        self.lock = threading.Lock()
+        self.frames: list[Seen] = []  # in the order read, so by t_s
+        self.arrived = threading.Condition()
         self.stop_r, self.stop_w = os.pipe()
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
@@ -68,8 +69,9 @@ class WireTap:
                 seen = Seen(t_s, to_firmware, wire.decode(packet))
             except ValueError:
                 continue  # counted by the link's own 'invalid'; nothing to time
-            with self.lock:
+            with self.arrived:
                 self.frames.append(seen)
+                self.arrived.notify_all()
 
     def _run(self) -> None:
         out, back = wire.FrameSplitter(), wire.FrameSplitter()
@@ -83,18 +85,26 @@ class WireTap:
                 self._copy(self.firmware_fd, self.master, back, to_firmware=False)
 
     def since(self, t_s: float) -> list[Seen]:
-        with self.lock:
-            return [f for f in self.frames if f.t_s >= t_s]
+        with self.arrived:
+            return self.frames[bisect.bisect_left(self.frames, t_s, key=lambda f: f.t_s) :]
 
     def first(self, t_s: float, match: Callable[[Seen], bool], what: str, timeout_s: float = 20.0) -> Seen:
-        found: list[Seen] = []
-
-        def seen() -> bool:
-            found[:] = [f for f in self.since(t_s) if match(f)]
-            return bool(found)
-
-        wait(seen, timeout_s, what, every_s=0.001)
-        return found[0]
+        """The first frame read at t_s or later that matches. The test's thread sleeps until the tap's
+        thread has read a frame and looks only at the new ones, rather than copying the whole list every
+        millisecond with the GIL that the tap's thread needs to timestamp a frame."""
+        deadline = time.monotonic() + timeout_s
+        with self.arrived:
+            k = bisect.bisect_left(self.frames, t_s, key=lambda f: f.t_s)
+            while True:
+                # A frame read before t_s may be appended after it: the tap writes on before it appends.
+                found = next((f for f in self.frames[k:] if f.t_s >= t_s and match(f)), None)
+                if found is not None:
+                    return found
+                k = len(self.frames)
+                left_s = deadline - time.monotonic()
+                if left_s <= 0:
+                    raise AssertionError(f"{what}: not within {timeout_s} s")
+                self.arrived.wait(left_s)
 
     def close(self) -> None:
         os.write(self.stop_w, b"x")
