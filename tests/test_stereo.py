@@ -25,6 +25,7 @@ from clothd.formats import read_camera
 from clothd.taichi_runtime import start_taichi
 from hwsim import scenario as scenarios
 from hwsim.camera import Camera
+from hwsim.firmware import drive_targets
 from hwsim.scenario import Pose
 from hwsim.sensor import Sensor
 from hwsim.world import World
@@ -123,7 +124,9 @@ def test_unfolding_lays_the_slack_of_a_ridge_out_flat() -> None:
     np.testing.assert_allclose(lying[:, :2], footprint.rest_nodes_m().reshape(-1, 2), atol=1e-6)
 
 
-def _wrinkled_cell(ridge_height_m: float) -> tuple[World, list[CameraModel], list[Sensor]]:
+def _wrinkled_cell(
+    ridge_height_m: float, skew_s: float = 0.0
+) -> tuple[World, list[CameraModel], list[Sensor]]:
     sc = scenarios.load("cell")
     world = World(sc, log_commands=False)
     ridge = {"height_m": ridge_height_m, "at_m": [0.03, 0.01], "direction_rad": 1.2}
@@ -134,7 +137,7 @@ def _wrinkled_cell(ridge_height_m: float) -> tuple[World, list[CameraModel], lis
             camera = Camera.from_spec(spec)
             camera.save(Path(tmp) / f"camera{i}.json")  # the interface between them, as live
             cameras.append(read_camera(Path(tmp) / f"camera{i}.json"))
-            sensors.append(Sensor(sc, camera, world.cloth.grid, i))
+            sensors.append(Sensor(sc, camera, world.cloth.grid, i, skew_s if i else 0.0))
     return world, cameras, sensors
 
 
@@ -173,3 +176,31 @@ def test_a_ridge_laid_before_tracking_is_seen_only_with_a_second_view(n_cameras:
     along = np.array([math.cos(1.5), math.sin(1.5)])
     off = np.asarray(flatness.ridges[0].position_m) - on_line
     assert abs(off[0] * along[1] - off[1] * along[0]) < 0.02
+
+
+def test_heights_hold_with_the_second_capture_10_ms_late_on_belts_at_100_mm_s() -> None:
+    cfg = Config()
+    start_taichi(cfg.taichi.arch)
+    skew_s, speed_m_s = 0.010, 0.1
+    world, cameras, sensors = _wrinkled_cell(0.012, skew_s)
+    layout = ConveyorLayout.of_cell(cfg.cell)
+    tracker = Tracker(cfg.tracker, cameras[0], layout, other_cameras=cameras[1:])
+    monitor = FlatnessMonitor(cfg.control.flatness)
+    # Along +y: along the baseline, where a point moved between the two captures reads as height.
+    running = ModuleCommands(np.full(layout.n_modules, speed_m_s), np.full(layout.n_modules, math.pi / 2))
+    ids = np.arange(world.table.n_modules)
+    world.table.command(ids, *drive_targets(running.speed_m_s, running.heading_rad))
+    errors_m = []
+    for k in range(15):  # 1 s, the cloth carried 100 mm along +y
+        world.step()
+        world.step()
+        images = [cv2.imdecode(np.frombuffer(s.jpeg(world, k), np.uint8), cv2.IMREAD_COLOR) for s in sensors]
+        est = tracker.track(images[0], world.t_s, running, [PairedView(images[1], world.t_s + skew_s)])
+        assert est.tracking and est.nodes_m is not None and est.cloth_size_m is not None
+        flatness = monitor.update(
+            est.nodes_m, est.cloth_size_m, est.quad_seen, est.flatness_basis, est.quad_height_m
+        )
+        if k >= 3:  # the belts up to speed
+            errors_m.append(flatness.max_height_m - world.sheet_measures()["max_height_m"])
+    assert flatness.basis == FlatnessBasis.MEASURED and world.cloth_pose()[1] > 0.06
+    assert np.abs(errors_m).max() < 0.0015

@@ -5,28 +5,68 @@ geometry, docs/second-view.md the method)."""
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from clothd.config import StereoConfig
 from clothd.core.camera_model import CameraModel
-from clothd.core.mesh import QuadMesh
+from clothd.core.feature_set import FeatureSet
+from clothd.core.mesh import QuadMesh, blend
 from clothd.core.messages import PairedView
-from clothd.core.stereo import HeightField, fit_height_field, measure_surface
+from clothd.core.stereo import HeightField, fit_height_field, measure_surface, node_heights, quad_highest
 
 # Tracking begins on a frame a further view pairs (its surface is measured then): this many frames are
 # waited for one before tracking begins on one view.
 PAIR_WAIT_FRAMES = 8
 
 
+@dataclass(frozen=True)
+class MeasuredHeights:
+    """One frame's heights through a further view: each mesh quad's highest point (ny-1, nx-1) and the
+    nodes' heights (n,), m."""
+
+    quads_m: np.ndarray
+    nodes_m: np.ndarray
+
+
 class SecondView:
-    """The first camera's model, the further cameras' (none: mono), and the frames waited for a pair."""
+    """The first camera's model, the further cameras' (none: mono), the frames waited for a pair, and the
+    last measured frame's time and nodes (the features' motion between the two captures)."""
 
     def __init__(self, first: CameraModel, others: Sequence[CameraModel], cfg: StereoConfig) -> None:
         self.first = first
         self.others = tuple(others)
         self.cfg = cfg
         self._waits = 0
+        self._nodes_before: tuple[float, np.ndarray] | None = None
+
+    def reset(self) -> None:
+        self._waits = 0
+        self._nodes_before = None
+
+    def heights_now(
+        self,
+        gray: np.ndarray,
+        features: FeatureSet,
+        nodes_m: np.ndarray,
+        t_s: float,
+        views: Sequence[PairedView | None],
+    ) -> MeasuredHeights | None:
+        """The heights at the features (their pixels in the first view's frame `gray`) that a further view
+        finds, starting where the mesh's nodes (ny, nx, 3) put them; None when none pairs or finds enough."""
+        before, self._nodes_before = self._nodes_before, (t_s, nodes_m)
+        binding = features.binding
+        velocity = None  # the features' on the table, from the last frame's nodes to this one's
+        if before is not None and t_s > before[0]:
+            velocity = blend((nodes_m - before[1])[..., :2] / (t_s - before[0]), binding)
+        points, found = self.points_now(gray, features.px, blend(nodes_m, binding), velocity, t_s, views)
+        if points is None:
+            return None
+        ny, nx = nodes_m.shape[:2]
+        z = points[:, 2]
+        quads = quad_highest(binding.quad[found], z, (ny - 1, nx - 1))
+        return MeasuredHeights(quads, node_heights(binding.subset(found), z, (ny, nx)))
 
     def awaits_pair(self, t_s: float, views: Sequence[PairedView | None]) -> bool:
         """No further view pairs the frame taken at t_s closely enough: wait for one, PAIR_WAIT_FRAMES at
@@ -44,13 +84,15 @@ class SecondView:
         self,
         gray: np.ndarray,
         px: np.ndarray,
+        velocity_m_s: np.ndarray | None,
         t_s: float,
         views: Sequence[PairedView | None],
         footprint: QuadMesh,
     ) -> HeightField | None:
-        """The surface over `footprint` from the first view's features px (n, 2) in its frame `gray`; None
-        when no further view pairs it or finds enough of them."""
-        found = self.points_now(gray, px, None, t_s, views)
+        """The surface over `footprint` from the first view's features px (n, 2) in its frame `gray`, moving
+        at velocity_m_s (n, 2) on the table (None: still); None when no further view pairs it or finds
+        enough of them."""
+        found = self.points_now(gray, px, None, velocity_m_s, t_s, views)
         return None if found[0] is None else fit_height_field(found[0], footprint)
 
     def points_now(
@@ -58,14 +100,16 @@ class SecondView:
         gray: np.ndarray,
         px: np.ndarray,
         guess_m: np.ndarray | None,
+        velocity_m_s: np.ndarray | None,
         t_s: float,
         views: Sequence[PairedView | None],
     ) -> tuple[np.ndarray | None, np.ndarray]:
         """The surface's points (m, 3) at the features px (n, 2) a further view finds, and which they are
         (n,) bool; (None, nothing found) when no view pairs or finds enough. guess_m (n, 3): where the
-        estimate puts them (None: on the table)."""
+        estimate puts them (None: on the table); velocity_m_s: as stereo.measure_surface's."""
         none = np.zeros(len(px), bool)
         if len(px) < self.cfg.min_matches:
             return None, none
-        found = measure_surface(gray, px, t_s, self.first, self.others, views, self.cfg, guess_m)
+        cams = self.others
+        found = measure_surface(gray, px, t_s, self.first, cams, views, self.cfg, guess_m, velocity_m_s)
         return (None, none) if found is None else found

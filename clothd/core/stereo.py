@@ -28,7 +28,7 @@ import scipy.sparse.linalg as spla
 
 from clothd.config import StereoConfig
 from clothd.core.camera_model import CameraModel
-from clothd.core.mesh import QuadMesh
+from clothd.core.mesh import Binding, QuadMesh
 from clothd.core.messages import PairedView
 
 MATCH_WINDOW_PX = 21  # wider than tracking's: the two views see a patch from different angles
@@ -65,13 +65,17 @@ def match_across(
     cam1: CameraModel,
     cfg: StereoConfig,
     guess_m: np.ndarray | None = None,
+    seen_px0: np.ndarray | None = None,
+    levels: int = MATCH_LEVELS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pixels px0 (n, 2) of the first view found in the second: (px1 (n, 2), ok (n,)). guess_m (n, 3):
-    where the points are believed to be; None: on the table, and the search spans the whole height."""
+    where the points are believed to be when the second view saw them; None: on the table. LK starts
+    there and searches `levels` pyramid levels (MATCH_LEVELS: the whole height; TRACKING_LEVELS: a few
+    pixels about an estimate). seen_px0: where the first view would have seen them then (a skew between
+    the captures); None: px0."""
     n = len(px0)
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
-    levels = MATCH_LEVELS if guess_m is None else TRACKING_LEVELS
     guess = cam1.project(cam0.backproject_to_plane(px0, 0.0) if guess_m is None else guess_m)
     window, criteria = (
         (MATCH_WINDOW_PX, MATCH_WINDOW_PX),
@@ -92,7 +96,8 @@ def match_across(
     inside = (px1[:, 0] >= 0) & (px1[:, 0] <= w - 1) & (px1[:, 1] >= 0) & (px1[:, 1] <= h - 1)
     ok = st1.ravel().astype(bool) & st2.ravel().astype(bool) & np.isfinite(guess).all(axis=1) & inside
     ok &= fb < MATCH_FB_MAX_PX
-    ok &= epipolar_distance_px(cam0, px0, cam1, px1, cfg.max_height_m) < cfg.epipolar_max_px
+    line_px0 = px0 if seen_px0 is None else seen_px0
+    ok &= epipolar_distance_px(cam0, line_px0, cam1, px1, cfg.max_height_m) < cfg.epipolar_max_px
     return px1, ok
 
 
@@ -105,19 +110,29 @@ def measure_surface(
     views: Sequence[PairedView | None],
     cfg: StereoConfig,
     guess_m: np.ndarray | None = None,
+    velocity_m_s: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """Points of the surface (m, 3) at the first view's features px0 (n, 2) (its frame gray0, taken at
     t_s) and which features they are (n,) bool, through the first further view paired within
     cfg.max_skew_ms that finds at least cfg.min_matches of them; None when none does. guess_m: as
-    match_across's."""
+    match_across's, at t_s. velocity_m_s (n, 2): how the points move on the table, so that a view taken
+    skew_s apart is matched and triangulated where they were then (v·skew_s), and the points moved back
+    to t_s; None: still."""
     for camera, view in zip(cameras, views, strict=False):
-        if view is None or abs(view.t_s - t_s) > cfg.max_skew_ms * 1e-3:
+        skew_s = 0.0 if view is None else view.t_s - t_s
+        if view is None or abs(skew_s) > cfg.max_skew_ms * 1e-3:
             continue
         image = view.image
         gray1 = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-        px1, ok = match_across(gray0, gray1, px0, cam0, camera, cfg, guess_m)
+        shift_m = np.zeros((len(px0), 3))
+        if velocity_m_s is not None:
+            shift_m[:, :2] = velocity_m_s * skew_s
+        base_m = cam0.backproject_to_plane(px0, 0.0) if guess_m is None else guess_m
+        seen_px0 = px0 + cam0.project(base_m + shift_m) - cam0.project(base_m)
+        levels = MATCH_LEVELS if guess_m is None else TRACKING_LEVELS
+        px1, ok = match_across(gray0, gray1, px0, cam0, camera, cfg, base_m + shift_m, seen_px0, levels)
         if ok.sum() >= cfg.min_matches:
-            return triangulate(cam0, px0[ok], camera, px1[ok]), ok
+            return triangulate(cam0, seen_px0[ok], camera, px1[ok]) - shift_m[ok], ok
     return None
 
 
@@ -244,3 +259,29 @@ def quad_highest(quads: np.ndarray, z_m: np.ndarray, shape: tuple[int, int]) -> 
             np.isnan(grid), np.nanmax(np.where(np.isnan(around), -np.inf, around), axis=0), grid
         )
     return np.asarray(np.where(np.isfinite(filled), filled, 0.0))
+
+
+NODE_POINT_SIGMA_M = 0.001  # a triangulated height, as for the field
+NODE_NEIGHBOUR_SIGMA_M = 0.01  # neighbouring nodes' heights differ by about this at most: fills the gaps
+
+
+def node_heights(binding: Binding, z_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Heights (ny * nx,) of a mesh's nodes (shape (ny, nx)) whose bilinear blend best fits heights z_m
+    (m,) measured at bound points; nodes without points are held near their neighbours (the mesh's
+    edge differences) and, far from any point, the table."""
+    ny, nx = shape
+    n = ny * nx
+    rows = np.repeat(np.arange(len(z_m)), 4)
+    data = sps.csr_matrix(
+        (binding.weights.ravel() / NODE_POINT_SIGMA_M, (rows, binding.nodes.ravel())), shape=(len(z_m), n)
+    )
+    idx = np.arange(n).reshape(ny, nx)
+    a = np.concatenate([idx[:, :-1].ravel(), idx[:-1, :].ravel()])
+    b = np.concatenate([idx[:, 1:].ravel(), idx[1:, :].ravel()])
+    k = np.arange(len(a))
+    edges = sps.csr_matrix(
+        (np.r_[np.ones(len(a)), -np.ones(len(a))] / NODE_NEIGHBOUR_SIGMA_M, (np.r_[k, k], np.r_[a, b])),
+        shape=(len(a), n),
+    )
+    A = (data.T @ data + edges.T @ edges + sps.identity(n) / ZERO_SIGMA_M**2).tocsc()
+    return np.asarray(spla.spsolve(A, data.T @ (z_m / NODE_POINT_SIGMA_M)))

@@ -33,7 +33,7 @@ from clothd.core.features import (
     classify_texture,
     coverage_holes,
 )
-from clothd.core.mesh import QuadMesh, blend
+from clothd.core.mesh import QuadMesh
 from clothd.core.messages import Detections, Estimate, ModuleCommands, PairedView
 from clothd.core.modes import FlatnessBasis
 from clothd.core.outline_edges import OutlineEdges
@@ -45,7 +45,6 @@ from clothd.core.segmentation import (
     find_cloth,
     full_frame_region,
 )
-from clothd.core.stereo import quad_highest
 from clothd.core.unfold import unfold
 
 Clock = Callable[[], float]
@@ -77,6 +76,7 @@ class Tracker:
     ) -> None:
         self.cfg = cfg
         self.camera_model = camera_model
+        self._belts: BeltField | None = None  # under the cloth at the frame being tracked
         self.second_view = SecondView(camera_model, other_cameras if cfg.estimates_shape else (), cfg.stereo)
         self.layout = layout
         self.roi = roi
@@ -128,6 +128,7 @@ class Tracker:
         self.flatness_basis = FlatnessBasis.SINCE_START  # the rest shape: the first frame's, or measured
         self.quad_height_m: np.ndarray | None = None  # measured through a further view this frame
         self.anchors.reset()
+        self.second_view.reset()
         self._upkeep_frame: GrayFrame | None = None  # the tracked frame whose upkeep is still to do
         self._detected: list[Detections] = []  # features detected since the last estimate
 
@@ -178,7 +179,7 @@ class Tracker:
         timing: dict[str, float] = {}
         t0 = self.clock()
         frame = self.engine.prepare(image)
-        u = self._advance_modules(frame_t_s, commands)
+        u = self._belts = self._advance_modules(frame_t_s, commands)
         if self.features is None or self.prev is None:
             return self._initialise(frame, image, frame_t_s, views, timing, t0)
         features = self.features
@@ -324,18 +325,19 @@ class Tracker:
     def _heights_now(
         self, frame: GrayFrame, t_s: float, views: Sequence[PairedView | None]
     ) -> np.ndarray | None:
-        """Each mesh quad's highest point (ny-1, nx-1) measured this frame at the features that survived it,
-        where the rest shape was measured too (heights agree with its lengths only then)."""
-        nodes = self.estimator.estimate().nodes_m if self.flatness_basis == FlatnessBasis.MEASURED else None
-        if nodes is None or self.features is None or self.mesh is None:
+        """Each mesh quad's highest point (ny-1, nx-1) measured this frame at the features that survived
+        it, where the rest shape was measured too (heights agree with its lengths only then); the nodes'
+        heights are set from the same points."""
+        if self.flatness_basis != FlatnessBasis.MEASURED or self.features is None:
             return None
-        guess_m = blend(nodes, self.features.binding)
-        points, found = self.second_view.points_now(frame.gray, self.features.px, guess_m, t_s, views)
-        if points is None:
+        nodes = self.estimator.estimate().nodes_m
+        if nodes is None:
             return None
-        return quad_highest(
-            self.features.binding.quad[found], points[:, 2], (self.mesh.ny - 1, self.mesh.nx - 1)
-        )
+        measured = self.second_view.heights_now(frame.gray, self.features, nodes, t_s, views)
+        if measured is None:
+            return None
+        self.estimator.set_heights(measured.nodes_m)
+        return measured.quads_m
 
     def _lay_mesh(
         self,
@@ -351,7 +353,10 @@ class Tracker:
         corners_world = self.camera_model.backproject_to_plane(region.corners_px.astype(np.float64))[:, :2]
         footprint = QuadMesh.covering(corners_world, self.cfg.mesh.nodes_x, self.cfg.mesh.nodes_y)
         self.mesh, self.flatness_basis = footprint, FlatnessBasis.SINCE_START
-        field = self.second_view.surface(frame.gray, px, t_s, views, footprint)
+        # Where the cloth lies on running belts, it moves with them between the two captures.
+        on_table = self.camera_model.backproject_to_plane(px)
+        velocity = None if self._belts is None else self._belts.velocity_at(on_table)[0]
+        field = self.second_view.surface(frame.gray, px, velocity, t_s, views, footprint)
         if field is None:
             return None
         self.mesh, nodes_m = unfold(footprint, field)

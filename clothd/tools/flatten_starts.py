@@ -23,6 +23,8 @@ MOVE_OFFSET_M = 0.10
 MOVE_TURN_RAD = math.radians(30.0)
 SLACK_M = (0.002, 0.014)  # pushed-in slack: ridges of about 5-20 mm
 LAID_HEIGHT_M = (0.005, 0.020)  # ridges laid before tracking begins (--start laid)
+LAID_SIGMA_M = 0.012  # their Gaussian width (hwsim's default), widened where a ridge would overhang
+LAID_WIDTH_PER_HEIGHT = 0.66  # hwsim lays no ridge narrower than 0.65 x its height (it would overhang)
 RIDGE_INSET_M = 0.06  # a ridge's line passes this far inside the cloth's edges (docs/benchmarks.md)
 RIDGES_APART_M = 0.065  # a second push's hands (reach 45 mm) stay off the first ridge (about 20 mm wide)
 FLATTEN_ROOM_M = 0.02  # the outline grows by the slack pulled out: keep this clear of the workspace's edge
@@ -111,11 +113,15 @@ def draw_start(rng: np.random.Generator) -> dict[str, Any]:
 def laid_ridges(start: dict[str, Any], rng: np.random.Generator) -> list[dict[str, Any]]:
     """The start's ridges laid into the cloth before tracking begins (hwsim's Pose.ridges, cloth frame):
     along its pushes' lines, each of a height drawn from LAID_HEIGHT_M."""
-    return [
-        {
-            "height_m": rng.uniform(*LAID_HEIGHT_M),
-            "at_m": list(p["at_cloth_m"]),
-            "direction_rad": p["direction_cloth_rad"],
-        }
-        for p in start["pushes"]
-    ]
+    ridges = []
+    for push in start["pushes"]:
+        height = float(rng.uniform(*LAID_HEIGHT_M))
+        ridges.append(
+            {
+                "height_m": height,
+                "sigma_m": max(LAID_SIGMA_M, LAID_WIDTH_PER_HEIGHT * height),
+                "at_m": list(push["at_cloth_m"]),
+                "direction_rad": push["direction_cloth_rad"],
+            }
+        )
+    return ridges
