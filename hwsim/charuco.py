@@ -6,9 +6,10 @@ marker positions and ids, and the marker bits of its dictionary). A picture is r
 mapping: for each of supersample² points inside a pixel, the pixel is undistorted into a viewing ray
 (lens distortion inverted once per pixel corner and interpolated inside the pixel, where it is linear
 to far below 1e-6 px), the ray meets the board plane, and the board is sampled there; the mean is the
-pixel's value (an area filter, as a sensor integrates). Corners land where the camera's own projection
-puts them, with nothing from OpenCV's drawing in between; `to_grey8` then adds the lens's blur and the
-sensor's noise. OpenCV's detector finds the corners 0.05 px from their true projection on average, the
+pixel's value (an area filter, as a sensor integrates). The points inside a pixel lie on a sheared
+grid (`sample_offsets`), so that an edge square to the image is not quantised to 1/supersample px.
+Corners land where the camera's own projection puts them, with nothing from OpenCV's drawing in
+between; `to_grey8` then adds the lens's blur and the sensor's noise. OpenCV's detector finds the corners 0.05 px from their true projection on average, the
 same at 4 x 4 as at 8 x 8 samples per pixel: what is left is the detector's.
 
 Board frame: OpenCV's. x along a row of corner ids, y down the rows, z into the board (away from the
@@ -117,6 +118,16 @@ def corner_rays(camera: Camera) -> np.ndarray:
     return np.asarray(xy).reshape(camera.height + 1, camera.width + 1, 2)
 
 
+def sample_offsets(supersample: int) -> list[tuple[float, float]]:
+    """Where a pixel is sampled, (x, y) in [0, 1)², supersample² points: an n-rooks pattern (the regular
+    n x n grid sheared by a sub-cell step in each axis), so that each axis sees supersample² distinct
+    positions. On the regular grid an edge along a pixel row or column covers a pixel in steps of
+    1/supersample, which moved the corners of a board lying square to the image by up to 1/(2 supersample)
+    px (0.1 px biases in an oblique camera's flat view); here the step is 1/supersample²."""
+    n = supersample
+    return [((i + (j + 0.5) / n) / n, (j + (i + 0.5) / n) / n) for j in range(n) for i in range(n)]
+
+
 def render_board(
     pattern: BoardPattern, rays: np.ndarray, T_cam_board: np.ndarray, supersample: int, light: float
 ) -> np.ndarray:
@@ -130,19 +141,17 @@ def render_board(
     normal = R[:, 2]
     h, w = rays.shape[0] - 1, rays.shape[1] - 1
     total = np.zeros((h, w))
-    offsets = (np.arange(supersample) + 0.5) / supersample
-    for fy in offsets:
+    for fx, fy in sample_offsets(supersample):
         left = rays[:-1, :-1] * (1 - fy) + rays[1:, :-1] * fy
         right = rays[:-1, 1:] * (1 - fy) + rays[1:, 1:] * fy
-        for fx in offsets:
-            xy = left * (1 - fx) + right * fx
-            ray = np.concatenate([xy, np.ones((h, w, 1))], axis=-1)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                lam = (normal @ t) / (ray @ normal)
-            hit = np.isfinite(lam) & (lam > 0)
-            board_m = (np.where(hit, lam, 0.0)[..., None] * ray - t) @ R  # Rᵀ (λ ray - t), row by row
-            grey = pattern.grey(board_m[..., :2])
-            total += np.where(hit & ~np.isnan(grey), grey * light, TABLE)
+        xy = left * (1 - fx) + right * fx
+        ray = np.concatenate([xy, np.ones((h, w, 1))], axis=-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lam = (normal @ t) / (ray @ normal)
+        hit = np.isfinite(lam) & (lam > 0)
+        board_m = (np.where(hit, lam, 0.0)[..., None] * ray - t) @ R  # Rᵀ (λ ray - t), row by row
+        grey = pattern.grey(board_m[..., :2])
+        total += np.where(hit & ~np.isnan(grey), grey * light, TABLE)
     return total / supersample**2
 
 

@@ -24,7 +24,7 @@ import yaml
 from tqdm import tqdm
 
 from hwsim.camera import Camera
-from hwsim.paths import frame_path
+from hwsim.paths import camera_dir, frame_path
 from hwsim.renderer import Renderer, to_sensor_bgr8
 from hwsim.scenario import Scenario, ScenarioError
 from hwsim.world import World
@@ -75,11 +75,6 @@ def render_frame(world: World, renderer: Renderer, skew_s: float = 0.0) -> tuple
     n = noise.motion_blur_samples
     backs = [noise.exposure_s * (n - 1 - k) / max(n - 1, 1) - skew_s for k in range(n)]
     return renderer.render([world.scene_state(before_s=b) for b in backs])
-
-
-def camera_dir(out_dir: Path, index: int, name: str) -> Path:
-    """Where camera `index` is written: the recording itself for the first, cameras/NAME/ for others."""
-    return out_dir if index == 0 else out_dir / "cameras" / name
 
 
 def noise_rng(scenario: Scenario, index: int) -> np.random.Generator:
