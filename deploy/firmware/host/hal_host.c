@@ -13,10 +13,13 @@ static int serial_fd = -1;
 static int32_t drive_steps_per_s[FW_MAX_MODULES];
 static int32_t steer_steps_per_s[FW_MAX_MODULES];
 static bool drivers_enabled;
-/* The hardware e-stop input, set from a signal handler: the chain open now, and opened since the last
- * hal_estop_input() (so a SIGUSR1 followed at once by a SIGUSR2 is not lost between two polls). */
+/* The hardware e-stop input, set from a signal handler: the chain open now, and how many times it has
+ * opened (so a SIGUSR1 followed at once by a SIGUSR2 is not lost between two polls). Only the handler
+ * writes them; hal_estop_input() compares the count with the one it saw last, so a handler that runs in
+ * the middle of it loses no opening (a read-then-clear flag would). */
 static volatile sig_atomic_t estop_input_open;
-static volatile sig_atomic_t estop_input_opened;
+static volatile sig_atomic_t estop_input_openings;
+static sig_atomic_t estop_input_openings_seen;
 
 void hal_host_init(int fd)
 {
@@ -74,8 +77,9 @@ void hal_drivers_enable(bool enabled)
 
 bool hal_estop_input(void)
 {
-    bool opened = estop_input_opened != 0;
-    estop_input_opened = 0;
+    sig_atomic_t openings = estop_input_openings;
+    bool opened = openings != estop_input_openings_seen;
+    estop_input_openings_seen = openings;
     return opened || estop_input_open != 0;
 }
 
@@ -83,7 +87,8 @@ void hal_host_set_estop_input(bool open)
 {
     estop_input_open = open ? 1 : 0;
     if (open) {
-        estop_input_opened = 1;
+        /* the handlers block each other (main.c): one writer at a time; wraps, never overflows */
+        estop_input_openings = (estop_input_openings + 1) & 0x7FFF;
     }
 }
 

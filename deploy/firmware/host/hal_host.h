@@ -11,7 +11,8 @@
 
 void hal_host_init(int serial_fd);
 
-/* The hardware e-stop chain open (true) or closed; async-signal-safe (it only sets two flags). */
+/* The hardware e-stop chain open (true) or closed; async-signal-safe (it only sets two flags), and
+ * called from one handler at a time (main.c blocks SIGUSR1 and SIGUSR2 in either). */
 void hal_host_set_estop_input(bool open);
 
 /* What the core last commanded (for the exit summary). */

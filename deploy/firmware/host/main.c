@@ -105,7 +105,12 @@ static void install_signal_handlers(void)
     sigemptyset(&sa.sa_mask);
     sigaction(SIGTERM, &sa, NULL);
     sigaction(SIGINT, &sa, NULL);
-    sa.sa_handler = on_estop_signal; /* likewise: the loop polls the input at once */
+    /* Likewise: the loop polls the input at once. Each e-stop handler blocks the other: with both
+     * pending, Linux stacks a frame for each and runs the last one set up (SIGUSR2) first, so a chain
+     * opened and closed at once would end open. Blocked, they run one by one, SIGUSR1 first. */
+    sa.sa_handler = on_estop_signal;
+    sigaddset(&sa.sa_mask, SIGUSR1);
+    sigaddset(&sa.sa_mask, SIGUSR2);
     sigaction(SIGUSR1, &sa, NULL);
     sigaction(SIGUSR2, &sa, NULL);
     signal(SIGPIPE, SIG_IGN);
