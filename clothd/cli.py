@@ -81,28 +81,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    import json
+    from clothd.tools.calibrate_command import calibrate_command
 
-    from clothd.formats import write_camera
-    from clothd.tools.calibrate import read_pictures, solve
-    from clothd.tools.calibration_report import format_report, picture_path, plot_report, report_json
-    from clothd.tools.charuco import Board
-
-    squares_x, squares_y = args.board
-    board = Board(squares_x, squares_y, args.square_m, args.marker_m, args.dictionary)
-    if args.camera is not None:
-        from clothd.tools.calibrate_live import capture_views
-
-        capture_views(args.camera, board, args.images, args.flat, args.views, args.timeout_s)
-    cal = solve(read_pictures(args.images, board, args.flat), board, args.flat_origin_m, fit_k3=args.k3)
-    write_camera(args.out, cal.camera)
-    picture = picture_path(args.out)
-    plot_report(cal, picture)
-    print(format_report(cal))
-    print(f"\ncamera written to {args.out}, residuals and coverage to {picture}")
-    if args.json:
-        args.json.write_text(json.dumps(report_json(cal) | {"picture": str(picture)}, indent=2) + "\n")
-    return 0
+    return calibrate_command(args)
 
 
 def _cmd_tune(args: argparse.Namespace) -> int:
@@ -226,7 +207,9 @@ def _add_calibrate(sub: Subparsers) -> None:
         "calibrate",
         help="the camera (K, distortion) and the table's pose from pictures of a ChArUco board",
         description="Writes camera.json as the tracker reads it, and NAME-calibration.png beside it "
-        "(coverage and residuals). docs/commissioning.md describes the pictures to take.",
+        "(coverage and residuals). With DIR/cameras/NAME/ (each further camera's pictures of the same "
+        "views) every camera is solved together, each further one written beside --out as NAME.json. "
+        "docs/commissioning.md describes the pictures to take.",
     )
     cal.add_argument(
         "--images",

@@ -9,8 +9,9 @@ to far below 1e-6 px), the ray meets the board plane, and the board is sampled t
 pixel's value (an area filter, as a sensor integrates). The points inside a pixel lie on a sheared
 grid (`sample_offsets`), so that an edge square to the image is not quantised to 1/supersample px.
 Corners land where the camera's own projection puts them, with nothing from OpenCV's drawing in
-between; `to_grey8` then adds the lens's blur and the sensor's noise. OpenCV's detector finds the corners 0.05 px from their true projection on average, the
-same at 4 x 4 as at 8 x 8 samples per pixel: what is left is the detector's.
+between; `to_grey8` then adds the lens's blur and the sensor's noise. OpenCV's detector finds the
+corners 0.05 px from their true projection on average, the same at 4 x 4 as at 8 x 8 samples per
+pixel: what is left is the detector's.
 
 Board frame: OpenCV's. x along a row of corner ids, y down the rows, z into the board (away from the
 side that is seen); the board's outer corner at (0, 0), ChArUco corner id 0 at (square, square).

@@ -210,7 +210,9 @@ def _cmd_bench_calibrate(args: argparse.Namespace) -> int:
             args.tracker,
             with_overrides(cfg, {"tracker": {"model": "mesh", "use_input": True}}).tracker,
         )
-    result = run_bench(args.out, args.views, args.seed, args.tilt_rad, args.yaw_rad, args.dist, tracker)
+    result = run_bench(
+        args.out, args.views, args.seed, args.tilt_rad, args.yaw_rad, args.dist, tracker, args.cameras
+    )
     print(format_result(result))
     if args.json:
         write_json(result, args.json)
@@ -355,6 +357,9 @@ def _add_calibrate(bsub: Subparsers) -> None:
         "calibrate", help="calibrate on pictures hwsim renders through a tilted, distorted camera it knows"
     )
     bc.add_argument("--views", type=int, default=15, help="tilted views besides the flat one")
+    bc.add_argument(
+        "--cameras", type=positive_int, default=1, help="N > 1: hwsim's cell's first N cameras, with --dist"
+    )
     bc.add_argument("--seed", type=int, default=0)
     bc.add_argument("--tilt-rad", type=float, default=0.15, help="hwsim camera tilt about world x")
     bc.add_argument("--yaw-rad", type=float, default=0.3, help="hwsim camera yaw about its view axis")

@@ -180,10 +180,22 @@ def _enough_views(held: int) -> None:
         )
 
 
-def solve(
-    pictures: Pictures, board: Board, flat_origin_m: tuple[float, float], fit_k3: bool = False
-) -> Calibration:
-    """The camera from the pictures; InputError for too few or all-parallel views."""
+@dataclass(frozen=True)
+class Intrinsics:
+    """One camera solved from its pictures: K, dist (5,), the views used (flat first) with their corners
+    as last measured, each view's board pose in the camera (rvec, tvec), and the pictures not used."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    used: list[tuple[View, Detection]]
+    rvecs: list[np.ndarray]
+    tvecs: list[np.ndarray]
+    skipped: list[tuple[str, str]]
+
+
+def solve_intrinsics(pictures: Pictures, board: Board, fit_k3: bool = False) -> Intrinsics:
+    """K and distortion from every picture with the board, corners measured again REFINE_ROUNDS times
+    (module notes); InputError for too few or all-parallel views."""
     _enough_views(len(pictures.held))
     views = [pictures.flat, *pictures.held]
     spread = plane_spread_deg(views, pictures.width, pictures.height)
@@ -215,9 +227,18 @@ def solve(
         ]
         _enough_views(len(used) - 1)
         K, dist, rvecs, tvecs = _calibrate([d for _, d in used], size, flags)
+    return Intrinsics(K, dist, used, rvecs, tvecs, skipped)
+
+
+def solve(
+    pictures: Pictures, board: Board, flat_origin_m: tuple[float, float], fit_k3: bool = False
+) -> Calibration:
+    """The camera from the pictures; InputError for too few or all-parallel views."""
+    solved = solve_intrinsics(pictures, board, fit_k3)
+    K, dist, used = solved.K, solved.dist, solved.used
     fits = [
         ViewFit(v.name, d.pixels, _residual(d.pixels, d.board_m, r, t, K, dist))
-        for (v, d), r, t in zip(used, rvecs, tvecs, strict=True)
+        for (v, d), r, t in zip(used, solved.rvecs, solved.tvecs, strict=True)
     ]
     flat_detection = used[0][1]
     world_m = flat_world_points(board, flat_detection.board_m, flat_origin_m)
@@ -229,4 +250,4 @@ def solve(
     T[:3, 3] = tvec.ravel()
     camera = CameraModel(K, dist, T, pictures.width, pictures.height)
     flat = ViewFit(pictures.flat.name, flat_px, _residual(flat_px, world_m, rvec, tvec, K, dist))
-    return Calibration(camera, fits, flat, skipped)
+    return Calibration(camera, fits, flat, solved.skipped)

@@ -10,6 +10,10 @@ image, and a picture of the residuals.
 - The picture (PNG, beside camera.json as NAME-calibration.png): the coverage, corners per cell (cells
   without any hatched red), and every corner's residual as an arrow magnified ARROW_SCALE times, one
   colour per picture.
+- Several cameras (clothd/tools/calibrate_cameras.py): each camera's report as above, its position in the
+  table frame, each pair's epipolar error (median and p95, px), and the `cameras:` entries for the
+  configuration. The JSON keeps the first camera's report at its top level, as for one camera, and adds
+  `cameras` (each camera's) and `pairs`.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from clothd.tools.calibrate import Calibration
+from clothd.tools.calibrate_cameras import Rig
 
 OUTLIER_FACTOR = 3.0
 OUTLIER_FLOOR_PX = 0.5
@@ -106,6 +111,68 @@ def format_report(cal: Calibration) -> str:
     lines += ["  " + row for row in coverage_map(np.array(cov["corners_per_cell"]))]
     if r["outliers"]:
         lines.append(f"outliers (RMS over {OUTLIER_FACTOR:g} x the median): {', '.join(r['outliers'])}")
+    return "\n".join(lines)
+
+
+def _view_from_vertical_deg(cal: Calibration) -> float:
+    """The angle between the camera's optical axis and the table's downward normal."""
+    axis_world = cal.camera.T_cam_world[2, :3]  # the camera's z in the table frame
+    return float(np.degrees(np.arccos(np.clip(-axis_world[2], -1.0, 1.0))))
+
+
+def rig_report_json(rig: Rig, outs: list[Path]) -> dict[str, Any]:
+    """The first camera's report_json, with `cameras` (every camera's, named, with its camera.json, its
+    picture and its position) and `pairs` (each pair's epipolar error)."""
+    cameras = [
+        {
+            "name": name,
+            "camera_json": str(out),
+            "picture": str(picture_path(out)),
+            "position_m": cal.camera.centre_m.tolist(),
+            "view_from_vertical_deg": _view_from_vertical_deg(cal),
+        }
+        | report_json(cal)
+        for name, cal, out in zip(rig.names, rig.calibrations, outs, strict=True)
+    ]
+    pairs = [
+        {
+            "cameras": list(p.cameras),
+            "corners": len(p.distances_px) // 2,
+            "epipolar_median_px": p.median_px,
+            "epipolar_p95_px": p.p95_px,
+        }
+        for p in rig.pairs
+    ]
+    return report_json(rig.calibrations[0]) | {
+        "cameras": cameras,
+        "pairs": pairs,
+        "views_shared": rig.views_shared,
+    }
+
+
+def format_rig_report(rig: Rig, outs: list[Path]) -> str:
+    """Each camera's report under its name, then the pairs' epipolar errors and the `cameras:` entries."""
+    r = rig_report_json(rig, outs)
+    lines: list[str] = []
+    for cam, cal in zip(r["cameras"], rig.calibrations, strict=True):
+        x, y, z = cam["position_m"]
+        lines += [
+            f"== {cam['name']}: at ({x:.4f}, {y:.4f}, {z:.4f}) m, "
+            f"{cam['view_from_vertical_deg']:.2f}° from vertical",
+            format_report(cal),
+            "",
+        ]
+    lines.append(f"{r['views_shared']} held views seen by two cameras or more")
+    for p in r["pairs"]:
+        a, b = p["cameras"]
+        lines.append(
+            f"epipolar error {a}-{b}: median {p['epipolar_median_px']:.3f} px, "
+            f"p95 {p['epipolar_p95_px']:.3f} px over {p['corners']} corners seen by both"
+        )
+    lines += ["", "cameras:  # for the configuration (config.yaml); each source is yours to fill in"]
+    lines += [
+        f"  - {{name: {c['name']}, source: SOURCE, calibration: {c['camera_json']}}}" for c in r["cameras"]
+    ]
     return "\n".join(lines)
 
 
