@@ -5,7 +5,6 @@ geometry, docs/second-view.md the method)."""
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 
@@ -14,20 +13,11 @@ from clothd.core.camera_model import CameraModel
 from clothd.core.feature_set import FeatureSet
 from clothd.core.mesh import QuadMesh, blend
 from clothd.core.messages import PairedView
-from clothd.core.stereo import HeightField, fit_height_field, measure_surface, node_heights, quad_highest
+from clothd.core.stereo import HeightField, fit_height_field, measure_surface, quad_highest
 
 # Tracking begins on a frame a further view pairs (its surface is measured then): this many frames are
 # waited for one before tracking begins on one view.
 PAIR_WAIT_FRAMES = 8
-
-
-@dataclass(frozen=True)
-class MeasuredHeights:
-    """One frame's heights through a further view: each mesh quad's highest point (ny-1, nx-1) and the
-    nodes' heights (n,), m."""
-
-    quads_m: np.ndarray
-    nodes_m: np.ndarray
 
 
 class SecondView:
@@ -52,9 +42,11 @@ class SecondView:
         nodes_m: np.ndarray,
         t_s: float,
         views: Sequence[PairedView | None],
-    ) -> MeasuredHeights | None:
-        """The heights at the features (their pixels in the first view's frame `gray`) that a further view
-        finds, starting where the mesh's nodes (ny, nx, 3) put them; None when none pairs or finds enough."""
+    ) -> np.ndarray | None:
+        """Each mesh quad's highest point (ny-1, nx-1) at the features (their pixels in the first view's
+        frame `gray`) that a further view finds, starting where the mesh's nodes (ny, nx, 3) put them; None
+        when none pairs or finds enough. The mesh's own heights stay inferred (folds.py): set from these
+        points, the nodes of `compress`'s folds went 90 mm astray (docs/second-view.md)."""
         before, self._nodes_before = self._nodes_before, (t_s, nodes_m)
         binding = features.binding
         velocity = None  # the features' on the table, from the last frame's nodes to this one's
@@ -64,9 +56,7 @@ class SecondView:
         if points is None:
             return None
         ny, nx = nodes_m.shape[:2]
-        z = points[:, 2]
-        quads = quad_highest(binding.quad[found], z, (ny - 1, nx - 1))
-        return MeasuredHeights(quads, node_heights(binding.subset(found), z, (ny, nx)))
+        return quad_highest(binding.quad[found], points[:, 2], (ny - 1, nx - 1))
 
     def awaits_pair(self, t_s: float, views: Sequence[PairedView | None]) -> bool:
         """No further view pairs the frame taken at t_s closely enough: wait for one, PAIR_WAIT_FRAMES at

@@ -28,7 +28,7 @@ import scipy.sparse.linalg as spla
 
 from clothd.config import StereoConfig
 from clothd.core.camera_model import CameraModel
-from clothd.core.mesh import Binding, QuadMesh
+from clothd.core.mesh import QuadMesh
 from clothd.core.messages import PairedView
 
 MATCH_WINDOW_PX = 21  # wider than tracking's: the two views see a patch from different angles
@@ -259,29 +259,3 @@ def quad_highest(quads: np.ndarray, z_m: np.ndarray, shape: tuple[int, int]) -> 
             np.isnan(grid), np.nanmax(np.where(np.isnan(around), -np.inf, around), axis=0), grid
         )
     return np.asarray(np.where(np.isfinite(filled), filled, 0.0))
-
-
-NODE_POINT_SIGMA_M = 0.001  # a triangulated height, as for the field
-NODE_NEIGHBOUR_SIGMA_M = 0.01  # neighbouring nodes' heights differ by about this at most: fills the gaps
-
-
-def node_heights(binding: Binding, z_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Heights (ny * nx,) of a mesh's nodes (shape (ny, nx)) whose bilinear blend best fits heights z_m
-    (m,) measured at bound points; nodes without points are held near their neighbours (the mesh's
-    edge differences) and, far from any point, the table."""
-    ny, nx = shape
-    n = ny * nx
-    rows = np.repeat(np.arange(len(z_m)), 4)
-    data = sps.csr_matrix(
-        (binding.weights.ravel() / NODE_POINT_SIGMA_M, (rows, binding.nodes.ravel())), shape=(len(z_m), n)
-    )
-    idx = np.arange(n).reshape(ny, nx)
-    a = np.concatenate([idx[:, :-1].ravel(), idx[:-1, :].ravel()])
-    b = np.concatenate([idx[:, 1:].ravel(), idx[1:, :].ravel()])
-    k = np.arange(len(a))
-    edges = sps.csr_matrix(
-        (np.r_[np.ones(len(a)), -np.ones(len(a))] / NODE_NEIGHBOUR_SIGMA_M, (np.r_[k, k], np.r_[a, b])),
-        shape=(len(a), n),
-    )
-    A = (data.T @ data + edges.T @ edges + sps.identity(n) / ZERO_SIGMA_M**2).tocsc()
-    return np.asarray(spla.spsolve(A, data.T @ (z_m / NODE_POINT_SIGMA_M)))

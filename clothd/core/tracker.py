@@ -326,8 +326,7 @@ class Tracker:
         self, frame: GrayFrame, t_s: float, views: Sequence[PairedView | None]
     ) -> np.ndarray | None:
         """Each mesh quad's highest point (ny-1, nx-1) measured this frame at the features that survived
-        it, where the rest shape was measured too (heights agree with its lengths only then); the nodes'
-        heights are set from the same points."""
+        it, where the rest shape was measured too (heights agree with its lengths only then)."""
         if self.flatness_basis != FlatnessBasis.MEASURED or self.features is None:
             return None
         nodes = self.estimator.estimate().nodes_m
@@ -336,8 +335,7 @@ class Tracker:
         measured = self.second_view.heights_now(frame.gray, self.features, nodes, t_s, views)
         if measured is None:
             return None
-        self.estimator.set_heights(measured.nodes_m)
-        return measured.quads_m
+        return measured
 
     def _lay_mesh(
         self,

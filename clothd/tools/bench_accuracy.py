@@ -134,12 +134,20 @@ def _node_errors_mm(truth: Truth, ests: list[Estimate]) -> np.ndarray | None:
 
 
 def grade(
-    recording: Path, scenario: str, mode: str, cfg: TrackerConfig, camera_json: Path | None = None
+    recording: Path,
+    scenario: str,
+    mode: str,
+    cfg: TrackerConfig,
+    camera_json: Path | None = None,
+    cameras: int = 1,
 ) -> Graded:
     """One mode on one recording. camera_json: the camera the tracker is given instead of the
-    recording's (a calibrated one); the grading itself always goes through the recording's true camera."""
+    recording's (a calibrated one); the grading itself always goes through the recording's true camera.
+    cameras: the recording's first this many, to the tracker."""
     truth = Truth.load(recording)
-    run = OfflineTracking(recording, cfg, camera_json, read_ahead=False, progress=f"{scenario}: {mode}")
+    run = OfflineTracking(
+        recording, cfg, camera_json, read_ahead=False, progress=f"{scenario}: {mode}", cameras=cameras
+    )
     start = time.perf_counter()
     ests, births = track_with_births(run)
     wall = time.perf_counter() - start

@@ -51,14 +51,20 @@ def _feature_config(budget: int) -> FeatureConfig:
     return FeatureConfig(max_features=budget)
 
 
-def clothd_rows(recording: Path, budget: int, mesh: tuple[int, int], frames: int) -> list[Row]:
+def clothd_rows(
+    recording: Path, budget: int, mesh: tuple[int, int], frames: int, cameras: int = 1
+) -> list[Row]:
     cfg = TrackerConfig(
         model="mesh", mesh=MeshConfig(nodes_x=mesh[0], nodes_y=mesh[1]), features=_feature_config(budget)
     )
     timings: dict[str, list[float]] = {s: [] for s in STAGES}
     counts = []
     run = OfflineTracking(
-        recording, cfg, read_ahead=False, progress=f"{budget} features, {mesh[0]}x{mesh[1]}"
+        recording,
+        cfg,
+        read_ahead=False,
+        progress=f"{budget} features, {mesh[0]}x{mesh[1]}",
+        cameras=cameras,
     )
     for k, (_, _, est) in enumerate(run):
         if k > WARMUP_TICKS:
@@ -130,12 +136,14 @@ def run_speed(
     budgets: tuple[int, ...] = DEFAULT_BUDGETS,
     meshes: tuple[tuple[int, int], ...] = DEFAULT_MESHES,
     frames: int = 60,
+    cameras: int = 1,
 ) -> list[Row]:
+    """cameras: the recording's first this many; filterpy's dense EKF only beside one camera's."""
     rows: list[Row] = []
     for budget in budgets:
         for mesh in meshes:
-            rows += clothd_rows(recording, budget, mesh, frames)
-            rows += filterpy_rows(budget, mesh)
+            rows += clothd_rows(recording, budget, mesh, frames, cameras)
+            rows += filterpy_rows(budget, mesh) if cameras == 1 else []
     return rows
 
 

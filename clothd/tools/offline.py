@@ -14,7 +14,7 @@ from tqdm import tqdm
 
 from clothd.config import TrackerConfig
 from clothd.core.camera_model import CameraModel
-from clothd.core.messages import Estimate
+from clothd.core.messages import Estimate, PairedView
 from clothd.core.tracker import Clock, Tracker
 from clothd.drivers.footage import CommandSchedule, open_footage
 from clothd.errors import InputError
@@ -28,7 +28,9 @@ class OfflineTracking:
     camera_json / commands_csv override the recording's own; without any camera.json the camera is ideal
     (tracker.camera in the config) at the footage's image size. read_ahead decodes frames on a second
     thread (benchmarks that time the tracker's stages turn it off, to keep a core to the tracker).
-    progress: a label for a progress bar, shown on a terminal only."""
+    progress: a label for a progress bar, shown on a terminal only. cameras: a recording's first this many
+    (the further ones under cameras/NAME/, in name order, each with its camera.json), paired frame by
+    frame (docs/second-view.md)."""
 
     def __init__(
         self,
@@ -40,6 +42,7 @@ class OfflineTracking:
         read_ahead: bool = True,
         clock: Clock = time.perf_counter,
         progress: str | None = None,
+        cameras: int = 1,
     ) -> None:
         self.progress = progress
         self.footage = open_footage(source)
@@ -54,7 +57,14 @@ class OfflineTracking:
         self.layout = read_layout(table) if table else None
         commands = commands_csv or self.footage.commands_csv
         self.schedule = CommandSchedule(commands, self.layout.n_modules) if commands and self.layout else None
-        self.tracker = Tracker(cfg, self.camera_model, self.layout, roi=roi, clock=clock)
+        further = sorted(p for p in (source / "cameras").glob("*") if p.is_dir())[: cameras - 1]
+        if len(further) < cameras - 1:
+            raise InputError(f"{source}: {cameras} cameras asked for, the recording has {len(further) + 1}")
+        self._others = [open_footage(p).frames(read_ahead=read_ahead) for p in further]
+        models = [read_camera(p / "camera.json") for p in further]
+        self.tracker = Tracker(
+            cfg, self.camera_model, self.layout, roi=roi, clock=clock, other_cameras=models
+        )
 
     def _camera(self, override: Path | None, cfg: TrackerConfig) -> tuple[CameraModel, str]:
         """The camera, and which it is: a user must know when one was assumed."""
@@ -77,4 +87,5 @@ class OfflineTracking:
             frames = tqdm(frames, desc=self.progress, total=total, unit="frame", disable=None, leave=False)
         for t_s, image in frames:
             commands = self.schedule.at(t_s) if self.schedule else None
-            yield t_s, image, self.tracker.step(image, t_s, commands)
+            views = [PairedView(other_image, other_t_s) for other_t_s, other_image in map(next, self._others)]
+            yield t_s, image, self.tracker.step(image, t_s, commands, views)

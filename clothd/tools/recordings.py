@@ -11,11 +11,18 @@ from hwsim import scenario as scenarios
 from hwsim.recording import record
 
 
-def scenario_recording(cache: Path, scenario: str, duration_s: float | None = None) -> Path:
-    out = cache / (scenario if duration_s is None else f"{scenario}-{duration_s:g}s")
+def scenario_recording(cache: Path, scenario: str, duration_s: float | None = None, cameras: int = 1) -> Path:
+    """The recording of a shipped scenario (recorded into `cache` the first time). cameras: 2 records it
+    through the live cell's second camera too (hwsim/scenarios/cell.yaml) where it has only one."""
+    name = scenario if duration_s is None else f"{scenario}-{duration_s:g}s"
+    out = cache / (name if cameras == 1 else f"{name}-{cameras}cam")
     if not (out / "truth.npz").exists():
         print(f"recording {scenario} into {out} ...", flush=True)
-        record(scenarios.load(scenario, duration_s=duration_s), out)
+        sc = scenarios.load(scenario, duration_s=duration_s)
+        if len(sc.camera_specs) < cameras:
+            further = scenarios.load("cell").camera_specs[len(sc.camera_specs) : cameras]
+            sc = sc.model_copy(update={"cameras": [*sc.camera_specs, *further]})
+        record(sc, out)
     return out
 
 

@@ -67,10 +67,6 @@ class Estimator(Protocol):
     def cloth_coordinates(self, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Cloth-space (s, t) (m, 2) of new features at pixels px (m, 2), and which lie on the cloth."""
 
-    def set_heights(self, z_m: np.ndarray) -> None:
-        """The nodes' heights (n,) as measured from outside (a second view), in place of what the estimator
-        infers; an estimator without a mesh of its own has none to set."""
-
     def outline_px(self) -> np.ndarray | None:
         """The cloth's outline in the image (k, 2), or None without a model."""
 

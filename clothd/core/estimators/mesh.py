@@ -149,11 +149,6 @@ class MeshEstimator:
         )
         belief.set_heights(z.ravel(), self.ekf.initial_pos_sigma_m, self.ekf.initial_vel_sigma_m_s)
 
-    def set_heights(self, z_m: np.ndarray) -> None:
-        """Measured heights replace the folds' until the next correction lifts them again."""
-        _, belief = self._started()
-        belief.set_heights(np.maximum(z_m, 0.0), self.ekf.initial_pos_sigma_m, self.ekf.initial_vel_sigma_m_s)
-
     def cloth_coordinates(self, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         mesh, _ = self._started()
         # px were found in this frame: bind them through the nodes as the frame shows them.

@@ -37,9 +37,6 @@ class NoModel:
         """The table point under each pixel: without a model, cloth space is where the cloth lay."""
         return self.camera_model.backproject_to_plane(px)[:, :2], np.ones(len(px), bool)
 
-    def set_heights(self, z_m: np.ndarray) -> None:
-        """No model: nothing to set."""
-
     def outline_px(self) -> np.ndarray | None:
         return None
 

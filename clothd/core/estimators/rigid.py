@@ -93,9 +93,6 @@ class RigidEstimator:
     def _outline_m(self) -> np.ndarray:
         return rigid.world_points(self.x, self._corners_body)[:, :2]
 
-    def set_heights(self, z_m: np.ndarray) -> None:
-        """A rigid body lies on the table."""
-
     def outline_px(self) -> np.ndarray | None:
         outline = self._outline_m()
         return self.camera_model.project(np.column_stack([outline, np.zeros(len(outline))]))
