@@ -7,7 +7,7 @@ from pathlib import Path
 
 from clothd.config import load_config, with_overrides
 from clothd.errors import InvalidRequestError
-from clothd.tools.cli_args import TUNE_TRIALS, Subparsers, dist, mesh_size, positive_int
+from clothd.tools.cli_args import TUNE_TRIALS, Subparsers, add_cameras, dist, mesh_size, positive_int
 
 
 def _cmd_bench_loop(args: argparse.Namespace) -> int:
@@ -92,13 +92,13 @@ def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for scenario in args.scenarios:
-        rec = scenario_recording(args.cache, scenario, args.duration)
+        rec = scenario_recording(args.cache, scenario, args.duration, args.cameras)
         graded = {}
         for label, model, use_input in MODES:
             if args.modes and label not in args.modes:
                 continue
             mode_cfg = with_overrides(cfg, {"tracker": {"model": model, "use_input": use_input}})
-            graded[label] = grade(rec, scenario, label, mode_cfg.tracker)
+            graded[label] = grade(rec, scenario, label, mode_cfg.tracker, cameras=args.cameras)
             rows.append(graded[label].row)
         plot(scenario, graded, 30.0, args.out / f"{scenario}.png")
     print(format_table(rows))
@@ -172,10 +172,10 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     cv2.setNumThreads(cfg.loop.compute_threads)
     start_taichi(cfg.taichi.arch)
-    recording = scenario_recording(args.cache, args.scenario)
+    recording = scenario_recording(args.cache, args.scenario, cameras=args.cameras)
     budgets = tuple(args.features) if args.features else DEFAULT_BUDGETS
     meshes = tuple(args.mesh) if args.mesh else DEFAULT_MESHES
-    rows = run_speed(recording, budgets, meshes, frames=args.frames)
+    rows = run_speed(recording, budgets, meshes, frames=args.frames, cameras=args.cameras)
     baseline = read_rows(args.baseline, " before") if args.baseline else None
     print(format_rows(rows + [r for r in baseline or [] if r.impl == "clothd before"]))
     if args.json:
@@ -238,6 +238,7 @@ def _add_speed(bsub: Subparsers) -> None:
         "enough corners for a 2000-feature budget)",
     )
     bs.add_argument("--config", type=Path, help="taichi.arch and loop.compute_threads are taken from it")
+    add_cameras(bs, 1, "2: the recording's second camera too (hwsim's cell's oblique one)")
     bs.add_argument("--json", type=Path)
     bs.add_argument("--plot", type=Path, metavar="PNG", help="the tick against the node count, drawn here")
     bs.add_argument(
@@ -261,6 +262,7 @@ def _add_accuracy(bsub: Subparsers) -> None:
         "--cache", type=Path, default=Path("out/bench"), help="where shipped scenarios are recorded"
     )
     ba.add_argument("--out", type=Path, default=Path("out/bench/accuracy"), help="where the plots go")
+    add_cameras(ba, 1, "2: the recordings' second camera too (hwsim's cell's oblique one)")
     ba.add_argument("--config", type=Path)
     ba.add_argument("--json", type=Path)
     ba.set_defaults(func=_cmd_bench_accuracy)
@@ -313,9 +315,7 @@ def _add_flatten(bsub: Subparsers) -> None:
         default="pushed",
         help="ridges pushed in while tracking (pushed) or laid before it begins, as a piece arrives (laid)",
     )
-    bfl.add_argument(
-        "--cameras", type=int, choices=[1, 2], help="the simulated cell's first N cameras (default: all)"
-    )
+    add_cameras(bfl, None, "the simulated cell's first N cameras (default: all)")
     bfl.add_argument("--starts", type=int, default=20, help="seeded starting states")
     bfl.add_argument("--seed", type=int, default=0)
     bfl.add_argument(

@@ -12,6 +12,11 @@ TUNE_TRIALS = 100
 Subparsers: TypeAlias = "argparse._SubParsersAction[argparse.ArgumentParser]"
 
 
+def add_cameras(parser: argparse.ArgumentParser, default: int | None, help_text: str) -> None:
+    """--cameras N: the first N cameras (1 or 2) of what `help_text` names; default None: all."""
+    parser.add_argument("--cameras", type=int, choices=[1, 2], default=default, help=help_text)
+
+
 def positive_int(text: str) -> int:
     try:
         value = int(text)
