@@ -3,8 +3,12 @@
 Commands are latest-value: every tick sends a fresh COMMAND; only the newest unacknowledged one is worth
 retransmitting, at most `max_retransmits` times, after which the link is declared lost, closed and
 reopened with backoff. The controller's own watchdog stops the modules while the host is away.
-The emergency stop is written straight to the transport, ahead of anything queued, and repeated until
-the controller acknowledges it with its e-stop flag set.
+A COMMAND goes out only onto an idle transport: one that still holds earlier bytes (the line is slower
+than the ticks) would hold this one behind them, stale before it left, so it is dropped and the next tick
+sends a fresh one. The emergency stop discards whatever has not left yet (the transport's buffer and the
+port driver's output queue: stale commands), writes a delimiter that ends any frame the discard cut
+midway, and the ESTOP right after it; it is repeated until the controller acknowledges it with its
+e-stop flag set.
 """
 
 from __future__ import annotations
@@ -99,6 +103,8 @@ class StepperLink:
         which keeps the controller's watchdog fed and the link's liveness measured."""
         if not self.connected:
             return False
+        if self._line_busy():  # the previous tick's command is still going out, and stays in force
+            return not self._estop_latched
         if self._estop_latched:
             self._write(wire.encode(wire.MsgType.PING, self._next_seq()), expect_reply=True)
             return False
@@ -110,11 +116,14 @@ class StepperLink:
         return True
 
     def estop(self) -> None:
-        """Stop every module now: written ahead of anything else, repeated until acknowledged."""
+        """Stop every module now: the commands not yet gone are discarded, so the ESTOP goes next on the
+        line; repeated until acknowledged."""
         self._estop_latched = True
         self._clear_on_connect = False
         self._pending = None
-        self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()))
+        if self.connected:  # (while connecting, what waits is the HELLO, and the handshake sends ESTOP)
+            self._discard_unsent()
+        self._write(wire.DELIMITER + wire.encode(wire.MsgType.ESTOP, self._next_seq()))
 
     def estop_clear(self) -> None:
         """Release the e-stop; while the link is down, as soon as it is up again (the controller keeps its
@@ -315,6 +324,24 @@ class StepperLink:
             self.counters.sent += 1
         if expect_reply and self._unanswered_since_s is None:
             self._unanswered_since_s = self.clock()
+
+    def _line_busy(self) -> bool:
+        """The transport still holds bytes the port has not taken."""
+        transport = self._writer.transport if self._writer is not None else None
+        return transport is not None and transport.get_write_buffer_size() > 0
+
+    def _discard_unsent(self) -> None:
+        """Drop the bytes not yet on the line: the transport's buffer (serial_asyncio_fast's flush()) and
+        the port driver's output queue (tcflush; on a pty, what the other end has not read). What they
+        cut midway, the next delimiter ends."""
+        transport = self._writer.transport if self._writer is not None else None
+        if transport is None:
+            return
+        with contextlib.suppress(Exception):
+            transport.flush()  # type: ignore[attr-defined]
+        port = transport.get_extra_info("serial")
+        with contextlib.suppress(Exception):
+            port.reset_output_buffer()
 
     def _next_seq(self) -> int:
         self._seq = (self._seq + 1) & 0xFFFF

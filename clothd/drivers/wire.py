@@ -17,6 +17,7 @@ import numpy as np
 from cobs import cobs
 
 PROTOCOL_VERSION = 1
+DELIMITER = b"\x00"  # ends a frame; a lone one ends a frame cut midway (an empty frame is no error)
 MAX_FRAME_BYTES = 1024  # longer runs without a delimiter are noise, not frames
 SPEED_UNIT_M_S = 1e-4  # int16 payload units: ±3.27 m/s
 HEADING_UNIT_RAD = 1e-4  # int16: ±3.27 rad, enough for (-π, π]
@@ -58,7 +59,7 @@ def crc16(data: bytes) -> int:
 
 def encode(msg_type: int, seq: int, payload: bytes = b"") -> bytes:
     body = struct.pack("<BH", msg_type, seq & 0xFFFF) + payload
-    return cobs.encode(body + struct.pack("<H", crc16(body))) + b"\x00"
+    return cobs.encode(body + struct.pack("<H", crc16(body))) + DELIMITER
 
 
 def decode(packet: bytes) -> Message:
@@ -85,12 +86,12 @@ class FrameSplitter:
 
     def feed(self, data: bytes) -> list[bytes]:
         self._buf += data
-        *packets, rest = self._buf.split(b"\x00")
+        *packets, rest = self._buf.split(DELIMITER)
         self._buf = bytearray(rest)
         if len(self._buf) > MAX_FRAME_BYTES:
             self._buf.clear()
             self.overflows += 1
-        return [bytes(p) for p in packets if p]
+        return [bytes(p) for p in packets if p]  # two delimiters in a row: no frame, no error
 
 
 def command_payload(speed_m_s: np.ndarray, heading_rad: np.ndarray) -> bytes:
