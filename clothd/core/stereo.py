@@ -34,6 +34,7 @@ from clothd.core.messages import PairedView
 MATCH_WINDOW_PX = 21  # wider than tracking's: the two views see a patch from different angles
 MATCH_LEVELS = 3  # pyramid levels: a match up to ~60 px along its line from the table-plane guess
 TRACKING_LEVELS = 1  # from where the estimate puts a point: a few pixels to find
+TRACKING_WINDOW_PX = 11  # ... in a window as tracking's own; no backward pass (the epipolar check guards)
 MATCH_FB_MAX_PX = 1.0  # forward-backward: the match must lead back within this
 FIELD_PITCH_M = 0.004  # the height field's grid spacing, finer than a ridge (hwsim's σ is 12 mm)
 POINT_SIGMA_M = 0.001  # one triangulated height, about (0.2 px at the default cell's geometry)
@@ -77,25 +78,24 @@ def match_across(
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
     guess = cam1.project(cam0.backproject_to_plane(px0, 0.0) if guess_m is None else guess_m)
-    window, criteria = (
-        (MATCH_WINDOW_PX, MATCH_WINDOW_PX),
-        (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01),
-    )
+    searching = levels > TRACKING_LEVELS
+    side = MATCH_WINDOW_PX if searching else TRACKING_WINDOW_PX
+    window, criteria = (side, side), (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
     flags = cv2.OPTFLOW_USE_INITIAL_FLOW
     p0 = px0.astype(np.float32).reshape(-1, 1, 2)
     g = np.nan_to_num(guess, nan=-1.0).astype(np.float32).reshape(-1, 1, 2)
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(
         gray0, gray1, p0, g, winSize=window, maxLevel=levels, criteria=criteria, flags=flags
     )
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(
-        gray1, gray0, p1, p0.copy(), winSize=window, maxLevel=levels, criteria=criteria, flags=flags
-    )
     px1 = p1.reshape(-1, 2).astype(np.float64)
-    fb = np.linalg.norm(back.reshape(-1, 2) - px0, axis=1)
     h, w = gray1.shape[:2]
     inside = (px1[:, 0] >= 0) & (px1[:, 0] <= w - 1) & (px1[:, 1] >= 0) & (px1[:, 1] <= h - 1)
-    ok = st1.ravel().astype(bool) & st2.ravel().astype(bool) & np.isfinite(guess).all(axis=1) & inside
-    ok &= fb < MATCH_FB_MAX_PX
+    ok = st1.ravel().astype(bool) & np.isfinite(guess).all(axis=1) & inside
+    if searching:  # a search along the whole line: the match must lead back too
+        back, st2, _ = cv2.calcOpticalFlowPyrLK(
+            gray1, gray0, p1, p0.copy(), winSize=window, maxLevel=levels, criteria=criteria, flags=flags
+        )
+        ok &= st2.ravel().astype(bool) & (np.linalg.norm(back.reshape(-1, 2) - px0, axis=1) < MATCH_FB_MAX_PX)
     line_px0 = px0 if seen_px0 is None else seen_px0
     ok &= epipolar_distance_px(cam0, line_px0, cam1, px1, cfg.max_height_m) < cfg.epipolar_max_px
     return px1, ok
