@@ -207,6 +207,36 @@ def test_a_recording_cut_short_by_its_size_limit_replays(daemon: Daemon, tmp_pat
     assert np.nanmax(np.abs(replayed["pose"][:, :2] - live["pose"][:, :2])) < 0.002
 
 
+def test_both_cameras_stream_their_frames_pair_and_the_flatness_says_its_basis(daemon: Daemon) -> None:
+    """The default cell's two cameras, each a stream of its own: the second's frames are paired with the
+    first's and the skew measured; the flatness says what it rests on."""
+
+    seen: list[dict[str, Any]] = []
+
+    def paired() -> bool:
+        seen.append(daemon.status())
+        cams, flatness = seen[-1]["cameras"], seen[-1]["flatness"]
+        streaming = all(c["state"] == "streaming" and c["healthy"] for c in cams)
+        return streaming and cams[-1]["skew_ms"] is not None and flatness is not None
+
+    wait(paired, 30, "both cameras streaming, the second paired", every_s=0.2)
+    s = seen[-1]
+    first, second = s["cameras"]
+    print(
+        f"second camera: skew {second['skew_ms']:.1f} ms (p95 {second['skew_p95_ms']:.1f}), "
+        f"{second['paired_pct']:.0f} % paired; flatness basis {s['flatness']['basis']}"
+    )
+    assert (first["name"], second["name"]) == ("cam0", "cam1")
+    assert first["skew_ms"] is None and first["paired_pct"] is None  # the first is the reference
+    assert math.isfinite(second["skew_ms"]) and math.isfinite(second["skew_p95_ms"])
+    assert 0 <= second["paired_pct"] <= 100
+    assert s["camera"]["source"] == first["source"]  # `camera` stays the first camera
+    assert s["flatness"]["basis"] in ("measured", "since_start")
+    metrics = httpx.get(f"{daemon.base}/metrics", timeout=5).text
+    assert 'clothd_camera_skew_ms{camera="cam1"}' in metrics
+    assert 'clothd_camera_healthy{camera="cam1"} 1.0' in metrics
+
+
 def test_the_controller_watchdog_stops_the_modules_after_kill_9(
     cell: Cell, daemon: Daemon, tmp_path: Path
 ) -> None:
@@ -237,33 +267,3 @@ def test_systemd_hears_ready_after_the_first_good_tick_and_then_the_watchdog(
         finally:
             d.stop()
     assert "READY=1" in messages and "WATCHDOG=1" in messages
-
-
-def test_both_cameras_stream_their_frames_pair_and_the_flatness_says_its_basis(daemon: Daemon) -> None:
-    """The default cell's two cameras, each a stream of its own: the second's frames are paired with the
-    first's and the skew measured; the flatness says what it rests on."""
-
-    seen: list[dict[str, Any]] = []
-
-    def paired() -> bool:
-        seen.append(daemon.status())
-        cams, flatness = seen[-1]["cameras"], seen[-1]["flatness"]
-        streaming = all(c["state"] == "streaming" and c["healthy"] for c in cams)
-        return streaming and cams[-1]["skew_ms"] is not None and flatness is not None
-
-    wait(paired, 30, "both cameras streaming, the second paired", every_s=0.2)
-    s = seen[-1]
-    first, second = s["cameras"]
-    print(
-        f"second camera: skew {second['skew_ms']:.1f} ms (p95 {second['skew_p95_ms']:.1f}), "
-        f"{second['paired_pct']:.0f} % paired; flatness basis {s['flatness']['basis']}"
-    )
-    assert (first["name"], second["name"]) == ("cam0", "cam1")
-    assert first["skew_ms"] is None and first["paired_pct"] is None  # the first is the reference
-    assert math.isfinite(second["skew_ms"]) and math.isfinite(second["skew_p95_ms"])
-    assert 0 <= second["paired_pct"] <= 100
-    assert s["camera"]["source"] == first["source"]  # `camera` stays the first camera
-    assert s["flatness"]["basis"] in ("measured", "since_start")
-    metrics = httpx.get(f"{daemon.base}/metrics", timeout=5).text
-    assert 'clothd_camera_skew_ms{camera="cam1"}' in metrics
-    assert 'clothd_camera_healthy{camera="cam1"} 1.0' in metrics

@@ -67,12 +67,13 @@ class Flatness:
     basis: FlatnessBasis = FlatnessBasis.SINCE_START
 
 
-MIN_FLAP_QUADS = 2
-# Measured heights: a quad this many times the flat height up holds slack (twice: clear of the height
-# field's noise, ~0.3 mm, and held by the hysteresis down to the flat height itself).
-RAISED_FLAT_RATIO = (
-    2.0  # one unseen quad at the border is too little to tell from an edge misplaced by a pixel
-)
+MIN_FLAP_QUADS = 2  # one unseen quad at the border is too little to tell from an edge misplaced by a pixel
+# Measured heights: a quad this many times the flat height up holds slack (twice: clear of the measured
+# points' noise, and held by the hysteresis down to the flat height itself) ...
+RAISED_FLAT_RATIO = 2.0
+# ... and shortening counts only beside a quad this high (the highest of a flat cloth's ~600 measured
+# points reads up to 1.3 mm).
+RISEN_FLAT_RATIO = 1.5
 
 
 def find_flaps(
@@ -346,10 +347,14 @@ class FlatnessMonitor:
         spacing = (cloth_size_m[0] / (nx - 1), cloth_size_m[1] / (ny - 1))
         shortening = quad_shortening(nodes_m[..., :2], spacing)
         compressed = shortening > self.cfg.compressed_strain
-        raised = np.zeros_like(compressed)
+        beside = np.ones_like(compressed)
         if quad_height_m is not None:
-            raised = quad_height_m > RAISED_FLAT_RATIO * self.cfg.flat_height_m
-            compressed |= raised
+            # Measured: slack has risen, so shortening with no height beside it is the rest shape's noise
+            # (a flat cloth's unfolded rest read 3.4 % short at one quad), and height is slack however
+            # little shorter it looks.
+            risen = quad_height_m > RISEN_FLAT_RATIO * self.cfg.flat_height_m
+            beside = cv2.dilate(risen.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+            compressed = (compressed & beside) | (quad_height_m > RAISED_FLAT_RATIO * self.cfg.flat_height_m)
         # `flat` reads only what starts a ridge: a quad kept by the hysteresis below is for the regulator to
         # finish pulling; lying flat with no more than that is lying flat (the cloth's crimp, docs).
         starting_pct = float(100.0 * np.mean(compressed))
@@ -357,9 +362,10 @@ class FlatnessMonitor:
             # A ridge moves a little as it is pulled: what held slack last tick, or lies beside it, keeps
             # holding it down to the release strain.
             near = cv2.dilate(self._compressed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-            compressed |= near & (shortening > self.cfg.release_strain)
+            held = near & (shortening > self.cfg.release_strain)
             if quad_height_m is not None:
-                compressed |= near & (quad_height_m > self.cfg.flat_height_m)
+                held = (held & beside) | (near & (quad_height_m > self.cfg.flat_height_m))
+            compressed |= held
         self._compressed = compressed
         compressed_pct = float(100.0 * np.mean(compressed))
         c = self.cfg

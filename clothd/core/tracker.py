@@ -292,6 +292,9 @@ class Tracker:
         self.initial_features = len(px)
         nodes_m = self._lay_mesh(frame, region, px, t_s, views)
         assert self.mesh is not None
+        if nodes_m is not None:  # the first frame's quads: as high as their highest corner on the surface
+            z = nodes_m[:, 2].reshape(self.mesh.ny, self.mesh.nx)
+            self.quad_height_m = np.maximum.reduce([z[:-1, :-1], z[:-1, 1:], z[1:, :-1], z[1:, 1:]])
         self.estimator.start(self.mesh, np.array([*self.mesh.centre_m, self.mesh.theta_rad]), nodes_m)
         self.features = FeatureSet(self.mesh, self._next_feature_id)
         self.prev, self.prev_t_s = frame, t_s
@@ -326,16 +329,13 @@ class Tracker:
         self, frame: GrayFrame, t_s: float, views: Sequence[PairedView | None]
     ) -> np.ndarray | None:
         """Each mesh quad's highest point (ny-1, nx-1) measured this frame at the features that survived
-        it, where the rest shape was measured too (heights agree with its lengths only then)."""
-        if self.flatness_basis != FlatnessBasis.MEASURED or self.features is None:
-            return None
+        it, where the rest shape was measured too (heights agree with its lengths only then); the last
+        frame's when this one's pair is missing."""
         nodes = self.estimator.estimate().nodes_m
-        if nodes is None:
+        if self.flatness_basis != FlatnessBasis.MEASURED or self.features is None or nodes is None:
             return None
         measured = self.second_view.heights_now(frame.gray, self.features, nodes, t_s, views)
-        if measured is None:
-            return None
-        return measured
+        return self.quad_height_m if measured is None else measured
 
     def _lay_mesh(
         self,
