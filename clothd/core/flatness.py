@@ -348,13 +348,20 @@ class FlatnessMonitor:
         shortening = quad_shortening(nodes_m[..., :2], spacing)
         compressed = shortening > self.cfg.compressed_strain
         beside = np.ones_like(compressed)
-        if quad_height_m is not None:
+        slack_height_m = quad_height_m
+        if quad_height_m is not None and quad_seen is not None:
+            # A folded-over corner stands up at its fold, a quad or two past the cloth missing where it was:
+            # not slack, and not to be pulled (find_flaps).
+            unseen = cv2.dilate((~quad_seen).astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+            slack_height_m = np.where(unseen, 0.0, quad_height_m)
+        if slack_height_m is not None:
             # Measured: slack has risen, so shortening with no height beside it is the rest shape's noise
             # (a flat cloth's unfolded rest read 3.4 % short at one quad), and height is slack however
             # little shorter it looks.
-            risen = quad_height_m > RISEN_FLAT_RATIO * self.cfg.flat_height_m
+            risen = slack_height_m > RISEN_FLAT_RATIO * self.cfg.flat_height_m
             beside = cv2.dilate(risen.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
-            compressed = (compressed & beside) | (quad_height_m > RAISED_FLAT_RATIO * self.cfg.flat_height_m)
+            raised = slack_height_m > RAISED_FLAT_RATIO * self.cfg.flat_height_m
+            compressed = (compressed & beside) | raised
         # `flat` reads only what starts a ridge: a quad kept by the hysteresis below is for the regulator to
         # finish pulling; lying flat with no more than that is lying flat (the cloth's crimp, docs).
         starting_pct = float(100.0 * np.mean(compressed))
@@ -363,8 +370,8 @@ class FlatnessMonitor:
             # holding it down to the release strain.
             near = cv2.dilate(self._compressed.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
             held = near & (shortening > self.cfg.release_strain)
-            if quad_height_m is not None:
-                held = (held & beside) | (near & (quad_height_m > self.cfg.flat_height_m))
+            if slack_height_m is not None:
+                held = (held & beside) | (near & (slack_height_m > self.cfg.flat_height_m))
             compressed |= held
         self._compressed = compressed
         compressed_pct = float(100.0 * np.mean(compressed))
