@@ -331,8 +331,10 @@ class Tracker:
         """Each mesh quad's highest point (ny-1, nx-1) measured this frame at the features that survived
         it, where the rest shape was measured too (heights agree with its lengths only then); the last
         frame's when this one's pair is missing."""
+        if self.flatness_basis != FlatnessBasis.MEASURED or self.features is None:
+            return None  # one view: no estimate to spend on it in the tick
         nodes = self.estimator.estimate().nodes_m
-        if self.flatness_basis != FlatnessBasis.MEASURED or self.features is None or nodes is None:
+        if nodes is None:
             return None
         measured = self.second_view.heights_now(frame.gray, self.features, nodes, t_s, views)
         return self.quad_height_m if measured is None else measured
