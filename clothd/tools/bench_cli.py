@@ -18,7 +18,9 @@ def _cmd_bench_loop(args: argparse.Namespace) -> int:
         result = bench_hog.run_bench(args.hog, args.config)
         print(bench_hog.format_result(result))
     else:
-        result = run_bench(args.config, run_s=args.run_seconds, load_s=args.load_seconds, opcua=args.opcua)
+        result = run_bench(
+            args.config, args.run_seconds, args.load_seconds, opcua=args.opcua, cameras=args.cameras
+        )
         print(format_result(result))
     if args.json:
         write_json(result, args.json)
@@ -303,6 +305,7 @@ def _add_loop(bsub: Subparsers) -> None:
         metavar="N",
         help="instead: 10 moves beside N busy processes and a headless browser started 3 times",
     )
+    add_cameras(bl, None, "run the daemon with the simulated cell's first N cameras (default: all)")
     bl.add_argument("--json", type=Path, help="also write the figures as JSON")
     bl.set_defaults(func=_cmd_bench_loop)
 

@@ -294,9 +294,9 @@ async def measure_load(
 
 
 async def _bench(
-    config: Path | None, run_s: float, load_s: float, hold_s: float, opcua: bool
+    config: Path | None, run_s: float, load_s: float, hold_s: float, opcua: bool, cameras: int | None
 ) -> dict[str, Any]:
-    d = DaemonProcess(config, free_port())
+    d = DaemonProcess(config, free_port(), cameras)
     try:
         await asyncio.get_running_loop().run_in_executor(None, d.wait_ready)
         async with httpx.AsyncClient(timeout=10.0) as client:
@@ -318,9 +318,15 @@ async def _bench(
 
 
 def run_bench(
-    config: Path | None, run_s: float = 60.0, load_s: float = 30.0, hold_s: float = 3.0, opcua: bool = False
+    config: Path | None,
+    run_s: float = 60.0,
+    load_s: float = 30.0,
+    hold_s: float = 3.0,
+    opcua: bool = False,
+    cameras: int | None = None,
 ) -> dict[str, Any]:
-    return asyncio.run(_bench(config, run_s, load_s, hold_s, opcua))
+    """cameras: the simulated cell's first N (None: all of them)."""
+    return asyncio.run(_bench(config, run_s, load_s, hold_s, opcua, cameras))
 
 
 def format_result(r: dict[str, Any]) -> str:
