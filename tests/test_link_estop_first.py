@@ -10,6 +10,7 @@ import asyncio
 import contextlib
 import os
 import struct
+import threading
 import tty
 from collections.abc import AsyncIterator, Callable
 
@@ -147,6 +148,55 @@ def test_the_estop_discards_the_commands_not_yet_gone_and_goes_next_intact() -> 
                 # ~20 kB written was discarded, and the ESTOP decoded whole after its delimiter.
                 assert at < 2 * PTY_READ_BUFFER < written
                 assert not [m for a, m in ctrl.frames if a > at and (m is None or m.type == T.COMMAND)]
+        finally:
+            ctrl.close()
+
+    asyncio.run(body())
+
+
+def _estops_waiting(ctrl: RawController) -> list[wire.Message]:
+    """The ESTOPs the controller can read now, without the event loop's help."""
+    ctrl._drain()
+    return [m for _, m in ctrl.of_type(T.ESTOP)]
+
+
+def test_estop_at_once_reaches_the_line_while_the_links_loop_is_held() -> None:
+    """From the API's thread, while the link's event loop is held (as a loaded PC holds it from the GIL
+    or the CPU): the ESTOP is on the line before the loop runs again, and the loop's estop() then
+    latches as always."""
+
+    async def body() -> None:
+        ctrl = RawController()
+        try:
+            async with _connected(ctrl) as link:
+                await ctrl.read_until(lambda: True)  # the HELLO read: nothing else waits
+                seen: list[list[wire.Message]] = []
+
+                def api_thread() -> None:
+                    link.estop_at_once()
+                    seen.append(_estops_waiting(ctrl))
+
+                thread = threading.Thread(target=api_thread)
+                thread.start()
+                thread.join()  # the loop's thread blocked here: nothing of the link's ran meanwhile
+                assert len(seen[0]) == 1 and not link.estopped
+                link.estop()
+                await ctrl.read_until(lambda: len(ctrl.of_type(T.ESTOP)) == 2)
+                assert link.estopped and not link.send_commands(_speed(5))
+        finally:
+            ctrl.close()
+
+    asyncio.run(body())
+
+
+def test_estop_at_once_writes_nothing_on_a_link_that_is_not_up() -> None:
+    async def body() -> None:
+        ctrl = RawController()
+        try:
+            async with _connected(ctrl) as link:
+                pass
+            link.estop_at_once()  # the port closed: its descriptor closed with it, nothing raised
+            assert not _estops_waiting(ctrl)
         finally:
             ctrl.close()
 

@@ -62,6 +62,9 @@ class Commands:
         return await self.setpoint(body)
 
     async def estop(self) -> str:
+        # The ESTOP on the wire from this thread first: the hand-over to the daemon's loop waits for its
+        # thread to be scheduled and to take the GIL, tens of ms on a loaded PC (docs/benchmarks.md).
+        self.daemon.link.estop_at_once()
         await self.bridge.call(self.daemon.estop)
         return "emergency stop latched"
 

@@ -126,6 +126,9 @@ class ModuleLink(Protocol):
 
     def estop(self) -> None: ...
 
+    def estop_at_once(self) -> None:
+        """From any thread, never blocking: the ESTOP on the wire now, before estop() runs on the loop."""
+
     def estop_clear(self) -> None: ...
 
     async def run(self) -> None: ...

@@ -8,14 +8,18 @@ than the ticks) would hold this one behind them, stale before it left, so it is 
 sends a fresh one. The emergency stop discards whatever has not left yet (the transport's buffer and the
 port driver's output queue: stale commands), writes a delimiter that ends any frame the discard cut
 midway, and the ESTOP right after it; it is repeated until the controller acknowledges it with its
-e-stop flag set.
+e-stop flag set. `estop_at_once()` writes an ESTOP from whichever thread calls it (the API's), before
+the request reaches the loop's thread: on a loaded PC that hand-over alone took 60 ms.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import logging
+import os
+import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -68,7 +72,11 @@ class StepperLink:
         self._estop_latched = False
         self._clear_on_connect = False  # an e-stop cleared while the link was down: the controller is told
         self._writer: asyncio.StreamWriter | None = None
-        self._seq = 0
+        self._seqs = itertools.count(1)  # next() is atomic: estop_at_once takes one on the API's thread
+        # A duplicate of the port's descriptor for estop_at_once, opened and closed with the session under
+        # the lock: never a number the port closed and the system gave to something else.
+        self._estop_fd: int | None = None
+        self._estop_fd_lock = threading.Lock()
         self._pending: _Pending | None = None  # the newest unacknowledged COMMAND
         # Liveness: when the oldest message still waiting for a reply was sent (None: every one answered),
         # and how often the newest command has been sent again since. A fresh command every tick replaces
@@ -125,6 +133,19 @@ class StepperLink:
             self._discard_unsent()
         self._write(wire.DELIMITER + wire.encode(wire.MsgType.ESTOP, self._next_seq()))
 
+    def estop_at_once(self) -> None:
+        """From any thread: an ESTOP written on the port now, ahead of the loop's estop(), which still
+        latches, discards and repeats. Non-blocking, and nothing when the port is not up or has no room
+        (estop() follows); a frame it cuts is ended by the delimiter, and a COMMAND still going out after
+        it is refused by the latched controller."""
+        if not self.connected:
+            return
+        packet = wire.DELIMITER + wire.encode(wire.MsgType.ESTOP, self._next_seq())
+        with self._estop_fd_lock:
+            if self._estop_fd is not None:
+                with contextlib.suppress(OSError):  # full (BlockingIOError) or gone: estop() follows
+                    os.write(self._estop_fd, packet)
+
     def estop_clear(self) -> None:
         """Release the e-stop; while the link is down, as soon as it is up again (the controller keeps its
         latch across a lost link, and would otherwise refuse every command)."""
@@ -170,6 +191,7 @@ class StepperLink:
             serial_asyncio_fast.open_serial_connection(url=self.cfg.port, baudrate=self.cfg.baud), 2.0
         )
         self._writer = writer
+        self._open_estop_fd(writer)
         self._lost.clear()
         reading = asyncio.create_task(self._read(reader))
         try:
@@ -344,8 +366,12 @@ class StepperLink:
             port.reset_output_buffer()
 
     def _next_seq(self) -> int:
-        self._seq = (self._seq + 1) & 0xFFFF
-        return self._seq
+        return next(self._seqs) & 0xFFFF
+
+    def _open_estop_fd(self, writer: asyncio.StreamWriter) -> None:
+        port = writer.transport.get_extra_info("serial")
+        with self._estop_fd_lock, contextlib.suppress(Exception):
+            self._estop_fd = os.dup(port.fileno())
 
     def _lose(self, reason: str) -> None:
         """Declare the link lost: all-stop written on the way out (a controller that hears but cannot
@@ -381,6 +407,11 @@ class StepperLink:
         self._unanswered_since_s = None
         self._retries = 0
         self.controller_flags = 0
+        with self._estop_fd_lock:
+            if self._estop_fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(self._estop_fd)
+                self._estop_fd = None
         if self._writer is not None:
             with contextlib.suppress(Exception):
                 self._writer.close()
