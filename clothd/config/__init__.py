@@ -28,6 +28,7 @@ from clothd.config.camera import (
     cameras_of,
     check_cameras,
 )
+from clothd.config.flow import FlowConfig, PlacementConfig
 from clothd.config.stepper import ControllerConfig, ControllerLink, StepperConfig, check_controllers
 from clothd.config.strict import Strict
 from clothd.config.tracker import (
@@ -54,12 +55,14 @@ __all__ = [
     "ControllerLink",
     "EkfConfig",
     "FeatureConfig",
+    "FlowConfig",
     "IdealCameraConfig",
     "MeshConfig",
     "ModuleLimitsConfig",
     "NamedCamera",
     "OpcUaConfig",
     "PhysicsConfig",
+    "PlacementConfig",
     "StepperConfig",
     "StereoConfig",
     "TaichiConfig",
@@ -272,6 +275,7 @@ class Config(Strict):
     stepper: StepperConfig = StepperConfig()
     cell: CellConfig = CellConfig()
     control: ControlConfig = ControlConfig()
+    flow: FlowConfig = FlowConfig()
     api: ApiConfig = ApiConfig()
     opcua: OpcUaConfig = OpcUaConfig()
     recording: RecordingConfig = RecordingConfig()

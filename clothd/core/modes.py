@@ -16,6 +16,7 @@ class Mode(StrEnum):
     MOVE = "move"  # bring the cloth to a pose
     FLATTEN = "flatten"  # hold, and take the slack out (the mesh tracker)
     DRIVE = "drive"  # play a drive script
+    FLOW = "flow"  # take pieces in, flatten and place each, and let them go (core/flow.py)
 
 
 class LoopState(StrEnum):
@@ -33,3 +34,15 @@ class FlatnessBasis(StrEnum):
 
     MEASURED = "measured"  # a second view measured the surface's heights when tracking began
     SINCE_START = "since_start"  # one view: only slack gained since tracking began can be seen
+
+
+class PieceState(StrEnum):
+    """Where a piece of the production flow is (core/pieces.py, core/flow.py)."""
+
+    ENTERING = "entering"  # coming in over the infeed edge: not all of it in the workspace yet
+    TRACKED = "tracked"  # all in and stilled; its tracking is starting
+    FLATTENING = "flattening"  # held where it is while its slack is taken out
+    PLACING = "placing"  # brought to the placement
+    LEAVING = "leaving"  # placed, and driven out over the outfeed edge
+    LEFT = "left"  # gone to the next station
+    REJECTED = "rejected"  # cannot be flattened or placed: driven out and reported, with the reason

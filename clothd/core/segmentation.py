@@ -132,11 +132,20 @@ def _texture(gray: np.ndarray) -> np.ndarray:
 
 
 def find_cloth(image_bgr: np.ndarray) -> ClothRegion | None:
-    """The cloth in a BGR uint8 frame (h, w, 3), or None when no plausible cloth is visible.
+    """The cloth in a BGR uint8 frame (h, w, 3), or None when no plausible cloth is visible: the largest
+    of `find_cloths`."""
+    found = find_cloths(image_bgr)
+    return found[0] if found else None
 
-    None when nothing textured differs in colour from the background by more than noise, when the
-    largest coloured, textured component covers under 0.5 % or over 60 % of the frame, or when it is
-    greyer than the dominant colour (then the dominant colour was the cloth's, not the background's).
+
+def find_cloths(image_bgr: np.ndarray) -> list[ClothRegion]:
+    """Every piece of cloth in a BGR uint8 frame (h, w, 3), largest first; empty when none is visible.
+
+    Empty when nothing textured differs in colour from the background by more than noise. A coloured,
+    textured component is a piece when it covers between 0.5 % and 60 % of the frame and is not greyer
+    than the dominant colour; when the largest is not, the dominant colour was the cloth's, not the
+    background's, and nothing is found. Pieces a few millimetres apart stay apart: each component is
+    closed alone.
     """
     if image_bgr.ndim != 3 or image_bgr.shape[2] != 3:
         raise ValueError(f"find_cloth needs a BGR image (h, w, 3), got shape {image_bgr.shape}")
@@ -149,11 +158,11 @@ def find_cloth(image_bgr: np.ndarray) -> ClothRegion | None:
     # from pulling Otsu's split away from background-versus-cloth.
     textured = _texture(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)) > _MIN_TEXTURE
     if not textured.any():
-        return None
+        return []
     otsu, _ = cv2.threshold(scaled[textured].reshape(-1, 1), 0, 255, cv2.THRESH_BINARY | cv2.THRESH_OTSU)
     core = textured & (scaled > max(otsu, _MIN_CHROMA * _CHROMA_SCALE))
     if not core.any():
-        return None
+        return []
     # Otsu's split finds the cloth's coloured core but sits above the middle of the edge's ramp when
     # the cloth's chroma spreads wide (denim: ~10 to 40 units), which would lose the rim. The edge is
     # where the chroma is half-way from the background's typical level to the cloth's.
@@ -162,32 +171,38 @@ def find_cloth(image_bgr: np.ndarray) -> ClothRegion | None:
     level = max(0.5 * (_median_u8(scaled, core) + bg_level), _MIN_CHROMA * _CHROMA_SCALE)
     above = np.where(textured & (scaled > level), np.uint8(255), np.uint8(0))
     mask = cv2.morphologyEx(above, cv2.MORPH_OPEN, _disk(_OPEN_PX))
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
-    if n < 2:
-        return None
-    best = 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    if stats[best, cv2.CC_STAT_AREA] < _MIN_AREA_FRACTION * h * w:
-        return None
-    # Close the component alone (other coloured blobs must not merge into it), in its bounding box
-    # padded by the kernel, then fill its holes by filling its outer contour.
-    x, y, bw, bh = (int(v) for v in stats[best, :4])
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+    colour = ClothColour((a0, b0), level / _CHROMA_SCALE)
+    background_chroma = math.hypot(a0 - 128.0, b0 - 128.0)
+    regions = []
+    for label in 1 + np.argsort(-stats[1:, cv2.CC_STAT_AREA]):
+        if stats[label, cv2.CC_STAT_AREA] < _MIN_AREA_FRACTION * h * w:
+            break
+        region = _closed_component(labels, int(label), stats[label, :4], colour)
+        on = region.mask > 0
+        cloth_chroma = math.hypot(_median_u8(lab[..., 1], on) - 128.0, _median_u8(lab[..., 2], on) - 128.0)
+        plausible = region.area_px <= _MAX_AREA_FRACTION * h * w and cloth_chroma > background_chroma
+        if plausible:
+            regions.append(region)
+        elif not regions:  # the largest is no cloth: the background was not the dominant colour
+            return []
+    return regions
+
+
+def _closed_component(labels: np.ndarray, label: int, box: np.ndarray, colour: ClothColour) -> ClothRegion:
+    """One component closed alone (other coloured blobs must not merge into it), in its bounding box
+    padded by the kernel, with its holes filled by filling its outer contour."""
+    h, w = labels.shape
+    x, y, bw, bh = (int(v) for v in box)
     x0, y0 = max(x - _CLOSE_PX, 0), max(y - _CLOSE_PX, 0)
     x1, y1 = min(x + bw + _CLOSE_PX, w), min(y + bh + _CLOSE_PX, h)
-    component = np.where(labels[y0:y1, x0:x1] == best, np.uint8(255), np.uint8(0))
+    component = np.where(labels[y0:y1, x0:x1] == label, np.uint8(255), np.uint8(0))
     component = cv2.morphologyEx(component, cv2.MORPH_CLOSE, _disk(_CLOSE_PX))
     contours, _ = cv2.findContours(component, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE, offset=(x0, y0))
     outline = max(contours, key=cv2.contourArea)
     filled = np.zeros((h, w), np.uint8)
     cv2.drawContours(filled, [outline], -1, 255, thickness=cv2.FILLED)
-    colour = ClothColour((a0, b0), level / _CHROMA_SCALE)
-    region = replace(_region(filled, outline.reshape(-1, 2)), colour=colour)
-    if region.area_px > _MAX_AREA_FRACTION * h * w:
-        return None
-    on = filled > 0
-    cloth_chroma = math.hypot(_median_u8(lab[..., 1], on) - 128.0, _median_u8(lab[..., 2], on) - 128.0)
-    if cloth_chroma <= math.hypot(a0 - 128.0, b0 - 128.0):
-        return None
-    return region
+    return replace(_region(filled, outline.reshape(-1, 2)), colour=colour)
 
 
 def full_frame_region(width: int, height: int, margin_px: int = 8) -> ClothRegion:

@@ -81,6 +81,8 @@ class Tracker:
         self.layout = layout
         self.roi = roi
         self.clock = clock or (lambda: 0.0)
+        # Where the cloth is in the first frame: several pieces' trackers each take theirs (core/pieces.py).
+        self.find_region: Callable[[np.ndarray], ClothRegion | None] = find_cloth
         self._engine_default = FeatureEngine(cfg.features)
         # A periodic weave's stripes need a wider LK window to hold some texture across them, and its
         # measurements count across the stripes only.
@@ -172,7 +174,7 @@ class Tracker:
         image: np.ndarray,
         frame_t_s: float,
         commands: ModuleCommands | None,
-        views: Sequence[PairedView | None] = (),
+        views: Sequence[PairedView | None] | None = (),
     ) -> Estimate:
         """`step` up to the estimate; `upkeep` does the rest (or the next call, if it was not called)."""
         self.upkeep()
@@ -181,7 +183,7 @@ class Tracker:
         frame = self.engine.prepare(image)
         u = self._belts = self._advance_modules(frame_t_s, commands)
         if self.features is None or self.prev is None:
-            return self._initialise(frame, image, frame_t_s, views, timing, t0)
+            return self._initialise(frame, image, frame_t_s, views or (), timing, t0)
         features = self.features
         dt_s = max(frame_t_s - self.prev_t_s, MIN_DT_S)
         t1 = self.clock()
@@ -280,7 +282,7 @@ class Tracker:
         t0: float,
     ) -> Estimate:
         h, w = image.shape[:2]
-        region: ClothRegion | None = full_frame_region(w, h) if self.roi == "full" else find_cloth(image)
+        region = full_frame_region(w, h) if self.roi == "full" else self.find_region(image)
         if region is None or self.second_view.awaits_pair(t_s, views):
             return Estimate.lost(t_s, timing)
         f = self.cfg.features
@@ -326,11 +328,11 @@ class Tracker:
         return self._estimate(t_s, self.features.px.astype(np.float64), stats, timing, image)
 
     def _heights_now(
-        self, frame: GrayFrame, t_s: float, views: Sequence[PairedView | None]
+        self, frame: GrayFrame, t_s: float, views: Sequence[PairedView | None] | None
     ) -> np.ndarray | None:
         """Each mesh quad's highest point (ny-1, nx-1) measured this frame at the features that survived
         it, where the rest shape was measured too (heights agree with its lengths only then); the last
-        frame's when this one's pair is missing."""
+        frame's when this one's pair is missing, or is still to come (views None)."""
         if self.flatness_basis != FlatnessBasis.MEASURED or self.features is None:
             return None  # one view: no estimate to spend on it in the tick
         nodes = self.estimator.estimate().nodes_m
@@ -338,6 +340,12 @@ class Tracker:
             return None
         measured = self.second_view.heights_now(frame.gray, self.features, nodes, t_s, views)
         return self.quad_height_m if measured is None else measured
+
+    def measure_heights(self, views: Sequence[PairedView | None]) -> None:
+        """The last frame's heights, tracked with views None once tracking (they come later), from its
+        views now: the next estimate carries them; a frame they do not pair keeps the last."""
+        measured = self.second_view.heights_later(views)
+        self.quad_height_m = self.quad_height_m if measured is None else measured
 
     def _lay_mesh(
         self,

@@ -7,6 +7,7 @@ from pathlib import Path
 
 from clothd.config import load_config, with_overrides
 from clothd.errors import InvalidRequestError
+from clothd.tools.bench_cli_flow import add_flow
 from clothd.tools.cli_args import TUNE_TRIALS, Subparsers, add_cameras, dist, mesh_size, positive_int
 
 
@@ -441,6 +442,7 @@ def add_commands(sub: Subparsers) -> None:
     _add_robustness(bsub)
     _add_loop(bsub)
     _add_flatten(bsub)
+    add_flow(bsub)
     _add_drift(bsub)
     _add_faults(bsub)
     _add_calibrate(bsub)

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from clothd.config import Config
+from clothd.core.camera_model import CameraModel
 from clothd.core.cell_controller import CellController
 from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
@@ -47,6 +48,28 @@ from hwsim.world import World
 CAMERA_FPS = 15.0  # as `hwsim serve` streams it
 
 
+def scenario_cameras(
+    sc: scenarios.Scenario, world: World, cameras: int | None
+) -> tuple[list[Sensor], list[CameraModel]]:
+    """hwsim's sensors of the scenario's first `cameras` cameras (None: all), and clothd's models of them
+    read from the camera.json hwsim writes: the interface between them, as live."""
+    sensors, models = [], []
+    with tempfile.TemporaryDirectory(prefix="clothd-lockstep-") as tmp:
+        for index, spec in enumerate(sc.camera_specs[:cameras]):
+            camera = Camera.from_spec(spec)
+            camera.save(Path(tmp) / f"camera{index}.json")
+            models.append(read_camera(Path(tmp) / f"camera{index}.json"))
+            sensors.append(Sensor(sc, camera, world.cloth.grid, index, spec.capture_skew_s))
+    return sensors, models
+
+
+def frame_of(world: World, sensor: Sensor, k: int) -> np.ndarray:
+    """Frame k as `hwsim serve` streams it (rendered, sensor noise and JPEG), decoded."""
+    image = cv2.imdecode(np.frombuffer(sensor.jpeg(world, k), np.uint8), cv2.IMREAD_COLOR)
+    assert image is not None  # hwsim's own JPEG
+    return image
+
+
 class LockstepCell:
     """hwsim's scenario and clothd's loop, advanced together by `sleep`."""
 
@@ -58,15 +81,7 @@ class LockstepCell:
         self.period_s = cfg.loop.period_s
         if not math.isclose(self.world.dt_s, self.period_s):
             raise ValueError(f"lockstep needs the world's step ({self.world.dt_s:g} s) to be the tick")
-        specs = sc.camera_specs[:cameras]
-        self.sensors: list[Sensor] = []
-        models = []
-        with tempfile.TemporaryDirectory(prefix="clothd-lockstep-") as tmp:
-            for index, spec in enumerate(specs):
-                camera = Camera.from_spec(spec)
-                camera.save(Path(tmp) / f"camera{index}.json")  # the interface between them, as live
-                models.append(read_camera(Path(tmp) / f"camera{index}.json"))
-                self.sensors.append(Sensor(sc, camera, self.world.cloth.grid, index, spec.capture_skew_s))
+        self.sensors, models = scenario_cameras(sc, self.world, cameras)
         self.camera_every = max(1, round(sc.fps / CAMERA_FPS))
         layout = ConveyorLayout.of_cell(cfg.cell)
         self.tracker = Tracker(cfg.tracker, models[0], layout, other_cameras=models[1:])
@@ -176,10 +191,6 @@ class LockstepCell:
         self.cell.reset()
         self.estimate = self.flatness = None
 
-    def _frame(self, sensor: Sensor, k: int) -> np.ndarray:
-        image = cv2.imdecode(np.frombuffer(sensor.jpeg(self.world, k), np.uint8), cv2.IMREAD_COLOR)
-        assert image is not None  # hwsim's own JPEG
-        return image
 
     # -- one tick ------------------------------------------------------------------------------------
 
@@ -197,7 +208,7 @@ class LockstepCell:
             # (clothd/core/second_view.py): rendering them otherwise would only slow the lockstep.
             measured = self.tracker.initialising or self.tracker.flatness_basis == FlatnessBasis.MEASURED
             sensors = self.sensors if measured else self.sensors[:1]
-            images = [self._frame(sensor, k) for sensor in sensors]
+            images = [frame_of(self.world, sensor, k) for sensor in sensors]
             views = [
                 PairedView(image, self.world.t_s + s.skew_s)
                 for image, s in zip(images[1:], sensors[1:], strict=True)

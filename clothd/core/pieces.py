@@ -1,0 +1,219 @@
+"""Several pieces on the table at once: each found as it comes in, given its own tracker once all of it is
+in and still, told apart from the others, and released when it leaves (docs/flow.md).
+
+Finding pieces costs a whole-frame segmentation (~20 ms on a 640 x 480 frame), so it runs every
+`flow.search_every` frames; tracking runs every frame, a tracker per piece. A piece is known by where it
+lies on the table: a region found in a frame is the tracked piece whose estimated outline holds its
+centre, else the untracked piece last seen nearest it, else a new piece. Pieces lie apart, so a region's
+centre lies inside one outline only, however close their edges come.
+
+A tracker starts on a piece only when the piece lies inside the workspace and has not moved between two
+looks: tracking begins on a cloth at rest, as the single-piece tracker's does. The trackers come from a
+pool and go back to it when a piece leaves; a new piece reuses one, so that nothing grows with the
+number of pieces that passed.
+
+This module only sees. Which state a piece is in past `tracked` (flattening, placing, leaving) is the flow
+controller's (core/flow.py), which also says when a piece has left.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from clothd.config import FlowConfig
+from clothd.core.camera_model import CameraModel
+from clothd.core.messages import Estimate, ModuleCommands, PairedView
+from clothd.core.modes import PieceState
+from clothd.core.segmentation import ClothRegion, find_cloths
+from clothd.core.tracker import Tracker
+from clothd.core.workspace import Workspace
+
+GONE_KEPT = 50  # pieces that left or were rejected, kept for the API
+MATCH_M = 0.08  # an untracked piece is the region seen this near where it was last seen
+MISSED_LOOKS = 2  # an untracked piece not seen in this many looks in a row has gone from view
+
+
+@dataclass
+class Piece:
+    """One piece of cloth on the table, as far as the cell knows it."""
+
+    id: int
+    state: PieceState
+    since_s: float  # when it entered its state
+    outline_m: np.ndarray  # (k, 2) on the table: its estimate's, or where it was last seen (then moved on)
+    found_s: float  # when it was first seen
+    estimate: Estimate | None = None  # this frame's, while it is tracked
+    slot: int | None = None  # its tracker in the pool, while it has one
+    reason: str | None = None  # why it was rejected, or why it stopped
+    left_s: float | None = None
+    missed_looks: int = 0  # looks in a row that did not see it (untracked pieces only)
+    last_centre_m: np.ndarray | None = None  # where the last look saw it (untracked pieces only)
+    still: bool = False  # the last two looks saw it in the same place
+    tracked_since_s: float | None = None  # when its tracking last began: what the controller knew is stale
+    region: ClothRegion | None = field(default=None, repr=False)  # what its tracker starts on
+
+    @property
+    def centre_m(self) -> np.ndarray:
+        return np.asarray(self.outline_m.mean(axis=0))
+
+    @property
+    def tracking(self) -> bool:
+        return self.estimate is not None and self.estimate.tracking
+
+    def enter(self, state: PieceState, now_s: float, reason: str | None = None) -> None:
+        self.state, self.since_s = state, now_s
+        if reason is not None:
+            self.reason = reason
+
+
+def contains(outline_m: np.ndarray, point_m: np.ndarray) -> bool:
+    contour = outline_m.astype(np.float32).reshape(-1, 1, 2)
+    return cv2.pointPolygonTest(contour, (float(point_m[0]), float(point_m[1])), False) >= 0
+
+
+class PieceTracking:
+    """The pieces on the table and their trackers. `track` once per frame, in order."""
+
+    def __init__(
+        self,
+        cfg: FlowConfig,
+        camera_model: CameraModel,
+        workspace: Workspace,
+        make_tracker: Callable[[], Tracker],
+        max_pieces: int = 4,
+    ) -> None:
+        self.cfg = cfg
+        self.camera_model = camera_model
+        self.workspace = workspace
+        self._make_tracker = make_tracker
+        self._trackers: list[Tracker] = []
+        self._free: list[int] = []
+        self.max_pieces = max_pieces
+        self.pieces: list[Piece] = []  # on the table, oldest first
+        self.gone: deque[Piece] = deque(maxlen=GONE_KEPT)  # left or rejected and gone, oldest first
+        self._next_id = 0
+        self._frames = 0
+
+    def reset(self) -> None:
+        """Forget every piece: the next look finds them afresh."""
+        for piece in list(self.pieces):
+            self._release(piece)
+        self.pieces.clear()
+        self._frames = 0
+
+    def track(
+        self,
+        image: np.ndarray,
+        t_s: float,
+        commands: ModuleCommands | None,
+        views: Sequence[PairedView | None] = (),
+    ) -> list[Piece]:
+        """Track every piece in this frame, and look for pieces every `search_every` frames."""
+        look = self._frames % self.cfg.search_every == 0
+        self._frames += 1
+        if look:
+            self._look(image, t_s)
+        for piece in self.pieces:
+            if piece.slot is None:
+                piece.estimate = None
+                continue
+            tracker = self._trackers[piece.slot]
+            estimate = tracker.track(image, t_s, commands, views)
+            tracker.upkeep()
+            piece.estimate = estimate
+            if estimate.tracking and estimate.outline_m is not None:
+                piece.outline_m = estimate.outline_m
+                if piece.region is not None:  # its tracking began with this frame
+                    piece.region, piece.tracked_since_s = None, t_s
+                if piece.state == PieceState.ENTERING:
+                    piece.enter(PieceState.TRACKED, t_s)
+            elif piece.region is None or not tracker.initialising:
+                self._release(piece)  # lost: found again by a later look, and started again when still
+        return self.pieces
+
+    def leave(self, piece: Piece, now_s: float) -> None:
+        """The flow controller's word that a piece has gone: its tracker goes back to the pool."""
+        self._release(piece)
+        piece.left_s = now_s
+        self.pieces.remove(piece)
+        self.gone.append(piece)
+
+    # -- finding pieces -------------------------------------------------------------------------------
+
+    def _look(self, image: np.ndarray, t_s: float) -> None:
+        h, w = image.shape[:2]
+        seen: set[int] = set()
+        for region in find_cloths(image):
+            outline = self.camera_model.backproject_to_plane(region.corners_px.astype(np.float64))[:, :2]
+            centre = outline.mean(axis=0)
+            piece = self._owner(centre, seen)
+            if piece is None:
+                if outline[:, 0].max() > self.workspace.x_max_m or len(self.pieces) >= self.max_pieces:
+                    continue  # the rest of a piece that has left, going over the outfeed edge
+                piece = Piece(self._next_id, PieceState.ENTERING, t_s, outline, t_s)
+                self._next_id += 1
+                self.pieces.append(piece)
+            seen.add(piece.id)
+            if piece.slot is not None:
+                continue
+            moved = np.inf if piece.last_centre_m is None else np.linalg.norm(centre - piece.last_centre_m)
+            piece.still = bool(moved * 1e3 < self.cfg.still_mm)
+            piece.outline_m, piece.last_centre_m, piece.missed_looks = outline, centre, 0
+            inside = self.workspace.leaves(outline) is None and not _touches_border(region.corners_px, w, h)
+            if inside and piece.still and self._free_slot_for(piece):
+                piece.region = region
+        for piece in self.pieces:
+            if piece.slot is None and piece.id not in seen:
+                piece.missed_looks += 1
+
+    def _owner(self, centre_m: np.ndarray, taken: set[int]) -> Piece | None:
+        for piece in self.pieces:
+            if piece.slot is not None and piece.id not in taken and contains(piece.outline_m, centre_m):
+                return piece
+        near = [
+            (float(np.linalg.norm(p.centre_m - centre_m)), k)
+            for k, p in enumerate(self.pieces)
+            if p.slot is None and p.id not in taken
+        ]
+        if not near:
+            return None
+        distance, k = min(near)
+        return self.pieces[k] if distance < MATCH_M else None
+
+    def _free_slot_for(self, piece: Piece) -> bool:
+        """Give the piece a tracker, started on its region in this frame; False when none is free."""
+        if self._free:
+            slot = self._free.pop()
+        elif len(self._trackers) < self.max_pieces:
+            self._trackers.append(self._make_tracker())
+            slot = len(self._trackers) - 1
+        else:
+            return False
+        tracker = self._trackers[slot]
+        tracker.reset()
+        tracker.find_region = lambda _image: piece.region
+        piece.slot = slot
+        return True
+
+    def _release(self, piece: Piece) -> None:
+        if piece.slot is not None:
+            self._trackers[piece.slot].reset()
+            self._free.append(piece.slot)
+        piece.slot, piece.estimate, piece.region = None, None, None
+        piece.last_centre_m, piece.still = None, False
+
+
+def _touches_border(corners_px: np.ndarray, width: int, height: int, margin_px: float = 2.0) -> bool:
+    """The region reaches the frame's edge: part of the piece may lie out of view."""
+    x, y = corners_px[:, 0], corners_px[:, 1]
+    return bool(
+        (x.min() < margin_px)
+        | (y.min() < margin_px)
+        | (x.max() > width - 1 - margin_px)
+        | (y.max() > height - 1 - margin_px)
+    )

@@ -1,0 +1,128 @@
+"""Several pieces told apart: two flat pieces 20 mm apart on hwsim's flow table, rendered as its camera
+sees them, are found as two, each given its own tracker once still, and tracked where hwsim put them."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from clothd.config import load_config
+from clothd.core.conveyor import ConveyorLayout
+from clothd.core.modes import PieceState
+from clothd.core.pieces import PieceTracking
+from clothd.core.segmentation import find_cloths
+from clothd.core.tracker import Tracker
+from clothd.core.workspace import Workspace
+from clothd.taichi_runtime import start_taichi
+from clothd.tools.lockstep import scenario_cameras
+from clothd.tools.lockstep_flow import config_for, flow_scenario
+from hwsim.scene import SceneCloth
+from hwsim.world import World
+
+GAP_M = 0.020
+SIZE_M = (0.25, 0.20)
+
+
+def _flat_piece(centre_x_m: float, spacing_m: float) -> np.ndarray:
+    """A flat piece's nodes (ny, nx, 3), its s axis along x, centred at (centre_x_m, 0)."""
+    nx, ny = round(SIZE_M[0] / spacing_m) + 1, round(SIZE_M[1] / spacing_m) + 1
+    x = np.linspace(-SIZE_M[0] / 2, SIZE_M[0] / 2, nx) + centre_x_m
+    y = np.linspace(-SIZE_M[1] / 2, SIZE_M[1] / 2, ny)
+    xx, yy = np.meshgrid(x, y)
+    return np.stack([xx, yy, np.zeros_like(xx)], axis=-1)
+
+
+@pytest.fixture(scope="module")
+def scene() -> tuple[np.ndarray, list[float], object, object]:
+    """The flow table's top camera's frame of two pieces GAP_M apart (edges along x), their centres' x,
+    the clothd configuration for the table and the camera's model."""
+    cfg = load_config(None)
+    start_taichi(cfg.taichi.arch)
+    sc = flow_scenario(6.0, 0)
+    world = World(sc, log_commands=False)
+    sensors, models = scenario_cameras(sc, world, 1)
+    spacing = sc.cloth.spacing_m
+    centres = [-0.5 * (SIZE_M[0] + GAP_M), 0.5 * (SIZE_M[0] + GAP_M)]
+    cloths = tuple(SceneCloth(_flat_piece(x, spacing), (spacing, spacing)) for x in centres)
+    state = dataclasses.replace(world.scene_state(), cloths=cloths)
+    image, _ = sensors[0].renderer.render([state])
+    bgr = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
+    return bgr, centres, config_for(cfg, sc), models[0]
+
+
+def test_two_pieces_20_mm_apart_are_found_as_two(scene: tuple) -> None:
+    image, centres, _, model = scene
+    regions = find_cloths(image)
+    assert len(regions) == 2
+    found_x = sorted(
+        float(model.backproject_to_plane(r.corners_px.astype(np.float64))[:, 0].mean()) for r in regions
+    )
+    assert np.allclose(found_x, centres, atol=0.005)
+    masks = [r.mask > 0 for r in regions]
+    assert not (masks[0] & masks[1]).any()
+
+
+def test_each_piece_gets_its_own_tracker_and_is_tracked_where_it_lies(scene: tuple) -> None:
+    image, centres, cfg, model = scene
+    layout = ConveyorLayout.of_cell(cfg.cell)
+    tracking = PieceTracking(
+        cfg.flow, model, Workspace.of_cell(cfg.cell), lambda: Tracker(cfg.tracker, model, layout)
+    )
+    period = cfg.loop.period_s
+    for k in range(cfg.flow.search_every + 2):  # the second look sees them still
+        pieces = tracking.track(image, k * period, None)
+    assert len(pieces) == 2 and len({p.id for p in pieces}) == 2
+    assert len({p.slot for p in pieces}) == 2
+    for piece in pieces:
+        assert piece.state == PieceState.TRACKED and piece.tracking
+        assert piece.estimate is not None
+        x, y, theta = piece.estimate.pose
+        nearest = min(centres, key=lambda c: abs(c - x))
+        assert abs(x - nearest) < 0.004 and abs(y) < 0.004
+        assert abs(math.remainder(theta, math.pi)) < math.radians(1.0)
+    # Each piece's features lie on its own piece.
+    for piece in pieces:
+        assert piece.estimate is not None
+        world_x = model.backproject_to_plane(piece.estimate.meas_px)[:, 0]
+        own = min(centres, key=lambda c: abs(c - piece.estimate.pose[0]))  # type: ignore[union-attr]
+        assert np.all(np.abs(world_x - own) < SIZE_M[0] / 2 + 0.003)
+
+
+def test_a_piece_that_leaves_frees_its_tracker_for_the_next(scene: tuple) -> None:
+    image, _, cfg, model = scene
+    layout = ConveyorLayout.of_cell(cfg.cell)
+    made: list[Tracker] = []
+
+    def make() -> Tracker:
+        made.append(Tracker(cfg.tracker, model, layout))
+        return made[-1]
+
+    tracking = PieceTracking(cfg.flow, model, Workspace.of_cell(cfg.cell), make)
+    period = cfg.loop.period_s
+    for k in range(cfg.flow.search_every + 2):
+        tracking.track(image, k * period, None)
+    first = min(tracking.pieces, key=lambda p: p.centre_m[0])
+    tracking.leave(first, 1.0)
+    assert first not in tracking.pieces and list(tracking.gone) == [first] and first.slot is None
+    # The piece that left is out of view: the frame with it painted out as the deck.
+    region = next(r for r in find_cloths(image) if r.mask[:, : image.shape[1] // 2].any())
+    deck = cv2.dilate(region.mask, np.ones((9, 9), np.uint8)) > 0
+    without = image.copy()
+    without[deck] = np.median(image[~deck], axis=0).astype(np.uint8)
+    t_s = 2.0
+    for _ in range(cfg.flow.search_every + 1):
+        tracking.track(without, t_s, None)
+        t_s += period
+    (other,) = tracking.pieces
+    assert other.tracking
+    # A new piece where the first lay takes the tracker the first gave back.
+    for _ in range(2 * cfg.flow.search_every + 1):
+        tracking.track(image, t_s, None)
+        t_s += period
+    assert len(made) == 2  # no third tracker was built
+    assert len(tracking.pieces) == 2 and all(p.tracking for p in tracking.pieces)
+    assert {p.id for p in tracking.pieces} == {other.id, max(first.id, other.id) + 1}
