@@ -8,6 +8,7 @@ from pathlib import Path
 from clothd.config import load_config, with_overrides
 from clothd.errors import InvalidRequestError
 from clothd.tools.bench_cli_flow import add_flow
+from clothd.tools.bench_estop import add_estop
 from clothd.tools.cli_args import TUNE_TRIALS, Subparsers, add_cameras, dist, mesh_size, positive_int
 
 
@@ -437,14 +438,7 @@ def _add_abuse(bsub: Subparsers) -> None:
 def add_commands(sub: Subparsers) -> None:
     b = sub.add_parser("bench", help="benchmarks against hwsim")
     bsub = b.add_subparsers(dest="bench", required=True)
-    _add_speed(bsub)
-    _add_accuracy(bsub)
-    _add_robustness(bsub)
-    _add_loop(bsub)
-    _add_flatten(bsub)
-    add_flow(bsub)
-    _add_drift(bsub)
-    _add_faults(bsub)
-    _add_calibrate(bsub)
-    _add_tune(bsub)
-    _add_abuse(bsub)
+    for add in (_add_speed, _add_accuracy, _add_robustness, _add_loop, _add_flatten, add_flow, _add_drift):
+        add(bsub)
+    for add in (_add_faults, _add_calibrate, _add_tune, _add_abuse, add_estop):
+        add(bsub)

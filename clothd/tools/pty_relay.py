@@ -5,6 +5,7 @@ opens the controller's, and bytes pass both ways unless told otherwise.
     relay.drop_replies = True                            # the controller hears, the host hears nothing
     relay.drop_commands = True                           # the host talks, the controller hears nothing
     relay.delay_s = 0.1                                  # both ways, each chunk this much later
+    relay.on_read = seen                                 # seen(from_host, bytes, time.monotonic())
 
 Counts what it dropped, so a test can tell that the fault really happened.
 """
@@ -18,6 +19,7 @@ import threading
 import time
 import tty
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 
 POLL_S = 0.002
@@ -28,6 +30,7 @@ class PtyRelay:
         self.drop_replies = False
         self.drop_commands = False
         self.delay_s = 0.0
+        self.on_read: Callable[[bool, bytes, float], None] | None = None  # each chunk, as it is read
         self.dropped_bytes = {"replies": 0, "commands": 0}
         self._target = os.open(str(target), os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
         tty.setraw(self._target)
@@ -64,6 +67,8 @@ class PtyRelay:
                     time.sleep(POLL_S)
                     continue
                 from_host = fd == self._master
+                if self.on_read is not None:
+                    self.on_read(from_host, data, time.monotonic())
                 if (self.drop_commands if from_host else self.drop_replies) and data:
                     self.dropped_bytes["commands" if from_host else "replies"] += len(data)
                     continue
