@@ -67,7 +67,9 @@ def compute_on(recording: Path, frames: int = 4, cell: CellConfig | None = None,
 
 
 def tick(compute: Compute, req: TickRequest) -> TickReply:
-    """One tick as the compute process serves it: the reply, then the work left for after it."""
+    """One tick as the compute process serves it: the reply, then the work left for after it and for
+    between the ticks (a tracked frame's heights, from its pair)."""
     reply = compute.tick(req)
     compute.after_reply()
+    compute.measure_heights(wait=True)
     return reply

@@ -150,29 +150,91 @@ def test_the_compute_hands_the_tracker_a_view_per_further_camera_and_reports_eac
     short_recording: Callable[[str], Path], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """The plumbing only: the views the tracker is given and the reply's reports, not what it does with
-    them (the tracker's own tests)."""
+    them (the tracker's own tests). Tracking begins with the pair; after that a frame is tracked with its
+    views to come (None), and they reach `measure_heights` between the ticks."""
     rec = short_recording("translate")
     images = [img for _, (_, img) in zip(range(4), open_footage(rec).frames(), strict=False)]
     side = FurtherCamera(read_camera(rec / "camera.json"), lambda: RecordedFrames(images))
     compute = compute_on(rec, other_cameras=(side,))
-    given: list[tuple[float, Sequence[PairedView | None]]] = []
+    given: list[tuple[float, Sequence[PairedView | None] | None]] = []
+    later: list[Sequence[PairedView | None]] = []
     track = compute.tracker.track
 
     def seen(image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None, views: Any = ()) -> Any:
         given.append((frame_t_s, views))
-        return track(
-            image, frame_t_s, commands
-        )  # one view: what the tracker does with two is not tested here
+        # One view: what the tracker does with two is not tested here.
+        return track(image, frame_t_s, commands, None if views is None else ())
 
     monkeypatch.setattr(compute.tracker, "track", seen)
+    monkeypatch.setattr(compute.tracker.second_view, "awaits_pair", lambda t_s, views: False)
+    monkeypatch.setattr(compute.tracker, "measure_heights", later.append)
     stopped = ModuleCommands.all_stop(compute.spec.layout.n_modules)
-    for _ in range(3):
-        reply = tick(compute, TickRequest(Setpoint("idle", None), stopped, reset=False, want_view=False))
-    assert len(given) == 3 and all(len(views) == 1 for _, views in given)
-    for frame_t_s, (view,) in given:
-        assert view is not None and view.image.shape == images[0].shape
-        assert view.t_s >= frame_t_s  # the side camera's frame was taken after the first's
-    (report,) = reply.cameras
-    assert report.health.healthy and report.pairing.paired_pct is not None
+    replies = [
+        tick(compute, TickRequest(Setpoint("idle", None), stopped, reset=False, want_view=False))
+        for _ in range(4)
+    ]
+    assert len(given) == 4
+    (begun_t_s, begun_views), *tracked = given
+    assert begun_views is not None and len(begun_views) == 1 and begun_views[0] is not None
+    assert begun_views[0].image.shape == images[0].shape and begun_views[0].t_s >= begun_t_s
+    assert "pair_wait" in replies[0].timing_s
+    assert all(views is None for _, views in tracked)  # once tracking, no tick waits for the pair
+    assert len(later) == 3 and all(len(views) == 1 for views in later)
+    for (frame_t_s, _), (view,) in zip(tracked, later, strict=True):
+        assert view is not None and view.t_s >= frame_t_s  # the side camera's frame, taken after
+    assert all("pair_wait" not in r.timing_s for r in replies[1:])
+    assert "tracker_heights" in replies[-1].timing_s  # the last measurement, with the next reply
+    (report,) = replies[-1].cameras
+    assert report.health.healthy and report.pairing.paired_pct is not None  # a frame for each of four
     assert report.pairing.skew_ms is not None and report.pairing.skew_ms >= 0
-    assert "pair_wait" in reply.timing_s
+
+
+def test_once_tracking_a_frame_is_not_waited_for_and_is_paired_once_its_pair_has_arrived() -> None:
+    clock = Clock()
+    cam = ScheduledFrames(clock, _grid(0.012))  # arrives 12 ms after the first camera's
+    pairing = FramePairing([cam], MAX_SKEW_S, clock)
+    _first_frames(pairing, clock, _grid(0.0, 10)[1:])  # the period learnt
+    waited = len(cam.waited_s)
+    t0 = 10 * PERIOD_S
+    clock.now_s = t0 + 0.001
+    assert pairing.to_track(t0, begins=False) is None  # tracked at once
+    assert pairing.due(t0) and pairing.later_views() is None  # its pair is still to come
+    clock.now_s = t0 + 0.013
+    views = pairing.later_views()
+    assert views is not None and views[0] is not None and views[0].t_s == pytest.approx(t0 + 0.012)
+    assert pairing.later_views() is None  # paired once
+    assert len(cam.waited_s) == waited  # and never waited for
+    assert pairing.stats()[0].skew_ms == pytest.approx(12.0)
+    # When tracking begins, the pair is waited for, as `views` does.
+    t1 = 11 * PERIOD_S
+    clock.now_s = t1 + 0.001
+    (view,) = pairing.to_track(t1, begins=True) or [None]
+    assert view is not None and view.t_s == pytest.approx(t1 + 0.012)
+    assert cam.waited_s[-1] == pytest.approx(0.011) and pairing.later_views(wait=True) is None
+
+
+def test_a_pair_that_does_not_come_is_paired_with_what_there_is_after_the_bound() -> None:
+    clock = Clock()
+    arrivals = _grid(0.012)
+    del arrivals[10]  # frame 10's never comes
+    cam = ScheduledFrames(clock, arrivals)
+    pairing = FramePairing([cam], MAX_SKEW_S, clock)
+    _first_frames(pairing, clock, _grid(0.0, 10)[1:])  # 8 of 9 paired: the first, before the period
+    t0 = 10 * PERIOD_S
+    clock.now_s = t0 + 0.001
+    pairing.to_track(t0, begins=False)
+    clock.now_s = t0 + 0.019
+    assert pairing.later_views() is None  # still due within the bound
+    clock.now_s = t0 + MAX_SKEW_S + 0.001
+    views = pairing.later_views()
+    assert views is not None and views[0] is not None  # the frame before: the tracker refuses it
+    assert views[0].t_s == pytest.approx(0.012 + 9 * PERIOD_S)
+    assert pairing.stats()[0].paired_pct == pytest.approx(100 * 8 / 10)
+    # A frame still unpaired when the next is tracked is paired then, with what there is: counted once.
+    t1 = 11 * PERIOD_S
+    clock.now_s = t1 + 0.001
+    pairing.to_track(t1, begins=False)
+    clock.now_s = t1 + PERIOD_S + 0.001
+    pairing.to_track(t1 + PERIOD_S, begins=False)
+    assert pairing.stats()[0].paired_pct == pytest.approx(100 * 9 / 11)
+    assert len(cam.waited_s) == 8  # only the first-camera frames paired with `views` waited

@@ -205,3 +205,37 @@ def test_heights_hold_with_the_second_capture_10_ms_late_on_belts_at_100_mm_s() 
             errors_m.append(flatness.max_height_m - world.sheet_measures()["max_height_m"])
     assert flatness.basis == FlatnessBasis.MEASURED and world.cloth_pose()[1] > 0.06
     assert np.abs(errors_m).max() < 0.0015
+
+
+def test_heights_measured_after_the_estimate_are_those_measured_in_the_tick() -> None:
+    """The live loop tracks a frame at once and measures its heights once its pair has arrived
+    (`track` with views None, then `measure_heights`): the same heights as measured in the tick, which
+    the next frame's estimate carries."""
+    cfg = Config()
+    start_taichi(cfg.taichi.arch)
+    skew_s, speed_m_s = 0.010, 0.1
+    world, cameras, sensors = _wrinkled_cell(0.012, skew_s)
+    layout = ConveyorLayout.of_cell(cfg.cell)
+    now, later = (Tracker(cfg.tracker, cameras[0], layout, other_cameras=cameras[1:]) for _ in range(2))
+    running = ModuleCommands(np.full(layout.n_modules, speed_m_s), np.full(layout.n_modules, math.pi / 2))
+    world.table.command(
+        np.arange(world.table.n_modules), *drive_targets(running.speed_m_s, running.heading_rad)
+    )
+    measured_before = None
+    for k in range(8):
+        world.step()
+        world.step()
+        images = [cv2.imdecode(np.frombuffer(s.jpeg(world, k), np.uint8), cv2.IMREAD_COLOR) for s in sensors]
+        views = [PairedView(images[1], world.t_s + skew_s)]
+        in_tick = now.track(images[0], world.t_s, running, views)
+        begins = later.initialising
+        est = later.track(images[0], world.t_s, running, views if begins else None)
+        assert est.flatness_basis == FlatnessBasis.MEASURED and est.quad_height_m is not None
+        if not begins:  # the last frame's heights, held until this one's are measured
+            np.testing.assert_array_equal(est.quad_height_m, measured_before)
+            later.measure_heights(views)
+        assert in_tick.quad_height_m is not None and in_tick.quad_height_m.max() > 0.008
+        np.testing.assert_allclose(later.quad_height_m, in_tick.quad_height_m, atol=1e-9)
+        measured_before = later.quad_height_m
+    later.measure_heights(views)  # measured once: nothing left to measure, the heights stay
+    np.testing.assert_array_equal(later.quad_height_m, measured_before)

@@ -35,7 +35,7 @@ from clothd.core.cell_controller import CellController
 from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.flatness import Flatness
-from clothd.core.messages import Estimate, ModuleCommands, PairedView
+from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.modes import LoopState
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
@@ -234,8 +234,7 @@ class Compute:
             return
         began_mono_s = time.monotonic()
         try:
-            views = self._views(frame, self._late_timing)  # reported with the next tick's stages
-            est = self.tracker.track(frame.image, frame.t_mono_s, self._in_force, views)
+            est = self._track(frame, self._in_force, self._late_timing)  # timed with the next tick's
             flatness = self.cell.read_flatness(est)
         except Exception:  # as in a tick: a bug must not take the loop with it
             self._failed_between_ticks("tracking a frame ahead of its tick")
@@ -277,8 +276,7 @@ class Compute:
             self._flatness = ahead.flatness
             tracked_with, began_mono_s = ahead.commands_in_force, ahead.began_mono_s
         elif frame is not None and new_frame:
-            views = self._views(frame, timing)
-            est = tracked = self.tracker.track(frame.image, frame.t_mono_s, req.commands_in_force, views)
+            est = tracked = self._track(frame, req.commands_in_force, timing)
             self._flatness = self.cell.read_flatness(est)
         if tracked is not None and frame is not None:
             self._estimate = tracked
@@ -355,14 +353,27 @@ class Compute:
         timing["frame_wait"] = time.perf_counter() - t_wait
         return frame
 
-    def _views(self, frame: CameraFrame, timing: dict[str, float]) -> list[PairedView | None]:
-        """The further cameras' frames paired with `frame`; the time their pairing waited, as a stage."""
-        if not self.pairing.cameras:
-            return []
+    def _track(self, frame: CameraFrame, commands: ModuleCommands, timing: dict[str, float]) -> Estimate:
+        """Track a first-camera frame: with its further views when tracking begins (their wait is the stage
+        pair_wait), otherwise at once, its pair and heights left for `measure_heights`."""
         t0 = time.perf_counter()
-        views = self.pairing.views(frame.t_mono_s)
-        timing["pair_wait"] = time.perf_counter() - t0
-        return views
+        views = self.pairing.to_track(frame.t_mono_s, self.tracker.initialising)
+        if views is not None and self.pairing.cameras:
+            timing["pair_wait"] = time.perf_counter() - t0
+        return self.tracker.track(frame.image, frame.t_mono_s, commands, views)
+
+    def measure_heights(self, wait: bool = False) -> None:
+        """Between ticks: the last tracked frame's heights, once no further camera's frame nearer it is due
+        (wait: waiting for it); the next estimate carries them, the next reply their time."""
+        views = self.pairing.later_views(wait)
+        if views is None or self._after_failed:
+            return
+        t0 = time.perf_counter()
+        try:
+            self.tracker.measure_heights(views)
+        except Exception:  # as in a tick: a bug must not take the loop with it
+            self._failed_between_ticks("measuring a frame's heights")
+        self._late_timing["tracker_heights"] = time.perf_counter() - t0
 
     def _recording_status(self) -> RecordingStatus | None:
         if self.recorder is not None:
@@ -415,6 +426,7 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
             # moment it arrives, a frame within AHEAD_POLL_S).
             if spec.track_ahead and not conn.poll(AHEAD_POLL_S):
                 compute.track_ahead()
+                compute.measure_heights()
                 continue
             try:
                 req = conn.recv()
@@ -432,5 +444,6 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
                 reply = compute.stop_reply(LoopState.FAULT)
             conn.send(reply)
             compute.after_reply()
+            compute.measure_heights(wait=not spec.track_ahead)  # else between requests too, polled
     finally:
         compute.close()

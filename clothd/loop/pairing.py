@@ -2,10 +2,12 @@
 
 Each source keeps only its newest frame (drivers/camera.py), stamped with the host's monotonic clock as
 it arrived. For a first-camera frame at t0, each further camera's newest frame is taken; when it is
-older than t0 by more than half that camera's frame period, its next frame is the nearer one, and if
-that is due within `max_skew_s` of t0 the compute waits for it (`newer_than`), never past t0 +
-max_skew_s. Whatever is nearest is handed to the tracker, which refuses a pair further apart than
-tracker.stereo.max_skew_ms itself; a camera with no fresh frame gives None (one view).
+older than t0 by more than half that camera's frame period, its next frame is the nearer one, and it is
+`due` while it can still arrive within `max_skew_s` of t0. `views` waits for it (`newer_than`), never
+past t0 + max_skew_s, or with wait=False takes what is there: the compute waits only when tracking
+begins, and otherwise tracks the first camera's frame at once and pairs it once nothing is due
+(clothd/loop/compute.py). Whatever is nearest is handed to the tracker, which refuses a pair further
+apart than tracker.stereo.max_skew_ms itself; a camera with no fresh frame gives None (one view).
 
 The skew (t_k - t0) of every pair is kept over the last `WINDOW` first-camera frames: its median and its
 95th percentile of magnitude, and the share of frames paired within max_skew_s, for the status.
@@ -72,26 +74,60 @@ class FramePairing:
         self.cameras = [_Camera(s) for s in sources]
         self.max_skew_s = max_skew_s
         self.clock = clock
+        self._later_s: float | None = None  # a first-camera frame tracked before its pair: its t0
 
-    def views(self, t0_s: float) -> list[PairedView | None]:
-        """One view per further camera for a first-camera frame that arrived at t0_s; each skew kept."""
+    def to_track(self, t0_s: float, begins: bool) -> list[PairedView | None] | None:
+        """The views a first-camera frame that arrived at t0_s is tracked with: when tracking `begins`,
+        `views`, waited for (the surface is measured then); otherwise None, and `later_views` pairs it.
+        A frame still unpaired is paired now with what there is, for the statistics."""
+        if self._later_s is not None:
+            self.views(self._later_s, wait=False)
+        self._later_s = None if begins or not self.cameras else t0_s
+        return self.views(t0_s) if begins else None
+
+    def later_views(self, wait: bool = False) -> list[PairedView | None] | None:
+        """`views` of the frame `to_track` left unpaired, once no frame nearer it is `due` (wait: waiting for
+        one, as `views` does); None while one is, or when no frame is to pair."""
+        t0_s = self._later_s
+        if t0_s is None or (not wait and self.due(t0_s)):
+            return None
+        self._later_s = None
+        return self.views(t0_s, wait)
+
+    def views(self, t0_s: float, wait: bool = True) -> list[PairedView | None]:
+        """One view per further camera for a first-camera frame that arrived at t0_s; each skew kept (call
+        it once per frame). wait: for a frame still `due` (False: the newest there is)."""
         out: list[PairedView | None] = []
         for cam in self.cameras:
-            frame = self._nearest(cam, t0_s)
+            frame = self._nearest(cam, t0_s, wait)
             cam.skews_s.append(None if frame is None else frame.t_mono_s - t0_s)
             out.append(None if frame is None else PairedView(frame.image, frame.t_mono_s))
         return out
 
-    def _nearest(self, cam: _Camera, t0_s: float) -> CameraFrame | None:
-        frame = cam.source.latest()
-        cam.look(frame)
+    def due(self, t0_s: float) -> bool:
+        """A further camera's frame nearer t0_s than its newest can still arrive within max_skew_s of
+        t0_s: `views` would wait for it."""
+        for cam in self.cameras:
+            frame = cam.source.latest()
+            cam.look(frame)
+            if self._wait_s(cam, frame, t0_s) > 0:
+                return True
+        return False
+
+    def _wait_s(self, cam: _Camera, frame: CameraFrame | None, t0_s: float) -> float:
+        """How long to wait for the frame after `frame`, cam's newest, to pair t0_s (0: not at all)."""
         period_s = cam.period_s
         if frame is None or period_s is None or frame.t_mono_s - t0_s >= -0.5 * period_s:
-            return frame
+            return 0.0
         if frame.t_mono_s + period_s - t0_s > self.max_skew_s:  # the next one is due too late to pair
-            return frame
-        wait_s = min(t0_s + self.max_skew_s - self.clock(), self.max_skew_s)
-        if wait_s <= 0:
+            return 0.0
+        return max(min(t0_s + self.max_skew_s - self.clock(), self.max_skew_s), 0.0)
+
+    def _nearest(self, cam: _Camera, t0_s: float, wait: bool) -> CameraFrame | None:
+        frame = cam.source.latest()
+        cam.look(frame)
+        wait_s = self._wait_s(cam, frame, t0_s) if wait else 0.0
+        if frame is None or wait_s <= 0:
             return frame
         newer = cam.source.newer_than(frame.index, wait_s)
         cam.look(newer)
