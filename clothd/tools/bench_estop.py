@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import random
 import signal
 import socket
@@ -152,6 +153,7 @@ def run_bench(samples: int, firmware: Path = FIRMWARE, seed: int = 0) -> dict[st
         raise HardwareError(f"{firmware} is not built: make firmware (or make -C deploy/firmware host)")
     rng = random.Random(seed)
     line = Line()
+    load_before = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="clothd-bench-estop-") as tmp:
         work = Path(tmp)
         hwsim = [sys.executable, "-m", "hwsim.cli", "serve", "--scenario", "cell", "--state-dir", str(work)]
@@ -189,6 +191,7 @@ def run_bench(samples: int, firmware: Path = FIRMWARE, seed: int = 0) -> dict[st
         **{f"post_to_wire_{k}_ms": float(f(wire_ms)) for k, f in _STATS.items()},
         **{f"post_to_response_{k}_ms": float(f(answer_ms)) for k, f in _STATS.items()},
         "within_bar": int(np.sum(wire_ms <= BAR_MS)),
+        "load_avg_1min": [load_before, os.getloadavg()[0]],  # this machine's load, before and after
         "bar_ms": BAR_MS,
     }
 
@@ -210,7 +213,8 @@ def format_result(r: dict[str, Any]) -> str:
             f"e-stop, clothd run -> {r['firmware']} ({r['samples']} e-stops during a move, kept-alive POST)",
             row("POST to ESTOP on the line", "post_to_wire"),
             row("POST to its response", "post_to_response"),
-            f"  {r['within_bar']} of {r['samples']} on the line within {r['bar_ms']:.0f} ms",
+            f"  {r['within_bar']} of {r['samples']} on the line within {r['bar_ms']:.0f} ms; "
+            "load average {:.1f} before, {:.1f} after".format(*r["load_avg_1min"]),
         ]
     )
 
