@@ -162,8 +162,8 @@ def _estops_waiting(ctrl: RawController) -> list[wire.Message]:
 
 def test_estop_at_once_reaches_the_line_while_the_links_loop_is_held() -> None:
     """From the API's thread, while the link's event loop is held (as a loaded PC holds it from the GIL
-    or the CPU): the ESTOP is on the line before the loop runs again, and the loop's estop() then
-    latches as always."""
+    or the CPU): the ESTOP is on the line before the loop runs again, and the latch holds the loop's
+    next COMMAND back (a PING instead) before the loop's own estop() runs."""
 
     async def body() -> None:
         ctrl = RawController()
@@ -179,10 +179,11 @@ def test_estop_at_once_reaches_the_line_while_the_links_loop_is_held() -> None:
                 thread = threading.Thread(target=api_thread)
                 thread.start()
                 thread.join()  # the loop's thread blocked here: nothing of the link's ran meanwhile
-                assert len(seen[0]) == 1 and not link.estopped
+                assert len(seen[0]) == 1 and link.estopped  # latched: the next tick holds its COMMAND
+                assert not link.send_commands(_speed(5))
                 link.estop()
                 await ctrl.read_until(lambda: len(ctrl.of_type(T.ESTOP)) == 2)
-                assert link.estopped and not link.send_commands(_speed(5))
+                assert not ctrl.of_type(T.COMMAND) and ctrl.of_type(T.PING)
         finally:
             ctrl.close()
 

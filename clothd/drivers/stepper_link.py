@@ -134,10 +134,11 @@ class StepperLink:
         self._write(wire.DELIMITER + wire.encode(wire.MsgType.ESTOP, self._next_seq()))
 
     def estop_at_once(self) -> None:
-        """From any thread: an ESTOP written on the port now, ahead of the loop's estop(), which still
-        latches, discards and repeats. Non-blocking, and nothing when the port is not up or has no room
-        (estop() follows); a frame it cuts is ended by the delimiter, and a COMMAND still going out after
-        it is refused by the latched controller."""
+        """From any thread: the e-stop latched (the loop's next tick sends a PING, not a COMMAND) and an
+        ESTOP written on the port now, ahead of the loop's estop(), which discards and repeats. Never
+        blocks; writes nothing when the port is not up or has no room (estop() follows). A frame it cuts
+        is ended by its delimiter; a COMMAND that still follows it is refused by the latched controller."""
+        self._estop_latched = True
         if not self.connected:
             return
         packet = wire.DELIMITER + wire.encode(wire.MsgType.ESTOP, self._next_seq())
