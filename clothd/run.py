@@ -55,9 +55,10 @@ from clothd.drivers.link_group import LinkGroup
 from clothd.drivers.stepper_link import StepperLink
 from clothd.errors import ConfigError, HardwareError
 from clothd.formats import read_camera, read_module_calibration
-from clothd.loop.compute import ComputeSpec
+from clothd.loop.compute_messages import ComputeSpec
 from clothd.loop.compute_process import ComputeProcess
-from clothd.loop.daemon import Daemon, DaemonSettings
+from clothd.loop.daemon import Daemon
+from clothd.loop.daemon_settings import DaemonSettings
 from clothd.loop.pairing import FurtherCamera
 from clothd.loop.priority import claim_realtime, leave_realtime, set_thread_nice
 
@@ -118,6 +119,12 @@ def sim_config(cfg: Config, ready: dict[str, Any]) -> Config:
         for c in cameras
     ]
     data = with_cameras(cfg, entries).model_dump(exclude_unset=True)
+    # The simulated cell's table (and a flow's placement) are what it is: as a plant's cell: section is.
+    table = json.loads(Path(ready["table_json"]).read_text())
+    keys = ("modules_x", "modules_y", "pitch_m", "module_size_m")
+    data["cell"] = {**data.get("cell", {}), **{k: table[k] for k in keys}}
+    if "placement" in ready:
+        data["flow"] = {**data.get("flow", {}), "placement": ready["placement"]}
     stepper = {k: v for k, v in data.get("stepper", {}).items() if k not in ("port", "controllers")}
     controllers = ready.get("controllers") or []
     if len(controllers) > 1:
@@ -184,6 +191,7 @@ def build(cfg: Config) -> Parts:
         track_ahead=cfg.loop.track_ahead,
         opencv_threads=cfg.loop.compute_threads,
         starved_s=cfg.loop.starved_ms / 1e3,
+        flow=cfg.flow,
     )
     settings = DaemonSettings(
         period_s=cfg.loop.period_s,

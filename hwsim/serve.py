@@ -407,6 +407,8 @@ def serve(
             for s in cell.streams
         ],
     }
+    if scenario.flow is not None:  # what the outfeed judges each piece against
+        ready["placement"] = scenario.flow.placement.model_dump()
     cell.start()
     (state_dir / "ready.json").write_text(json.dumps(ready, indent=2) + "\n")
     print(json.dumps(ready), flush=True)

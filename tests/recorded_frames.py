@@ -16,7 +16,8 @@ from clothd.core.workspace import Workspace
 from clothd.drivers.footage import open_footage
 from clothd.drivers.ports import CameraFrame, FrameSourceHealth
 from clothd.formats import read_camera
-from clothd.loop.compute import Compute, ComputeSpec, TickReply, TickRequest
+from clothd.loop.compute import Compute
+from clothd.loop.compute_messages import ComputeSpec, TickReply, TickRequest
 from clothd.taichi_runtime import start_taichi
 
 

@@ -1,3 +1,5 @@
+import json
+import math
 from pathlib import Path
 
 import pytest
@@ -190,7 +192,10 @@ def test_sim_points_every_camera_of_the_cell_and_cameras_n_keeps_the_first(tmp_p
     from clothd.config import first_cameras
     from clothd.run import sim_config
 
+    table = {"modules_x": 12, "modules_y": 6, "pitch_m": 0.075, "module_size_m": 0.065}
+    (tmp_path / "table.json").write_text(json.dumps(table))
     ready = {
+        "table_json": str(tmp_path / "table.json"),
         "serial": "/tmp/ttyCELL",
         "video_url": "http://127.0.0.1:1/video.mjpg",
         "camera_json": "/tmp/camera.json",
@@ -214,6 +219,10 @@ def test_sim_points_every_camera_of_the_cell_and_cameras_n_keeps_the_first(tmp_p
         ("cam1", "http://127.0.0.1:1/video/cam1.mjpg", "/tmp/cam1.json"),
     ]
     assert cfg.stepper.port == "/tmp/ttyCELL" and cfg.camera.stale_after_s == shipped.camera.stale_after_s
+    assert (cfg.cell.modules_x, cfg.cell.modules_y) == (12, 6)  # the simulated cell's table
+    assert cfg.flow.placement == shipped.flow.placement  # no flow scenario: the configuration's
+    flow = sim_config(shipped, {**ready, "placement": {"x_m": 0.2, "y_m": -0.01, "theta_deg": 5.0}})
+    assert flow.flow.placement.pose == pytest.approx((0.2, -0.01, math.radians(5.0)))
     assert [c.name for c in first_cameras(cfg, 1).all_cameras] == ["cam0"]
     # An hwsim that lists no cameras serves one.
     (only,) = sim_config(Config(), {k: v for k, v in ready.items() if k != "cameras"}).all_cameras

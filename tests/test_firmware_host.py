@@ -34,7 +34,8 @@ from clothd.drivers import wire
 from clothd.drivers.link_group import LinkGroup
 from clothd.drivers.stepper_link import StepperLink
 from clothd.errors import RequestError
-from clothd.loop.daemon import Daemon, DaemonSettings
+from clothd.loop.daemon import Daemon
+from clothd.loop.daemon_settings import DaemonSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 FIRMWARE_DIR = ROOT / "deploy" / "firmware"

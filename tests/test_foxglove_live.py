@@ -28,7 +28,8 @@ from clothd.config import FoxgloveConfig
 from clothd.core.control import Setpoint
 from clothd.core.messages import ModuleCommands
 from clothd.errors import ConfigError
-from clothd.loop.compute import Compute, TickReply, TickRequest
+from clothd.loop.compute import Compute
+from clothd.loop.compute_messages import TickReply, TickRequest
 from clothd.outputs.foxglove_live import LiveFoxglove
 from clothd.tools.bench_loop import free_port
 

@@ -24,8 +24,9 @@ from clothd.core.module_check import ModuleCalibrationEntry
 from clothd.core.workspace import Workspace
 from clothd.drivers.ports import ControllerFault, FrameSourceHealth, LinkCounters
 from clothd.errors import InvalidRequestError, RequestError, UnreachableTargetError
-from clothd.loop.compute import InForce, TickReply, TickRequest
-from clothd.loop.daemon import Daemon, DaemonSettings
+from clothd.loop.compute_messages import InForce, TickReply, TickRequest
+from clothd.loop.daemon import Daemon
+from clothd.loop.daemon_settings import DaemonSettings
 
 N = 48
 PERIOD_S = 0.01

@@ -16,7 +16,7 @@ from clothd.core.messages import ModuleCommands, PairedView
 from clothd.drivers.footage import open_footage
 from clothd.drivers.ports import CameraFrame, FrameSourceHealth
 from clothd.formats import read_camera
-from clothd.loop.compute import TickRequest
+from clothd.loop.compute_messages import TickRequest
 from clothd.loop.pairing import FramePairing, FurtherCamera
 
 PERIOD_S = 1 / 15

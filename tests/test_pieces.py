@@ -9,14 +9,20 @@ import math
 import cv2
 import numpy as np
 import pytest
+from recorded_frames import RecordedFrames, tick
 
 from clothd.config import load_config
+from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
-from clothd.core.modes import PieceState
+from clothd.core.messages import ModuleCommands
+from clothd.core.modes import LoopState, Mode, PieceState
 from clothd.core.pieces import PieceTracking
 from clothd.core.segmentation import find_cloths
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
+from clothd.drivers.ports import CameraFrame
+from clothd.loop.compute import Compute
+from clothd.loop.compute_messages import ComputeSpec, TickRequest
 from clothd.taichi_runtime import start_taichi
 from clothd.tools.lockstep import scenario_cameras
 from clothd.tools.lockstep_flow import config_for, flow_scenario
@@ -126,3 +132,56 @@ def test_a_piece_that_leaves_frees_its_tracker_for_the_next(scene: tuple) -> Non
     assert len(made) == 2  # no third tracker was built
     assert len(tracking.pieces) == 2 and all(p.tracking for p in tracking.pieces)
     assert {p.id for p in tracking.pieces} == {other.id, max(first.id, other.id) + 1}
+
+
+class _Frames(RecordedFrames):
+    """One frame over and over, until `lost`: then none (the camera gone)."""
+
+    lost = False
+
+    def latest(self) -> CameraFrame | None:  # type: ignore[override]
+        return None if self.lost else super().latest()
+
+
+def test_the_compute_in_mode_flow_reports_every_piece_and_a_lost_camera_stops_every_module(
+    scene: tuple,
+) -> None:
+    """One piece still coming in over the infeed edge (its belts pull it in), one lying in the middle:
+    both reported; then the camera is lost and every module stops, with the reason."""
+    _, _, cfg, model = scene
+    sc = flow_scenario(6.0, 0)
+    world = World(sc, log_commands=False)
+    sensors, _ = scenario_cameras(sc, world, 1)
+    spacing = sc.cloth.spacing_m
+    cloths = tuple(SceneCloth(_flat_piece(x, spacing), (spacing, spacing)) for x in (-0.44, 0.1))
+    image, _ = sensors[0].renderer.render([dataclasses.replace(world.scene_state(), cloths=cloths)])
+    frames = _Frames([np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)])
+    layout = ConveyorLayout.of_cell(cfg.cell)
+    spec = ComputeSpec(
+        tracker=cfg.tracker,
+        control=cfg.control,
+        cell=cfg.cell,
+        layout=layout,
+        camera_model=model,
+        period_s=cfg.loop.period_s,
+        workspace=Workspace.of_cell(cfg.cell),
+        taichi_arch="cpu",
+        max_record_bytes=10**6,
+        frame_source=lambda: frames,
+        starved_s=60.0,
+        flow=cfg.flow,
+    )
+    compute = Compute(spec, frames)
+    flow = Setpoint(Mode.FLOW, None, started_mono_s=1.0)
+    stopped = ModuleCommands.all_stop(layout.n_modules)
+    for _ in range(2 * cfg.flow.search_every + 2):
+        reply = tick(compute, TickRequest(flow, stopped, False, False))
+    assert reply.state == LoopState.TRACKING and reply.pieces is not None
+    states = {round(p.pose[0], 1) if p.pose else None: p.state for p in reply.pieces}
+    assert len(reply.pieces) == 2 and states[None] == PieceState.ENTERING  # not tracked yet
+    assert states[0.1] in (PieceState.FLATTENING, PieceState.PLACING)  # the one in the middle, tracked
+    assert np.isclose(reply.commands.speed_m_s, cfg.flow.intake_speed_m_s).any()  # the intake
+    frames.lost = True
+    reply = tick(compute, TickRequest(flow, reply.commands, False, False))
+    assert reply.state == LoopState.CAMERA_LOST and reply.halt_reason == "the camera is lost"
+    assert not reply.commands.speed_m_s.any()

@@ -12,7 +12,7 @@ from recorded_frames import compute_on, tick
 
 from clothd.core.control import Setpoint
 from clothd.core.messages import ModuleCommands
-from clothd.loop.compute import TickRequest
+from clothd.loop.compute_messages import TickRequest
 from clothd.tools.procfs import rss_mb
 
 RESETS = 60

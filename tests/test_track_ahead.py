@@ -12,7 +12,8 @@ from recorded_frames import compute_on, tick
 
 from clothd.core.control import Setpoint
 from clothd.core.messages import ModuleCommands
-from clothd.loop.compute import Compute, TickRequest
+from clothd.loop.compute import Compute
+from clothd.loop.compute_messages import TickRequest
 
 IDLE = Setpoint("idle", None)
 

@@ -34,7 +34,7 @@ from clothd.core.camera_model import CameraModel
 from clothd.core.modes import LoopState
 from clothd.errors import ClothdError, HardwareError, InvalidRequestError, RequestError, StorageError
 from clothd.loop.daemon import Daemon
-from clothd.loop.status import Status
+from clothd.loop.status import PieceStatus, Status
 from clothd.outputs.recorder import recording_path
 
 ERROR_DOC: dict[int | str, dict[str, Any]] = {
@@ -123,6 +123,13 @@ def _add_control_routes(
         """Mode and setpoint, pose with covariance and mesh, features and residuals, tick timing,
         camera and link state."""
         return Response(hub.status_json, media_type="application/json")
+
+    @api.get("/pieces", response_model=list[PieceStatus])
+    async def pieces() -> list[PieceStatus]:
+        """Mode flow: every piece on the table (its state, pose and flatness), then the last that left or
+        were rejected, with the reason; empty in any other mode."""
+        status = hub.status
+        return [] if status is None or status.pieces is None else status.pieces
 
     @api.put("/setpoint", responses=ERROR_DOC)
     async def setpoint(body: SetpointRequest) -> Ok:

@@ -51,8 +51,15 @@ class DriveSetpoint(_Strict):
     script: DriveScript
 
 
+class FlowSetpoint(_Strict):
+    """Take pieces in, flatten and place each at flow.placement, and drive it out (docs/flow.md)."""
+
+    mode: Literal[Mode.FLOW]
+
+
 SetpointRequest = Annotated[
-    IdleSetpoint | HoldSetpoint | MoveSetpoint | FlattenSetpoint | DriveSetpoint, Field(discriminator="mode")
+    IdleSetpoint | HoldSetpoint | MoveSetpoint | FlattenSetpoint | DriveSetpoint | FlowSetpoint,
+    Field(discriminator="mode"),
 ]
 
 

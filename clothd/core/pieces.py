@@ -27,6 +27,7 @@ import numpy as np
 
 from clothd.config import FlowConfig
 from clothd.core.camera_model import CameraModel
+from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands, PairedView
 from clothd.core.modes import PieceState
 from clothd.core.segmentation import ClothRegion, find_cloths
@@ -69,6 +70,37 @@ class Piece:
         self.state, self.since_s = state, now_s
         if reason is not None:
             self.reason = reason
+
+
+@dataclass(frozen=True)
+class PieceReport:
+    """A piece as the API shows it: its state, pose and flatness, and why it was rejected."""
+
+    id: int
+    state: PieceState
+    pose: tuple[float, float, float] | None  # [X_m, Y_m, theta_rad] while tracked
+    flat: bool | None  # None: its flatness is not read (not tracked yet)
+    max_height_mm: float | None
+    reason: str | None
+    found_s: float  # on the host's monotonic clock
+    left_s: float | None
+
+    @classmethod
+    def of(cls, piece: Piece, flatness: Flatness | None) -> PieceReport:
+        est = piece.estimate
+        pose = None
+        if est is not None and est.tracking:
+            pose = (float(est.pose[0]), float(est.pose[1]), float(est.pose[2]))
+        return cls(
+            piece.id,
+            piece.state,
+            pose,
+            None if flatness is None else flatness.flat,
+            None if flatness is None else round(flatness.max_height_m * 1e3, 2),
+            piece.reason,
+            piece.found_s,
+            piece.left_s,
+        )
 
 
 def contains(outline_m: np.ndarray, point_m: np.ndarray) -> bool:

@@ -22,27 +22,24 @@ from __future__ import annotations
 import logging
 import signal
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass
 from multiprocessing.connection import Connection
-from pathlib import Path
 
 import cv2
 
-from clothd.config import CellConfig, ControlConfig, FoxgloveConfig, RecordingFormat, TrackerConfig
-from clothd.core.camera_model import CameraModel
+from clothd.config import RecordingFormat
 from clothd.core.cell_controller import CellController
-from clothd.core.control import Setpoint
-from clothd.core.conveyor import ConveyorLayout
 from clothd.core.flatness import Flatness
+from clothd.core.flow_cell import FlowCell
 from clothd.core.messages import Estimate, ModuleCommands
-from clothd.core.modes import LoopState
+from clothd.core.modes import LoopState, Mode
 from clothd.core.tracker import Tracker
-from clothd.core.workspace import Workspace
-from clothd.drivers.ports import CameraFrame, FrameSource, FrameSourceHealth
+from clothd.drivers.ports import CameraFrame, FrameSource
 from clothd.errors import ClothdError
 from clothd.logs import configure_logging
-from clothd.loop.pairing import CameraReport, FramePairing, FurtherCamera
+from clothd.loop.compute_messages import ComputeSpec, InForce, TickReply, TickRequest
+from clothd.loop.pairing import FramePairing
 from clothd.loop.priority import leave_realtime
 from clothd.outputs.foxglove_live import LiveFoxglove
 from clothd.outputs.recorder import FrameSink, Recorder, RecordingStatus
@@ -52,69 +49,6 @@ from clothd.taichi_runtime import start_taichi
 log = logging.getLogger(__name__)
 
 AHEAD_POLL_S = 0.002  # between requests, how often the compute looks for a frame to track ahead
-
-
-@dataclass(frozen=True)
-class TickRequest:
-    setpoint: Setpoint
-    commands_in_force: ModuleCommands  # what the modules were told since the last request: the model's input
-    reset: bool
-    want_view: bool  # draw the annotated view this tick
-    record_start: Path | None = None  # begin recording into this new directory (or .mcap file)
-    record_stop: bool = False
-    # Wait until this time (host monotonic) for a frame not yet used: the tick started as one was due.
-    frame_wait_until_mono_s: float | None = None
-    sent_mono_s: float = field(default_factory=time.monotonic)  # when the daemon made it
-
-
-@dataclass(frozen=True)
-class InForce:
-    """What the daemon has just told the modules (sent after each tick's send, no reply): the input a
-    frame that arrives before the next request is tracked with."""
-
-    commands: ModuleCommands
-    sent_mono_s: float = field(default_factory=time.monotonic)  # when the daemon made it
-
-
-@dataclass(frozen=True, kw_only=True)
-class TickReply:
-    state: LoopState
-    estimate: Estimate | None
-    commands: ModuleCommands
-    new_frame: bool
-    frame_t_mono_s: float | None  # capture time of the frame this tick used
-    camera: FrameSourceHealth
-    cameras: tuple[CameraReport, ...] = ()  # the further cameras': health and pairing
-    timing_s: dict[str, float] = field(default_factory=dict)
-    view_jpeg: bytes | None = None
-    recording: RecordingStatus | None = None
-    halt_reason: str | None = None  # the commands stopped the modules for a fault of this tick
-    flatness: Flatness | None = None  # of this tick's estimate, when it has a mesh and tracks
-    compute_mono_s: tuple[float, float] | None = None  # host monotonic: the compute began, and replied
-    starved_ms: float | None = None  # the daemon was silent this long: the tracker started afresh
-
-
-@dataclass(frozen=True)
-class ComputeSpec:
-    """What the compute process is built from; it crosses into the process by pickling, so the frame
-    source travels as a factory and is opened there."""
-
-    tracker: TrackerConfig
-    control: ControlConfig
-    cell: CellConfig
-    layout: ConveyorLayout
-    camera_model: CameraModel
-    period_s: float
-    workspace: Workspace
-    taichi_arch: str
-    max_record_bytes: int
-    frame_source: Callable[[], FrameSource]
-    recording_format: RecordingFormat = RecordingFormat.DIRECTORY
-    foxglove: FoxgloveConfig | None = None  # the live server's section (None: off)
-    track_ahead: bool = True  # loop.track_ahead: track a frame as it arrives, not when its tick asks
-    opencv_threads: int = 2  # loop.compute_threads
-    starved_s: float = 0.25  # loop.starved_ms
-    other_cameras: tuple[FurtherCamera, ...] = ()  # the cameras after the first (cameras:)
 
 
 @dataclass(frozen=True)
@@ -175,6 +109,7 @@ class Compute:
             spec.tracker.physics.strain_limit,
             spec.tracker.estimates_shape,
         )
+        self.flow: FlowCell | None = None  # mode flow's pieces and their control, built when first asked
         self.view = ViewRenderer(spec.camera_model)
         self._estimate: Estimate | None = None
         self._flatness: Flatness | None = None  # of _estimate: read once per frame, kept between frames
@@ -225,7 +160,7 @@ class Compute:
     def track_ahead(self) -> None:
         """Between requests: track a frame that has arrived since the last tick, with the commands in
         force, so that its tick finds it tracked. One at a time: the next waits for a tick to take it."""
-        if self._ahead is not None or self._in_force is None or self._after_failed:
+        if self._ahead is not None or self._in_force is None or self._after_failed or self.flow is not None:
             return
         frame = self.frames.latest()
         if frame is None or frame.index == self._last_frame_index:
@@ -261,12 +196,11 @@ class Compute:
         else:
             frame = self._frame(req.frame_wait_until_mono_s, timing)  # its wait is not the compute's time
         t0, began_mono_s = time.perf_counter(), time.monotonic()
-        if reset:
-            self.tracker.reset()
-            self.cell.reset()
-            self._estimate = None
-            self._flatness = None
+        if reset or (self.flow is not None) != (req.setpoint.mode == Mode.FLOW):  # one cloth, or pieces
+            self._start_afresh(req.setpoint.mode == Mode.FLOW)
         self._record_requests(req)
+        if self.flow is not None:
+            return self._flow_tick(self.flow, req, frame, timing, t0, began_mono_s)
         new_frame = frame is not None and frame.index != self._last_frame_index
         est = self._estimate
         tracked = None
@@ -306,6 +240,64 @@ class Compute:
             starved_ms=silent_s * 1e3 if starved else None,
         )
 
+    def _start_afresh(self, flow: bool) -> None:
+        """Tracking starts afresh: of one cloth, or (flow) of every piece on the table."""
+        self.tracker.reset()
+        self.cell.reset()
+        self._estimate = self._flatness = None
+        self.flow = None
+        if flow:
+            spec = self.spec
+            self.flow = FlowCell(
+                spec.flow,
+                spec.tracker,
+                spec.control,
+                spec.cell,
+                spec.camera_model,
+                [c.camera_model for c in spec.other_cameras],
+                spec.period_s,
+                clock=time.perf_counter,
+            )
+
+    def _flow_tick(
+        self,
+        flow: FlowCell,
+        req: TickRequest,
+        frame: CameraFrame | None,
+        timing: dict[str, float],
+        t0: float,
+        began_mono_s: float,
+    ) -> TickReply:
+        """Mode flow: every piece tracked in the frame (each waits for its pair: heights now), then the
+        flow's commands. Without a frame every module stops, as in every mode."""
+        new_frame = frame is not None and frame.index != self._last_frame_index
+        if frame is not None and new_frame:
+            views = self.pairing.to_track(frame.t_mono_s, True)
+            flow.track(frame.image, frame.t_mono_s, req.commands_in_force, views or ())
+            self._last_frame_index = frame.index
+            timing["track"] = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        commands = flow.step(time.monotonic()) if frame is not None else flow.stop()
+        timing["control"] = time.perf_counter() - t1
+        timing["compute"] = time.perf_counter() - t0
+        self._after = _AfterReply(req, frame, req.commands_in_force, None, None, None)
+        view, self._late_view = self._late_view, None
+        return TickReply(
+            state=LoopState.TRACKING if frame is not None else LoopState.CAMERA_LOST,
+            estimate=None,
+            commands=commands,
+            new_frame=new_frame,
+            frame_t_mono_s=frame.t_mono_s if frame is not None else None,
+            camera=self.frames.health(),
+            cameras=self.pairing.reports(),
+            timing_s=timing,
+            view_jpeg=view,
+            recording=self._recording_status(),
+            halt_reason=None if frame is not None else "the camera is lost",
+            compute_mono_s=(began_mono_s, time.monotonic()),
+            pieces=flow.reports(),
+        )
+
     def after_reply(self) -> None:
         """The last tick's work that its commands do not wait for: the tracker's upkeep, the recording of
         the frame and the view. A failure here stops the modules at the next tick."""
@@ -323,6 +315,8 @@ class Compute:
         log.exception("%s failed; stopping the modules, tracking afresh", what)
         self._after_failed = True
         self.tracker.reset()
+        if self.flow is not None:
+            self.flow.reset()
         self._estimate = self._flatness = None
 
     def _do_after(self, after: _AfterReply) -> None:
@@ -366,7 +360,7 @@ class Compute:
         """Between ticks: the last tracked frame's heights, once no further camera's frame nearer it is due
         (wait: waiting for it); the next estimate carries them, the next reply their time."""
         views = self.pairing.later_views(wait)
-        if views is None or self._after_failed:
+        if views is None or self._after_failed or self.flow is not None:
             return
         t0 = time.perf_counter()
         try:

@@ -11,7 +11,8 @@ from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 from clothd.errors import ConfigError, HardwareError
-from clothd.loop.compute import ComputeSpec, InForce, TickReply, TickRequest, serve_compute
+from clothd.loop.compute import serve_compute
+from clothd.loop.compute_messages import ComputeSpec, InForce, TickReply, TickRequest
 
 START_TIMEOUT_S = 120.0
 JOIN_TIMEOUT_S = 10.0

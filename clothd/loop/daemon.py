@@ -20,25 +20,22 @@ import asyncio
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NoReturn
 
 import numpy as np
 
-from clothd.config import CellConfig, RecordingFormat
 from clothd.core.control import Setpoint
-from clothd.core.conveyor import ConveyorLayout
 from clothd.core.drive_script import DrivePlan, DriveScript, cloth_reach_m, swept_box_m
 from clothd.core.messages import ModuleCommands
 from clothd.core.modes import LoopState, Mode
-from clothd.core.module_calibration import ModuleCalibration
-from clothd.core.workspace import Workspace, cloth_corners_m
+from clothd.core.workspace import cloth_corners_m
 from clothd.drivers import wire
 from clothd.drivers.ports import ControllerFault, FrameSourceHealth, ModuleLink
 from clothd.errors import HardwareError, RequestError, UnreachableTargetError
-from clothd.loop.compute import InForce, TickReply, TickRequest
+from clothd.loop.compute_messages import InForce, TickReply, TickRequest
 from clothd.loop.compute_process import ComputeProcess
+from clothd.loop.daemon_settings import DaemonSettings
 from clothd.loop.frame_phase import FramePhaseLock
 from clothd.loop.loop_stats import LoopStats
 from clothd.loop.pairing import CameraReport
@@ -52,28 +49,6 @@ log = logging.getLogger(__name__)
 WATCHDOG_NOTIFY_S = 1.0
 OVERRUN_LOG_S = 1.0
 SEND_MARGIN_S = 0.003  # a tick's commands go out this long before the next deadline at the latest
-
-
-@dataclass(frozen=True)
-class DaemonSettings:
-    period_s: float  # the fixed tick
-    max_stale_ticks: int  # ticks in a row without the compute's answer before the modules stop
-    n_modules: int
-    workspace: Workspace
-    view_period_s: float  # the annotated view's frame interval
-    recording_dir: Path  # where recordings go by default
-    camera_source: str  # as shown in the status
-    link_port: str
-    estimates_shape: bool  # the tracker's model follows the cloth's shape: flatten is possible
-    recording_format: RecordingFormat = RecordingFormat.DIRECTORY
-    frame_lock: bool = False  # loop.frame_lock: the tick's phase follows the camera (loop/frame_phase.py)
-    frame_lead_s: float = 0.001
-    frame_wait_s: float = 0.012
-    phase_step_s: float = 0.001
-    layout: ConveyorLayout = field(default_factory=lambda: ConveyorLayout.of_cell(CellConfig()))  # for drives
-    max_speed_m_s: float = 0.2  # cell.max_speed_m_s: the most a drive script may ask of a module
-    module_calibration: ModuleCalibration | None = None  # cell.module_calibration: corrected on the wire
-    cameras: tuple[tuple[str, str], ...] = ()  # every camera's name and source as shown, first first
 
 
 class Daemon:
@@ -145,7 +120,7 @@ class Daemon:
                 "flatten needs the cloth's shape: run the mesh tracker (tracker.model mesh), not a rigid one"
             )
         if mode != Mode.IDLE:
-            self._check_can_move()
+            self._check_can_move(cloth=mode != Mode.FLOW)  # flow takes the pieces as they come
         est = self.latest.estimate if self.latest else None
         if mode == Mode.MOVE:
             if pose is None:
@@ -180,7 +155,7 @@ class Daemon:
             raise UnreachableTargetError(f"the script could carry the cloth {reach_m * 1e3:.0f} mm: {reason}")
         return plan
 
-    def _check_can_move(self) -> None:
+    def _check_can_move(self, cloth: bool = True) -> None:
         if self.link.estopped:
             raise RequestError("the emergency stop is latched: clear it before moving the cloth")
         if self.link.state == "starting":  # not up yet since the start: not a fault, only too early
@@ -188,7 +163,7 @@ class Daemon:
         if not self.link.connected:
             raise RequestError("the stepper link is not connected: the modules cannot be moved now")
         est = self.latest.estimate if self.latest else None
-        if self.state != LoopState.TRACKING or est is None or not est.tracking:
+        if cloth and (self.state != LoopState.TRACKING or est is None or not est.tracking):
             raise RequestError(f"the cloth is not tracked now (state {self.state}): nothing to move")
 
     def estop(self) -> None:
@@ -429,6 +404,7 @@ class Daemon:
             link_port=s.link_port,
             commands=self._in_force,
             recording=self.latest.recording if self.latest else None,
+            pieces=self.latest.pieces if self.latest else None,
         )
         if self.on_status is not None:
             self.on_status(self.status)

@@ -19,7 +19,8 @@ from clothd.config.camera import default_camera_name
 from clothd.core.control import Setpoint
 from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands
-from clothd.core.modes import FlatnessBasis, LoopState, Mode
+from clothd.core.modes import FlatnessBasis, LoopState, Mode, PieceState
+from clothd.core.pieces import PieceReport
 from clothd.drivers.link_group import LinkGroup
 from clothd.drivers.ports import FrameSourceHealth, ModuleLink
 from clothd.loop.pairing import CameraReport, PairingStats
@@ -248,6 +249,32 @@ class FlatnessState(BaseModel):
         )
 
 
+class PieceStatus(BaseModel):
+    """One piece of the production flow (docs/flow.md)."""
+
+    id: int
+    state: PieceState
+    pose: Pose | None = Field(description="while tracked")
+    flat: bool | None = Field(description="null until its flatness is read")
+    max_height_mm: float | None
+    reason: str | None = Field(description="why it was rejected")
+    found_t_mono_s: float = Field(description="first seen, on the host's monotonic clock")
+    left_t_mono_s: float | None = Field(description="let go over the outfeed edge")
+
+    @classmethod
+    def of(cls, r: PieceReport) -> PieceStatus:
+        return cls(
+            id=r.id,
+            state=r.state,
+            pose=None if r.pose is None else Pose.of(np.array(r.pose)),
+            flat=r.flat,
+            max_height_mm=r.max_height_mm,
+            reason=r.reason,
+            found_t_mono_s=r.found_s,
+            left_t_mono_s=r.left_s,
+        )
+
+
 class Status(BaseModel):
     t_unix_s: float
     state: LoopState
@@ -279,6 +306,9 @@ class Status(BaseModel):
     modules: Modules = Field(description="what the modules were last told (stopped while the link is down)")
     faults: list[FaultReport]
     recording: Recording | None
+    pieces: list[PieceStatus] | None = Field(
+        None, description="mode flow: every piece on the table, then the last that left; null otherwise"
+    )
 
 
 def camera_entries(
@@ -316,6 +346,7 @@ def build_status(
     link_port: str,
     commands: ModuleCommands,
     recording: RecordingStatus | None,
+    pieces: Sequence[PieceReport] | None = None,
 ) -> Status:
     """The status from the parts the daemon holds; the estimate counts only while it is tracking."""
     est = estimate if estimate is not None and estimate.tracking else None
@@ -357,4 +388,5 @@ def build_status(
         modules=Modules(speed_m_s=commands.speed_m_s.tolist(), heading_rad=commands.heading_rad.tolist()),
         faults=[FaultReport(**asdict(f)) for f in link.faults],
         recording=None if recording is None else Recording(**asdict(recording)),
+        pieces=None if pieces is None else [PieceStatus.of(r) for r in pieces],
     )

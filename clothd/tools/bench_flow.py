@@ -65,7 +65,7 @@ def run_flow(minutes: float, rate_per_min: float, seed: int, cameras: int | None
         cell.run(1.0)
     wall_s = time.perf_counter() - t_wall
     outfeed = list(cell.world.outfeed)
-    reasons = _matched_rejects(outfeed, list(cell.tracking.gone))
+    reasons = _matched_rejects(outfeed, list(cell.cell.tracking.gone))
     rows = [
         {**r, "rejected": reason, "ok": reason is None and judged_ok(r)}
         for r, reason in zip(outfeed, reasons, strict=True)

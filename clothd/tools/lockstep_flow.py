@@ -14,12 +14,9 @@ from typing import Any
 import numpy as np
 
 from clothd.config import Config, with_overrides
-from clothd.core.conveyor import ConveyorLayout
-from clothd.core.flow import FlowController
-from clothd.core.messages import ModuleCommands, PairedView
-from clothd.core.pieces import Piece, PieceTracking
-from clothd.core.tracker import Tracker
-from clothd.core.workspace import Workspace
+from clothd.core.flow_cell import FlowCell
+from clothd.core.messages import PairedView
+from clothd.core.pieces import Piece
 from clothd.taichi_runtime import start_taichi
 from clothd.tools.lockstep import CAMERA_FPS, frame_of, scenario_cameras
 from hwsim import scenario as scenarios
@@ -65,25 +62,10 @@ class LockstepFlow:
             raise ValueError(f"lockstep needs the world's step ({self.world.dt_s:g} s) to be the tick")
         self.sensors, models = scenario_cameras(sc, self.world, cameras)
         self.camera_every = max(1, round(sc.fps / CAMERA_FPS))
-        layout = ConveyorLayout.of_cell(cfg.cell)
-        workspace = Workspace.of_cell(cfg.cell)
-        self.tracking = PieceTracking(
-            cfg.flow,
-            models[0],
-            workspace,
-            lambda: Tracker(cfg.tracker, models[0], layout, other_cameras=models[1:]),
+        self.cell = FlowCell(
+            cfg.flow, cfg.tracker, cfg.control, cfg.cell, models[0], models[1:], self.period_s
         )
-        self.flow = FlowController(
-            cfg.flow,
-            cfg.control,
-            cfg.cell,
-            layout,
-            workspace,
-            self.period_s,
-            cfg.tracker.physics.strain_limit,
-            cfg.tracker.estimates_shape,
-        )
-        self.commands = ModuleCommands.all_stop(layout.n_modules)
+        self.commands = self.cell.stop()
         self.ticks = 0
         self.multi_piece_ticks = 0  # two or more pieces on the table, by hwsim's truth
         self.frame_ms: list[float] = []  # each frame's tracking and control, on this machine
@@ -91,7 +73,7 @@ class LockstepFlow:
 
     @property
     def pieces(self) -> list[Piece]:
-        return self.tracking.pieces
+        return self.cell.pieces
 
     def run(self, seconds: float) -> None:
         for _ in range(max(1, round(seconds / self.period_s))):
@@ -99,7 +81,7 @@ class LockstepFlow:
 
     def summary(self) -> dict[str, Any]:
         """What the loop's side saw: its rejects and the time each frame took."""
-        rejected = [p for p in [*self.tracking.gone, *self.pieces] if p.reason is not None]
+        rejected = [p for p in [*self.cell.tracking.gone, *self.pieces] if p.reason is not None]
         frame_ms = np.array(self.frame_ms or [0.0])
         return {
             "rejected": [{"id": p.id, "reason": p.reason} for p in rejected],
@@ -128,11 +110,9 @@ class LockstepFlow:
                 for image, s in zip(images[1:], self.sensors[1:], strict=True)
             ]
             t0 = time.perf_counter()  # the rendering is hwsim's
-            self.tracking.track(images[0], self.world.t_s, in_force, views)
+            self.cell.track(images[0], self.world.t_s, in_force, views)
         t1 = time.perf_counter()
-        self.commands, gone = self.flow.step(self.tracking.pieces, self.world.t_s)
-        for piece in gone:
-            self.tracking.leave(piece, self.world.t_s)
+        self.commands = self.cell.step(self.world.t_s)
         t2 = time.perf_counter()
         self.control_ms.append((t2 - t1) * 1e3)
         if frame:
