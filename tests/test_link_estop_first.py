@@ -202,3 +202,30 @@ def test_estop_at_once_writes_nothing_on_a_link_that_is_not_up() -> None:
             ctrl.close()
 
     asyncio.run(body())
+
+
+def test_the_link_closing_never_waits_for_an_estop_being_written() -> None:
+    """The session ends while the API's thread holds the e-stop's descriptor (writing, or waiting for a
+    core): the loop goes on at once, and the descriptor is closed once it is let go, not before."""
+
+    async def body() -> None:
+        ctrl = RawController()
+        try:
+            async with _connected(ctrl) as link:
+                fd = link._estop_fd
+                assert fd is not None
+                link._estop_fd_lock.acquire()  # as the API's thread does around its write
+                await link.stop()  # returns: nothing waited for the lock
+                os.fstat(fd)  # still open while held
+                link._estop_fd_lock.release()
+                async with asyncio.timeout(10):
+                    while True:
+                        try:
+                            os.fstat(fd)
+                        except OSError:
+                            break
+                        await asyncio.sleep(0.001)
+        finally:
+            ctrl.close()
+
+    asyncio.run(body())

@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 
 ESTOP_REPEAT_S = 0.02
 STOP_DRAIN_TIMEOUT_S = 0.2  # on the way out, wait this long for the all-stop to leave the port
+ESTOP_FD_RETRY_S = 0.001  # closing the e-stop's descriptor while the API's thread writes on it: again
 FAULTS_KEPT = 20
 
 
@@ -73,8 +74,9 @@ class StepperLink:
         self._clear_on_connect = False  # an e-stop cleared while the link was down: the controller is told
         self._writer: asyncio.StreamWriter | None = None
         self._seqs = itertools.count(1)  # next() is atomic: estop_at_once takes one on the API's thread
-        # A duplicate of the port's descriptor for estop_at_once, opened and closed with the session under
-        # the lock: never a number the port closed and the system gave to something else.
+        # A duplicate of the port's descriptor for estop_at_once, opened and closed with the session. It is
+        # read and written on under the lock and closed only while the lock is free, never waited for: the
+        # API's write never lands on a number the system gave to something else, and the loop never waits.
         self._estop_fd: int | None = None
         self._estop_fd_lock = threading.Lock()
         self._pending: _Pending | None = None  # the newest unacknowledged COMMAND
@@ -143,9 +145,10 @@ class StepperLink:
             return
         packet = wire.DELIMITER + wire.encode(wire.MsgType.ESTOP, self._next_seq())
         with self._estop_fd_lock:
-            if self._estop_fd is not None:
+            fd = self._estop_fd  # once: the loop may set it to None meanwhile, closing it only later
+            if fd is not None:
                 with contextlib.suppress(OSError):  # full (BlockingIOError) or gone: estop() follows
-                    os.write(self._estop_fd, packet)
+                    os.write(fd, packet)
 
     def estop_clear(self) -> None:
         """Release the e-stop; while the link is down, as soon as it is up again (the controller keeps its
@@ -371,8 +374,20 @@ class StepperLink:
 
     def _open_estop_fd(self, writer: asyncio.StreamWriter) -> None:
         port = writer.transport.get_extra_info("serial")
-        with self._estop_fd_lock, contextlib.suppress(Exception):
+        with contextlib.suppress(Exception):
             self._estop_fd = os.dup(port.fileno())
+
+    def _close_estop_fd(self, fd: int) -> None:
+        """Close it once estop_at_once is not writing on it: now, or a moment later, never waiting (the
+        API's thread may hold the lock while it waits for a core)."""
+        if not self._estop_fd_lock.acquire(blocking=False):
+            asyncio.get_running_loop().call_later(ESTOP_FD_RETRY_S, self._close_estop_fd, fd)
+            return
+        try:
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        finally:
+            self._estop_fd_lock.release()
 
     def _lose(self, reason: str) -> None:
         """Declare the link lost: all-stop written on the way out (a controller that hears but cannot
@@ -408,11 +423,9 @@ class StepperLink:
         self._unanswered_since_s = None
         self._retries = 0
         self.controller_flags = 0
-        with self._estop_fd_lock:
-            if self._estop_fd is not None:
-                with contextlib.suppress(OSError):
-                    os.close(self._estop_fd)
-                self._estop_fd = None
+        fd, self._estop_fd = self._estop_fd, None  # estop_at_once reads it under the lock: None from now on
+        if fd is not None:
+            self._close_estop_fd(fd)
         if self._writer is not None:
             with contextlib.suppress(Exception):
                 self._writer.close()
