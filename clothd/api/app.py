@@ -27,7 +27,7 @@ from clothd.api.commands import Commands, describe_invalid
 from clothd.api.connections import StreamSlots
 from clothd.api.guard import GuardPolicy, RequestGuard
 from clothd.api.metrics import registry_for
-from clothd.api.schemas import CameraInfo, ErrorResponse, Ok, RecordStart, SetpointRequest
+from clothd.api.schemas import CameraInfo, ErrorResponse, Ok, OutfeedPiece, RecordStart, SetpointRequest
 from clothd.api.stream import StreamHub
 from clothd.config import ApiConfig
 from clothd.core.camera_model import CameraModel
@@ -53,6 +53,10 @@ STATUS_DOC: dict[int | str, dict[str, Any]] = {
     200: {"model": Status, "description": "the state published by the last tick"}
 }
 
+SIM_DOC: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorResponse, "description": "not running against hwsim"},
+    503: {"model": ErrorResponse, "description": "hwsim is not answering"},
+}
 
 # clothd's errors as HTTP statuses; the most specific class that matches wins.
 ERROR_STATUS: dict[type[ClothdError], int] = {
@@ -79,7 +83,8 @@ def create_app(
     bridge: DaemonBridge | None = None,
 ) -> FastAPI:
     """The app over a daemon whose statuses `hub` receives, behind the request guard (guard.py).
-    sim_truth_url: hwsim's ground truth, relayed for the dashboard when running against hwsim."""
+    sim_truth_url: hwsim's ground truth, relayed for the dashboard when running against hwsim; its outfeed
+    (GET /outfeed) is beside it."""
     bridge = bridge or DaemonBridge()
     commands = Commands(daemon, bridge)
     registry = registry_for(hub)
@@ -180,18 +185,17 @@ def _add_view_routes(
         cam = camera_model
         return CameraInfo(width=cam.width, height=cam.height, table_to_pixel=cam.table_homography().tolist())
 
-    @api.get("/sim/truth", responses={404: {"model": ErrorResponse}})
+    @api.get("/sim/truth", responses=SIM_DOC)
     async def sim_truth() -> JSONResponse:
         """hwsim's ground truth (pose, module states, cloth nodes), relayed for the dashboard's truth
         overlay; 404 unless the daemon runs against the simulated cell."""
-        if sim_truth_url is None:
-            return JSONResponse({"detail": "not running against hwsim (clothd run --sim)"}, status_code=404)
-        try:
-            async with httpx.AsyncClient(timeout=1.0) as client:
-                r = await client.get(sim_truth_url, params={"nodes": 1})
-            return JSONResponse(r.json())
-        except (httpx.HTTPError, ValueError) as err:
-            raise HardwareError(f"hwsim's truth is not answering: {err}") from err
+        return await _relay_sim(sim_truth_url, "truth", {"nodes": 1})
+
+    @api.get("/sim/outfeed", responses={200: {"model": list[OutfeedPiece]}, **SIM_DOC})
+    async def sim_outfeed() -> JSONResponse:
+        """The pieces hwsim's outfeed judged from its truth as each left the table (mode flow), oldest
+        first; 404 unless the daemon runs against the simulated cell."""
+        return await _relay_sim(sim_truth_url, "outfeed")
 
     @api.get("/view.mjpg", response_class=StreamingResponse, responses={503: {"model": ErrorResponse}})
     async def view_mjpg() -> Response:
@@ -244,6 +248,19 @@ def _add_page_routes(app: FastAPI, hub: StreamHub, registry: CollectorRegistry) 
     @app.get("/metrics", response_class=PlainTextResponse)
     async def metrics() -> Response:
         return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+
+
+async def _relay_sim(truth_url: str | None, what: str, params: dict[str, Any] | None = None) -> JSONResponse:
+    """hwsim's GET /<what> (beside its /truth), relayed as it answers."""
+    if truth_url is None:
+        return JSONResponse({"detail": "not running against hwsim (clothd run --sim)"}, status_code=404)
+    try:
+        async with httpx.AsyncClient(timeout=1.0) as client:
+            r = await client.get(httpx.URL(truth_url).join(what), params=params)
+            r.raise_for_status()
+        return JSONResponse(r.json())
+    except (httpx.HTTPError, ValueError) as err:
+        raise HardwareError(f"hwsim's {what} is not answering: {err}") from err
 
 
 def _streams_full(streams: StreamSlots) -> JSONResponse:

@@ -1,6 +1,7 @@
 """Prometheus metrics (GET /metrics), read at scrape time from the status the last tick published: the
 snapshot is immutable, so the API's thread never reads the daemon's live state, and nothing is paid
-per tick."""
+per tick. The pieces of mode flow are counted at each scrape from the pieces it sees (piece_counts.py):
+the status keeps the last 50 gone, far more than pass between two scrapes."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ from collections.abc import Iterator
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector, CollectorRegistry
 
+from clothd.api.piece_counts import PieceCounts, by_state
 from clothd.api.stream import StreamHub
 from clothd.core.modes import FlatnessBasis, LoopState
 from clothd.loop.status import Status
@@ -17,6 +19,7 @@ from clothd.loop.status import Status
 class StatusCollector(Collector):
     def __init__(self, hub: StreamHub) -> None:
         self.hub = hub
+        self.counts = PieceCounts()
 
     def collect(self) -> Iterator[Metric]:
         s = self.hub.status
@@ -62,6 +65,7 @@ class StatusCollector(Collector):
                 f"clothd_link_{name}", f"Stepper link frames/events: {name}", value=getattr(c, name)
             )
         yield GaugeMetricFamily("clothd_features", "Features tracked", value=float(s.features))
+        yield from self._pieces(s)
         if s.flatness is not None:
             f = s.flatness
             yield GaugeMetricFamily(
@@ -87,6 +91,26 @@ class StatusCollector(Collector):
             for name in FlatnessBasis:
                 basis.add_metric([name.value], 1.0 if f.basis == name else 0.0)
             yield basis
+
+    def _pieces(self, s: Status) -> Iterator[Metric]:
+        """Mode flow's pieces: on the table by state, and in, out and rejected, each counted once."""
+        self.counts.see(s.pieces)
+        on_table = GaugeMetricFamily(
+            "clothd_pieces", "Pieces on the table by state (mode flow; 0 in any other)", labels=["state"]
+        )
+        for state, n in by_state(s.pieces).items():
+            on_table.add_metric([state.value], float(n))
+        yield on_table
+        c = self.counts
+        yield CounterMetricFamily("clothd_pieces_in", "Pieces first seen coming in", value=c.pieces_in)
+        yield CounterMetricFamily(
+            "clothd_pieces_out", "Pieces that left flat and placed, to the next station", value=c.pieces_out
+        )
+        yield CounterMetricFamily(
+            "clothd_pieces_rejected",
+            "Pieces rejected (a flap, not flat or not placed in time)",
+            value=c.rejected,
+        )
 
 
 def _cameras(s: Status) -> Iterator[Metric]:

@@ -148,10 +148,10 @@ def machinery_state(s: Status) -> str:
     return "Executing" if s.mode != Mode.IDLE and s.state == LoopState.TRACKING else "NotExecuting"
 
 
-def _same(a: Any, b: Any) -> bool:
+def same(a: Any, b: Any) -> bool:
     """Equal, NaN equal to NaN: an unchanged NaN is not written again (nor notified to subscribers)."""
     if isinstance(a, list) and isinstance(b, list):
-        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b, strict=True))
+        return len(a) == len(b) and all(same(x, y) for x, y in zip(a, b, strict=True))
     return bool(a == b) or (isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b))
 
 
@@ -212,7 +212,7 @@ class CellNodes:
         stamp = ua.DateTime.fromtimestamp(s.t_unix_s, UTC)
         for i, var in enumerate(VARIABLES):
             value = var.get(s)
-            if _same(value, self.values[i]):
+            if same(value, self.values[i]):
                 continue
             self.values[i] = value
             data = ua.DataValue(ua.Variant(value, var.vtype), SourceTimestamp=stamp)

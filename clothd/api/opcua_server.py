@@ -25,8 +25,9 @@ from asyncua.crypto import uacrypto
 from clothd.api.commands import Commands
 from clothd.api.opcua_limits import GuardedBinaryServer, SessionSlots, transport_limits
 from clothd.api.opcua_nodes import NAMESPACE_URI, CellNodes, node_id
+from clothd.api.opcua_pieces import PiecesNodes
 from clothd.api.opcua_security import CellRules, DiscoveryOnly, TokenUsers, server_certificate
-from clothd.api.schemas import FlattenSetpoint, HoldSetpoint, IdleSetpoint
+from clothd.api.schemas import FlattenSetpoint, FlowSetpoint, HoldSetpoint, IdleSetpoint
 from clothd.api.stream import StreamHub
 from clothd.config import OPCUA_SIGN_AND_ENCRYPT, OpcUaConfig, is_loopback, opcua_host_port
 from clothd.core.modes import Mode
@@ -118,6 +119,7 @@ class OpcUaServer:
         self.token_set = token is not None
         self.loopback = loopback
         self.nodes: CellNodes | None = None
+        self.pieces: PiecesNodes | None = None
         self._publisher: asyncio.Task[None] | None = None
 
     async def start(self) -> None:
@@ -139,6 +141,7 @@ class OpcUaServer:
         idx = await s.register_namespace(NAMESPACE_URI)
         assert self.hub.status is not None  # the daemon publishes once when it is built
         self.nodes = await CellNodes.build(s, idx, self.hub.status)
+        self.pieces = await PiecesNodes.build(s, self.nodes.cell, idx, self.hub.status)
         await self._add_methods(idx)
         try:
             await s.start()
@@ -161,13 +164,14 @@ class OpcUaServer:
 
     async def _publish(self) -> None:
         """The newest status into the variables, at most publish_hz times a second."""
-        assert self.nodes is not None
+        assert self.nodes is not None and self.pieces is not None
         period_s = 1.0 / self.cfg.publish_hz
         last = None
         while True:
             status = self.hub.status
             if status is not None and status is not last:
                 await self.nodes.update(status)
+                await self.pieces.update(status)
                 last = status
             await asyncio.sleep(period_s)
 
@@ -179,6 +183,7 @@ class OpcUaServer:
             "Hold": (lambda: c.setpoint(HoldSetpoint(mode=Mode.HOLD)), []),
             "Idle": (lambda: c.setpoint(IdleSetpoint(mode=Mode.IDLE)), []),
             "Flatten": (lambda: c.setpoint(FlattenSetpoint(mode=Mode.FLATTEN)), []),
+            "Flow": (lambda: c.setpoint(FlowSetpoint(mode=Mode.FLOW)), []),
             "EStop": (c.estop, []),
             "ClearEStop": (c.estop_clear, []),
             "Reset": (c.reset, []),

@@ -82,6 +82,22 @@ class CameraInfo(BaseModel):
     table_to_pixel: list[list[float]] = Field(description="3 x 3 homography: table [x_m, y_m, 1] to pixels")
 
 
+class OutfeedPiece(BaseModel):
+    """One piece hwsim's outfeed judged from its truth as it crossed the +x edge (hwsim/outfeed.py); hwsim
+    may add keys."""
+
+    model_config = ConfigDict(extra="allow")
+
+    id: int = Field(description="hwsim's own numbering, in the order laid (not the daemon's piece id)")
+    flap: bool = Field(description="laid with a corner folded over: it should leave as a reject")
+    t_s: float = Field(description="time in the cell, from laid at the infeed to reaching the outfeed")
+    max_height_mm: float = Field(description="its true highest node")
+    pose_error_mm: float = Field(
+        description="its centre's distance across the outfeed from the placement's y"
+    )
+    pose_error_deg: float = Field(description="its heading's distance from the placement's")
+
+
 class ErrorResponse(BaseModel):
     detail: str = Field(description="what was wrong, in words")
 
