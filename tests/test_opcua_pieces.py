@@ -88,9 +88,7 @@ def test_the_pieces_folder_counts_each_piece_once_and_an_event_says_each_one_gon
             nodes = [await folder.get_child(f"{idx}:{name}") for name in counters]
             seen.names = {n.nodeid: name for n, name in zip(nodes, counters, strict=True)}
             await sub.subscribe_data_change(nodes)
-            etype = await client.nodes.root.get_child(
-                ["0:Types", "0:ObjectTypes", "0:BaseObjectType", "0:BaseEventType", f"{idx}:{EVENT_TYPE}"]
-            )
+            etype = client.get_node(ua.NodeId(EVENT_TYPE, idx))  # as docs/opcua.md names it
             await sub.subscribe_events(folder, etype)
             await seen.until("no pieces yet", lambda: seen.values.get("PiecesIn") == 0)
             assert await _read(folder, idx, "Slot0", "Id") == -1  # an empty slot

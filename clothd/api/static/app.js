@@ -105,6 +105,7 @@ function show(s) {
   $("flatness").className = f && !f.flat ? "warn" : "";
   $("basis").textContent = !f ? "" : `· basis: ${BASIS_WORDS[f.basis] || f.basis}`;
   showCameras(s.cameras || []);
+  showPieces(s.pieces);
   $("residual").textContent = `${fmt(s.residual.mean_px, 2)} / ${fmt(s.residual.worst_px, 2)} px`;
   const tick = s.timing.stages.compute || {};
   $("missed").textContent = s.timing.missed_ticks;
@@ -116,6 +117,59 @@ function show(s) {
   plot($("plot-residual"), [[samples.mean, "#4fc3f7"], [samples.worst, "#ffb74d"]]);
   plot($("plot-tick"), [[samples.p50, "#4fc3f7"], [samples.p99, "#ffb74d"]]);
   plot($("plot-features"), [[samples.features, "#9ccc65"]]);
+}
+
+// -- mode flow's pieces (status pieces: those on the table, then the last gone) ---------------------
+
+const PIECES_GONE_SHOWN = 10; // of the last 50 gone the status keeps, the newest
+const PIECE_COLOURS = { entering: "#90a4ae", tracked: "#4fc3f7", flattening: "#ffb74d", placing: "#ba68c8",
+  leaving: "#9ccc65", rejected: "#ef5350" };
+const PIECE_ARROW_M = 0.05;
+
+function onTable(p) { return p.left_t_mono_s === null && p.state !== "left"; }
+
+function pieceRow(p) {
+  const tr = document.createElement("tr");
+  tr.className = p.state; tr.dataset.id = p.id;
+  const pose = p.pose || {};
+  const shape = p.flat === null ? "–" : `${p.flat ? "flat" : "wrinkled"} · ${fmt(p.max_height_mm, 1)} mm`;
+  const cells = [`#${p.id}`, onTable(p) ? p.state : `${p.state} (gone)`, `${fmt(pose.x_m, 3)}, ${fmt(pose.y_m, 3)}`,
+    pose.theta_rad === null || pose.theta_rad === undefined ? "–" : `${fmt(pose.theta_rad * 180 / Math.PI, 1)}°`, shape];
+  tr.replaceChildren(...cells.map((text) => { const td = document.createElement("td"); td.textContent = text; return td; }));
+  if (!p.reason) return [tr];
+  const why = document.createElement("tr"); why.className = p.state;
+  const td = document.createElement("td"); td.colSpan = 5; td.className = "reason"; td.textContent = `#${p.id}: ${p.reason}`;
+  why.append(td);
+  return [tr, why];
+}
+
+// Every piece on the table, then the newest gone; each posed piece drawn over the video (an arrow along its heading).
+function showPieces(pieces) {
+  $("pieces-panel").hidden = !pieces;
+  drawPieces(pieces || []);
+  if (!pieces) return;
+  const table = pieces.filter(onTable), gone = pieces.filter((p) => !onTable(p));
+  const shown = [...table, ...gone.slice(-PIECES_GONE_SHOWN).reverse()];
+  $("pieces-rows").replaceChildren(...shown.flatMap(pieceRow));
+  const rejects = gone.filter((p) => p.state === "rejected").length;
+  $("pieces-summary").textContent = `${table.length} on the table · last ${gone.length} gone, ${rejects} rejected` +
+    (gone.length > PIECES_GONE_SHOWN ? ` (newest ${PIECES_GONE_SHOWN} shown)` : "");
+}
+
+function drawPieces(pieces) {
+  const canvas = $("pieces-view");
+  canvas.width = imageSize[0]; canvas.height = imageSize[1];
+  if (!tableToPixel) return;
+  const g = canvas.getContext("2d");
+  g.lineWidth = 3; g.font = "bold 16px sans-serif";
+  for (const p of pieces.filter((q) => onTable(q) && q.pose && q.pose.x_m !== null)) {
+    const { x_m: x, y_m: y, theta_rad: t } = p.pose;
+    const [u, v] = toPixel(x, y);
+    const [a, b] = toPixel(x + PIECE_ARROW_M * Math.cos(t), y + PIECE_ARROW_M * Math.sin(t));
+    g.strokeStyle = g.fillStyle = PIECE_COLOURS[p.state] || "#fff";
+    g.beginPath(); g.arc(u, v, 6, 0, 2 * Math.PI); g.moveTo(u, v); g.lineTo(a, b); g.stroke();
+    g.fillText(`#${p.id}`, u + 8, v - 8);
+  }
 }
 
 function plot(canvas, series) {
