@@ -42,11 +42,6 @@ CURVATURE_SIGMA_M = 0.0015  # a second difference over FIELD_PITCH_M: a 20 mm ri
 ZERO_SIGMA_M = 0.05  # far from any point the field settles to the table
 OUTLIER_SIGMA = 4.0  # the refit drops points this many robust sigmas off the first fit
 MIN_OUTLIER_M = 0.0015  # ... but never tighter than this
-# Further than this from every point the field is held flat (it would go on along its last slope: a
-# coarser camera leaves a wider border without features, and one high point near a corner raised it there
-# by 20 mm on a flat piece).
-EMPTY_REACH_M = 0.012
-FLAT_SIGMA_M = 0.0002  # a first difference over FIELD_PITCH_M where nothing is measured
 
 
 def epipolar_distance_px(
@@ -207,45 +202,23 @@ def fit_height_field(
     w, idx = _grid_weights(footprint, pitch_m, shape, points_m[:, :2])
     keep = np.ones(len(points_m), bool)
     z = np.zeros(gy * gx)
-    empty = _far_from_points(idx, shape, EMPTY_REACH_M / pitch_m)
     for _ in range(2):
-        z = _solve_field(w[keep], idx[keep], points_m[keep, 2], shape, empty)
+        z = _solve_field(w[keep], idx[keep], points_m[keep, 2], shape)
         residual = (w * z[idx]).sum(axis=1) - points_m[:, 2]
         spread = 1.4826 * float(np.median(np.abs(residual[keep] - np.median(residual[keep]))))
         keep = np.abs(residual) < max(OUTLIER_SIGMA * spread, MIN_OUTLIER_M)
     return HeightField(footprint, pitch_m, z.reshape(gy, gx))
 
 
-def _far_from_points(idx: np.ndarray, shape: tuple[int, int], reach_cells: float) -> np.ndarray:
-    """(gy * gx,) bool: grid nodes further than reach_cells from every node a point weighs on."""
-    near = np.full(shape[0] * shape[1], 255, np.uint8)
-    near[idx.ravel()] = 0
-    distance = cv2.distanceTransform(near.reshape(shape), cv2.DIST_L2, 3)
-    return np.asarray(distance.ravel() > reach_cells)
-
-
-def _solve_field(
-    w: np.ndarray, idx: np.ndarray, z_m: np.ndarray, shape: tuple[int, int], empty: np.ndarray
-) -> np.ndarray:
+def _solve_field(w: np.ndarray, idx: np.ndarray, z_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     gy, gx = shape
     n = gy * gx
     rows = np.repeat(np.arange(len(w)), 4)
     data = sps.csr_matrix((w.ravel() / POINT_SIGMA_M, (rows, idx.ravel())), shape=(len(w), n))
     curvature = _second_differences(gy, gx) / CURVATURE_SIGMA_M
-    steps = _first_differences(gy, gx)
-    flat = steps[np.flatnonzero(abs(steps) @ empty.astype(float) > 0)] / FLAT_SIGMA_M
-    A = (data.T @ data + curvature.T @ curvature + flat.T @ flat + sps.identity(n) / ZERO_SIGMA_M**2).tocsc()
+    A = (data.T @ data + curvature.T @ curvature + sps.identity(n) / ZERO_SIGMA_M**2).tocsc()
     rhs = data.T @ (z_m / POINT_SIGMA_M)
     return np.asarray(spla.spsolve(A, rhs))
-
-
-def _first_differences(gy: int, gx: int) -> sps.csr_matrix:
-    """The grid's first differences along both axes, as rows of a sparse matrix on the flat heights."""
-
-    def along(n: int) -> sps.csr_matrix:
-        return sps.diags([-1.0, 1.0], [0, 1], shape=(n - 1, n))
-
-    return sps.vstack([sps.kron(sps.identity(gy), along(gx)), sps.kron(along(gy), sps.identity(gx))]).tocsr()
 
 
 def _second_differences(gy: int, gx: int) -> sps.csr_matrix:
