@@ -3,6 +3,8 @@ place then leave in turn, the way kept clear, the exit, and a piece that cannot 
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from clothd.config import CellConfig, ControlConfig, FlowConfig
@@ -164,3 +166,35 @@ def test_stop_stops_every_module() -> None:
         commands, _ = flow.step([piece], k * DT_S)
     assert commands.speed_m_s.any()
     assert not flow.stop().speed_m_s.any()
+
+
+def test_a_folded_over_corner_is_rejected_as_such_and_driven_out_once_the_way_is_clear() -> None:
+    """A flap (cloth missing at a corner where the estimate puts it) seen for flap_for_s: rejected with the
+    reason, held while a piece ahead is in the way, then driven out."""
+    flow = _controller()
+    seen = np.ones((NY - 1, NX - 1), bool)
+    seen[:3, :3] = False  # the -s-t corner folded over: the belts show there
+
+    def folded(t_s: float) -> Estimate:
+        return dataclasses.replace(_estimate((-0.25, 0.0, 0.0), t_s=t_s), quad_seen=seen)
+
+    piece = _tracked(0, (-0.25, 0.0, 0.0), PieceState.TRACKED)
+    ahead = _tracked(1, (0.15, 0.0, 0.0), PieceState.FLATTENING, ridge=True)  # not flat: it stays
+    t_s = 0.0
+    while piece.state != PieceState.REJECTED and t_s < FLOW.flap_for_s + 1.0:
+        piece.estimate = folded(t_s)
+        flow.step([piece, ahead], t_s)
+        t_s += DT_S
+    assert piece.state == PieceState.REJECTED and piece.reason == "a corner is folded over"
+    assert FLOW.flap_for_s <= t_s < FLOW.flap_for_s + 0.2
+    commands, _ = flow.step([piece, ahead], t_s)
+    assert not commands.speed_m_s[_under(piece.outline_m)].any()  # the piece ahead is not driven out yet
+    ahead.enter(PieceState.LEAVING, t_s)
+    ahead.estimate = _estimate((0.44, 0.0, 0.0), t_s=t_s)
+    ahead.outline_m = ahead.estimate.outline_m  # type: ignore[assignment]
+    for _ in range(10):
+        t_s += DT_S
+        piece.estimate = folded(t_s)
+        commands, _ = flow.step([piece, ahead], t_s)
+    under = _under(piece.outline_m)
+    assert (commands.speed_m_s[under] > 0).all() and (np.cos(commands.heading_rad[under]) > 0.99).all()
