@@ -123,8 +123,8 @@ def sim_config(cfg: Config, ready: dict[str, Any]) -> Config:
     table = json.loads(Path(ready["table_json"]).read_text())
     keys = ("modules_x", "modules_y", "pitch_m", "module_size_m")
     data["cell"] = {**data.get("cell", {}), **{k: table[k] for k in keys}}
-    if "placement" in ready:
-        data["flow"] = {**data.get("flow", {}), "placement": ready["placement"]}
+    if "placement" in ready:  # a flow's cell: its trackers built at start, so that mode flow may run
+        data["flow"] = {**data.get("flow", {}), "placement": ready["placement"], "warm_at_start": True}
     stepper = {k: v for k, v in data.get("stepper", {}).items() if k not in ("port", "controllers")}
     controllers = ready.get("controllers") or []
     if len(controllers) > 1:
@@ -202,6 +202,7 @@ def build(cfg: Config) -> Parts:
         recording_dir=cfg.recording.dir,
         camera_source=redact_source(cfg.all_cameras[0].source.source),
         cameras=tuple((c.name, redact_source(c.source.source)) for c in cfg.all_cameras),
+        flow_ready=cfg.flow.warm_at_start,
         link_port=cfg.stepper.links(layout.n_modules)[0].cfg.port,
         estimates_shape=cfg.tracker.estimates_shape,
         recording_format=cfg.recording.format,

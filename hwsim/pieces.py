@@ -93,6 +93,13 @@ class ClothPool:
         self.infeed_belt = np.array(infeed_belt)  # what hwsim.cloth.ClothSim.infeed_belt holds
         self._parked: list[ClothSim] = []
 
+    def fill(self, count: int, spec: ClothSpec, seed: int) -> None:
+        """Make `count` cloths now and park them. Taichi allocates a new cloth's fields on the thread that
+        started it only, and `hwsim serve` steps the world on a thread of its own: an infeed that made a
+        cloth there failed (Taichi's "this_thread == main_thread" assertion)."""
+        for _ in range(count):
+            self._parked.append(ClothSim(spec, self.table, Pose(), spec.substep_s, seed, self.capacity))
+
     def take(self, spec: ClothSpec, pose: Pose, seed: int, module_heading_rad: np.ndarray) -> ClothSim:
         """A cloth of `spec` laid at `pose` on the belts as they are turned now."""
         if self._parked:

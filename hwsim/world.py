@@ -76,6 +76,8 @@ class World:
         belt = self.infeed.conveyor() if self.infeed else (-math.inf, 0.0, 0.0)
         first.infeed_belt.from_numpy(np.array(belt))
         self.pool = ClothPool(scenario.table, capacity or (first.grid.ny, first.grid.nx), belt)
+        if scenario.infeed is not None:  # every cloth the table can hold, made on this thread
+            self.pool.fill(scenario.infeed.max_pieces - 1, scenario.cloth, scenario.seed)
         self.placement = scenario.flow.placement if scenario.flow else Placement()
         self.outfeed: list[dict[str, Any]] = []  # the judged pieces, in the order they left
         self.operator = Operator(scenario, self.table)

@@ -142,6 +142,7 @@ def _run(
     max_stale_ticks: int = 3,
     estimates_shape: bool = True,
     module_calibration: ModuleCalibration | None = None,
+    flow_ready: bool = False,
 ) -> None:
     link, compute = FakeLink(), FakeCompute()
     settings = DaemonSettings(
@@ -155,6 +156,7 @@ def _run(
         link_port="fake",
         estimates_shape=estimates_shape,
         module_calibration=module_calibration,
+        flow_ready=flow_ready,
     )
     daemon = Daemon(settings, link, compute)  # type: ignore[arg-type]
 
@@ -274,6 +276,26 @@ def test_moves_are_refused_unless_tracked_linked_clear_and_on_the_table() -> Non
         np.testing.assert_array_equal(daemon.setpoint.pose, [0.05, 0.0, 0.0])
 
     _run(scenario)
+
+
+@pytest.mark.parametrize("flow_ready", [True, False])
+def test_flow_needs_no_tracked_cloth_but_the_link_the_e_stop_and_its_trackers_built(flow_ready: bool) -> None:
+    async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
+        compute.state = "tracking_lost"  # an empty table: nothing tracked
+        await _ticks(daemon, 3)
+        daemon.estop()
+        with pytest.raises(RequestError, match="emergency stop"):
+            daemon.set_setpoint("flow", None)
+        daemon.estop_clear()
+        if not flow_ready:
+            with pytest.raises(RequestError, match="warm_at_start"):
+                daemon.set_setpoint("flow", None)
+            assert daemon.setpoint.mode == "idle"
+            return
+        daemon.set_setpoint("flow", None)
+        assert daemon.setpoint.mode == "flow" and daemon.setpoint.pose is None
+
+    _run(scenario, flow_ready=flow_ready)
 
 
 @pytest.mark.parametrize("estimates_shape", [True, False])

@@ -44,6 +44,11 @@ class FlowConfig(Strict):
     placed_deg: float = Field(0.3, gt=0, le=10, description="... and within this of its heading")
     place_timeout_s: float = Field(15.0, gt=0, le=120, description="not placed by then: a reject")
     gap_m: float = Field(0.03, ge=0, le=1, description="the gap a piece keeps to the one ahead")
+    warm_at_start: bool = Field(
+        False,
+        description="build the pieces' trackers when the daemon starts (~0.5 s each): mode flow is refused "
+        "without it, as a tracker built in a tick would stall the loop",
+    )
     exit_gain_1_s: float = Field(
         2.0, ge=0, le=20, description="how fast a leaving piece's drift from the placement is corrected"
     )

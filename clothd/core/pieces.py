@@ -30,7 +30,7 @@ from clothd.core.camera_model import CameraModel
 from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands, PairedView
 from clothd.core.modes import PieceState
-from clothd.core.segmentation import ClothRegion, find_cloths
+from clothd.core.segmentation import ClothRegion, find_cloths, full_frame_region
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
 
@@ -130,6 +130,21 @@ class PieceTracking:
         self.gone: deque[Piece] = deque(maxlen=GONE_KEPT)  # left or rejected and gone, oldest first
         self._next_id = 0
         self._frames = 0
+
+    def warm(self, width: int, height: int, frames: int = 10) -> None:
+        """Build every tracker of the pool and run each over a few frames of noise: a tracker's first
+        frames compile its Taichi kernels (~0.5 s), which in a tick would stall the loop past its bound."""
+        image = np.random.default_rng(0).integers(0, 256, (height, width, 3), dtype=np.uint8)
+        region = full_frame_region(width, height)
+        while len(self._trackers) < self.max_pieces:
+            tracker = self._make_tracker()
+            tracker.find_region = lambda _image: region
+            for k in range(frames):
+                tracker.track(image, k / 15.0, None)
+                tracker.upkeep()
+            tracker.reset()
+            self._trackers.append(tracker)
+            self._free.append(len(self._trackers) - 1)
 
     def reset(self) -> None:
         """Forget every piece: the next look finds them afresh."""

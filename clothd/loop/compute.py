@@ -109,7 +109,8 @@ class Compute:
             spec.tracker.physics.strain_limit,
             spec.tracker.estimates_shape,
         )
-        self.flow: FlowCell | None = None  # mode flow's pieces and their control, built when first asked
+        self.flow: FlowCell | None = None  # mode flow's pieces and their control, while in mode flow
+        self._flow_cell: FlowCell | None = None  # ... built at start (flow.warm_at_start) or when first asked
         self.view = ViewRenderer(spec.camera_model)
         self._estimate: Estimate | None = None
         self._flatness: Flatness | None = None  # of _estimate: read once per frame, kept between frames
@@ -123,6 +124,10 @@ class Compute:
         self._ahead: _Ahead | None = None  # a frame tracked before its tick asked
 
     def start(self) -> None:
+        if self.spec.flow.warm_at_start:
+            cam = self.spec.camera_model
+            self._flow_cell = self._new_flow_cell()
+            self._flow_cell.tracking.warm(cam.width, cam.height)
         if self.foxglove is not None:
             self.foxglove.start()
         self.frames.start()
@@ -247,17 +252,16 @@ class Compute:
         self._estimate = self._flatness = None
         self.flow = None
         if flow:
-            spec = self.spec
-            self.flow = FlowCell(
-                spec.flow,
-                spec.tracker,
-                spec.control,
-                spec.cell,
-                spec.camera_model,
-                [c.camera_model for c in spec.other_cameras],
-                spec.period_s,
-                clock=time.perf_counter,
-            )
+            if self._flow_cell is None:
+                self._flow_cell = self._new_flow_cell()
+            self.flow = self._flow_cell
+            self.flow.reset()
+
+    def _new_flow_cell(self) -> FlowCell:
+        s = self.spec
+        others = [c.camera_model for c in s.other_cameras]
+        args = (s.flow, s.tracker, s.control, s.cell, s.camera_model, others, s.period_s)
+        return FlowCell(*args, clock=time.perf_counter)
 
     def _flow_tick(
         self,

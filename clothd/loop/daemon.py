@@ -121,6 +121,8 @@ class Daemon:
             )
         if mode != Mode.IDLE:
             self._check_can_move(cloth=mode != Mode.FLOW)  # flow takes the pieces as they come
+        if mode == Mode.FLOW and not self.settings.flow_ready:
+            raise RequestError("flow needs flow.warm_at_start: true (a tracker built in a tick stalls it)")
         est = self.latest.estimate if self.latest else None
         if mode == Mode.MOVE:
             if pose is None:

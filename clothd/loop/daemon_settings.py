@@ -31,3 +31,4 @@ class DaemonSettings:
     max_speed_m_s: float = 0.2  # cell.max_speed_m_s: the most a drive script may ask of a module
     module_calibration: ModuleCalibration | None = None  # cell.module_calibration: corrected on the wire
     cameras: tuple[tuple[str, str], ...] = ()  # every camera's name and source as shown, first first
+    flow_ready: bool = False  # flow.warm_at_start: the compute built the pieces' trackers at start
