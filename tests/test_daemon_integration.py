@@ -45,10 +45,12 @@ def test_tracking_converges_on_the_true_pose(cell: Cell, daemon: Daemon) -> None
     print(f"tracked pose error {dist * 1e3:.2f} mm, {math.degrees(ang):.2f} deg; {s['features']} features")
     assert dist < 0.002 and ang < math.radians(0.5)
     assert s["features"] > 100 and s["residual"]["mean_px"] < 1.0
-    # The cloth lies flat, and the mesh estimate says so, in the status and in /metrics.
+    # The cloth lies flat, and the mesh estimate says so, in the status and in /metrics. Its measured
+    # height is held to the second view's precision (issue 35: within 1.5 mm of the truth): over the
+    # quads of a flat cloth the highest reads 0.7-1.3 mm of noise, run to run.
     f = s["flatness"]
     print(f"flatness at rest: {f}")
-    assert f["flat"] and f["max_height_mm"] < 1.0 and f["ridges"] == [] and f["compressed_area_pct"] < 1.0
+    assert f["flat"] and f["max_height_mm"] < 1.5 and f["ridges"] == [] and f["compressed_area_pct"] < 1.0
     metrics = httpx.get(f"{daemon.base}/metrics", timeout=5).text
     assert "clothd_flat 1.0" in metrics and "clothd_ridges 0.0" in metrics
 

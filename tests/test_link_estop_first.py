@@ -180,10 +180,12 @@ def test_estop_at_once_reaches_the_line_while_the_links_loop_is_held() -> None:
                 thread.start()
                 thread.join()  # the loop's thread blocked here: nothing of the link's ran meanwhile
                 assert len(seen[0]) == 1 and link.estopped  # latched: the next tick holds its COMMAND
-                assert not link.send_commands(_speed(5))
+                assert not link.send_commands(_speed(5))  # held back: a PING goes instead
                 link.estop()
                 await ctrl.read_until(lambda: len(ctrl.of_type(T.ESTOP)) == 2)
-                assert not ctrl.of_type(T.COMMAND) and ctrl.of_type(T.PING)
+                # No COMMAND reached the line. The PING may not have either: estop() discards what is
+                # still unsent (under load a fresh clone's make test saw it discarded).
+                assert not ctrl.of_type(T.COMMAND)
         finally:
             ctrl.close()
 
