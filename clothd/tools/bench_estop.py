@@ -43,7 +43,7 @@ N_MODULES = 48  # hwsim's cell, and the firmware's --modules
 READY_TIMEOUT_S = 180.0
 WIRE_TIMEOUT_S = 10.0
 MOVE = {"mode": "move", "x_m": 0.05, "y_m": 0.03, "theta_rad": 0.25}
-BAR_MS = 20.0  # issue 36: latched within 20 ms on the wire
+BAR_MS = 20.0  # an e-stop must be on the wire within this of the request (docs/benchmarks.md)
 
 
 class Line:
