@@ -70,6 +70,22 @@ def frame_of(world: World, sensor: Sensor, k: int) -> np.ndarray:
     return image
 
 
+def command_table(world: World, commands: ModuleCommands) -> None:
+    """The commands reach the drives, as hwsim's firmware turns them into drive targets."""
+    world.table.command(
+        np.arange(world.table.n_modules), *drive_targets(commands.speed_m_s, commands.heading_rad)
+    )
+
+
+def frames_of(world: World, sensors: list[Sensor], k: int) -> tuple[np.ndarray, list[PairedView | None]]:
+    """Frame k of the first sensor, and the further sensors' as views paired with it."""
+    images = [frame_of(world, sensor, k) for sensor in sensors]
+    views: list[PairedView | None] = [
+        PairedView(image, world.t_s + s.skew_s) for image, s in zip(images[1:], sensors[1:], strict=True)
+    ]
+    return images[0], views
+
+
 class LockstepCell:
     """hwsim's scenario and clothd's loop, advanced together by `sleep`."""
 
@@ -191,14 +207,10 @@ class LockstepCell:
         self.cell.reset()
         self.estimate = self.flatness = None
 
-
     # -- one tick ------------------------------------------------------------------------------------
 
     def _tick(self) -> None:
-        self.world.table.command(
-            np.arange(self.world.table.n_modules),
-            *drive_targets(self.commands.speed_m_s, self.commands.heading_rad),
-        )
+        command_table(self.world, self.commands)
         in_force = self.commands
         self.world.step()
         self.ticks += 1
@@ -208,12 +220,8 @@ class LockstepCell:
             # (clothd/core/second_view.py): rendering them otherwise would only slow the lockstep.
             measured = self.tracker.initialising or self.tracker.flatness_basis == FlatnessBasis.MEASURED
             sensors = self.sensors if measured else self.sensors[:1]
-            images = [frame_of(self.world, sensor, k) for sensor in sensors]
-            views = [
-                PairedView(image, self.world.t_s + s.skew_s)
-                for image, s in zip(images[1:], sensors[1:], strict=True)
-            ]
-            self.estimate = self.tracker.track(images[0], self.world.t_s, in_force, views)
+            image, views = frames_of(self.world, sensors, k)
+            self.estimate = self.tracker.track(image, self.world.t_s, in_force, views)
             self.flatness = self.cell.read_flatness(self.estimate)
         have_frame = self.world.frame_index >= self.camera_every
         step = self.cell.step(have_frame, self.estimate, self.setpoint, self.flatness, self.now())

@@ -15,12 +15,10 @@ import numpy as np
 
 from clothd.config import Config, with_overrides
 from clothd.core.flow_cell import FlowCell
-from clothd.core.messages import PairedView
 from clothd.core.pieces import Piece
 from clothd.taichi_runtime import start_taichi
-from clothd.tools.lockstep import CAMERA_FPS, frame_of, scenario_cameras
+from clothd.tools.lockstep import CAMERA_FPS, command_table, frames_of, scenario_cameras
 from hwsim import scenario as scenarios
-from hwsim.firmware import drive_targets
 from hwsim.world import World
 
 
@@ -92,10 +90,7 @@ class LockstepFlow:
         }
 
     def _tick(self) -> None:
-        self.world.table.command(
-            np.arange(self.world.table.n_modules),
-            *drive_targets(self.commands.speed_m_s, self.commands.heading_rad),
-        )
+        command_table(self.world, self.commands)
         in_force = self.commands
         self.world.step()
         self.ticks += 1
@@ -104,13 +99,9 @@ class LockstepFlow:
         t0 = time.perf_counter()
         if frame:
             k = self.world.frame_index // self.camera_every
-            images = [frame_of(self.world, sensor, k) for sensor in self.sensors]
-            views = [
-                PairedView(image, self.world.t_s + s.skew_s)
-                for image, s in zip(images[1:], self.sensors[1:], strict=True)
-            ]
+            image, views = frames_of(self.world, self.sensors, k)
             t0 = time.perf_counter()  # the rendering is hwsim's
-            self.cell.track(images[0], self.world.t_s, in_force, views)
+            self.cell.track(image, self.world.t_s, in_force, views)
         t1 = time.perf_counter()
         self.commands = self.cell.step(self.world.t_s)
         t2 = time.perf_counter()
