@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+from test_cell_controller import _nodes
 
 from clothd.config import CellConfig, ControlConfig, FlowConfig
 from clothd.core.control import PoseController
@@ -34,18 +35,7 @@ def _controller() -> FlowController:
 def _estimate(pose: tuple[float, float, float], ridge: bool = False, t_s: float = 0.0) -> Estimate:
     """A tracked piece at pose; with a ridge, one column of edges 40 % short and raised 10 mm."""
     p = np.array(pose)
-    dx = np.full(NX - 1, SIZE_M[0] / (NX - 1))
-    if ridge:
-        dx[5] *= 0.6
-    x = np.concatenate([[0.0], np.cumsum(dx)])
-    x -= x.mean()
-    y = (np.arange(NY) - (NY - 1) / 2) * SIZE_M[1] / (NY - 1)
-    xx, yy = np.meshgrid(x, y)
-    zz = np.zeros_like(xx)
-    if ridge:
-        zz[:, 6] = 0.01
-    c, s = np.cos(p[2]), np.sin(p[2])
-    nodes = np.stack([p[0] + c * xx - s * yy, p[1] + s * xx + c * yy, zz], axis=-1)
+    nodes = _nodes(p, ridge)
     return Estimate(
         frame_t_s=t_s,
         status="tracking",
