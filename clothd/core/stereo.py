@@ -34,8 +34,10 @@ from clothd.core.messages import PairedView
 MATCH_WINDOW_PX = 21  # wider than tracking's: the two views see a patch from different angles
 MATCH_LEVELS = 3  # pyramid levels: a match up to ~60 px along its line from the table-plane guess
 TRACKING_LEVELS = 1  # from where the estimate puts a point: a few pixels to find
-TRACKING_WINDOW_PX = 11  # ... in a window as tracking's own; no backward pass (the epipolar check guards)
-MATCH_FB_MAX_PX = 1.0  # forward-backward: the match must lead back within this
+TRACKING_WINDOW_PX = 11  # ... in a window as tracking's own
+# Forward-backward, searching or not: the match must lead back within this. The epipolar check alone let
+# a look-alike on the line through (0.2 px per mm of height): a flat cloth's feature read 3.3 mm high.
+MATCH_FB_MAX_PX = 1.0
 FIELD_PITCH_M = 0.004  # the height field's grid spacing, finer than a ridge (hwsim's σ is 12 mm)
 POINT_SIGMA_M = 0.001  # one triangulated height, about (0.2 px at the default cell's geometry)
 CURVATURE_SIGMA_M = 0.0015  # a second difference over FIELD_PITCH_M: a 20 mm ridge of σ 12 mm has ~2.2
@@ -91,11 +93,10 @@ def match_across(
     h, w = gray1.shape[:2]
     inside = (px1[:, 0] >= 0) & (px1[:, 0] <= w - 1) & (px1[:, 1] >= 0) & (px1[:, 1] <= h - 1)
     ok = st1.ravel().astype(bool) & np.isfinite(guess).all(axis=1) & inside
-    if searching:  # a search along the whole line: the match must lead back too
-        back, st2, _ = cv2.calcOpticalFlowPyrLK(
-            gray1, gray0, p1, p0.copy(), winSize=window, maxLevel=levels, criteria=criteria, flags=flags
-        )
-        ok &= st2.ravel().astype(bool) & (np.linalg.norm(back.reshape(-1, 2) - px0, axis=1) < MATCH_FB_MAX_PX)
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(
+        gray1, gray0, p1, p0.copy(), winSize=window, maxLevel=levels, criteria=criteria, flags=flags
+    )
+    ok &= st2.ravel().astype(bool) & (np.linalg.norm(back.reshape(-1, 2) - px0, axis=1) < MATCH_FB_MAX_PX)
     line_px0 = px0 if seen_px0 is None else seen_px0
     ok &= epipolar_distance_px(cam0, line_px0, cam1, px1, cfg.max_height_m) < cfg.epipolar_max_px
     return px1, ok
