@@ -3,9 +3,12 @@ second along their epipolar lines, triangulated, and a smooth height field fitte
 
 Matching: a feature on the table (z = 0) would be seen in the second view where the table-plane point
 under it projects; a feature at height h lies further along its epipolar line, by about f·b·h/Z² pixels
-(b the baseline, Z the distance). Pyramidal Lucas–Kanade starts at the table-plane guess and searches
-the rest; the match must come back to where it started (forward–backward), and lie on the epipolar line:
-a match off the line is a look-alike, whatever LK says.
+(b the baseline, Z the distance). The first view is first warped into the second through the table plane,
+so that a patch of nearly flat cloth looks the same in both and LK's only motion is the height's shift:
+matched as seen, each view's own perspective biased each feature's height by its own amount (0.26 mm
+sigma on the default cell, 0.97 mm on the flow cell's). Pyramidal Lucas–Kanade starts at the
+table-plane guess and searches the rest; the match must come back to where it started
+(forward–backward), and lie on the epipolar line: a match off the line is a look-alike, whatever LK says.
 
 Triangulation: the midpoint of the shortest segment between the two viewing rays (their undistorted
 directions through each camera's centre).
@@ -20,6 +23,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -38,6 +42,7 @@ TRACKING_WINDOW_PX = 11  # ... in a window as tracking's own
 # Forward-backward, searching or not: the match must lead back within this. The epipolar check alone let
 # a look-alike on the line through (0.2 px per mm of height): a flat cloth's feature read 3.3 mm high.
 MATCH_FB_MAX_PX = 1.0
+WARP_MARGIN_PX = 80  # the first view is warped this far around the features' guesses: LK's search and window
 FIELD_PITCH_M = 0.004  # the height field's grid spacing, finer than a ridge (hwsim's σ is 12 mm)
 POINT_SIGMA_M = 0.001  # one triangulated height, about (0.2 px at the default cell's geometry)
 CURVATURE_SIGMA_M = 0.0015  # a second difference over FIELD_PITCH_M: a 20 mm ridge of σ 12 mm has ~2.2
@@ -60,6 +65,35 @@ def epipolar_distance_px(
     return np.asarray(np.abs(r[:, 0] * d[:, 1] - r[:, 1] * d[:, 0]))
 
 
+@lru_cache(maxsize=16)
+def _table_warp(cam0: CameraModel, cam1: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """For every pixel of the second view, the first view's pixel that sees the same table point: the maps
+    (h, w) float32 of cv2.remap that warp the first view into the second through the table plane.
+    Cameras are fixed: made once for a pair (CameraModel hashes by identity)."""
+    u, v = np.meshgrid(np.arange(cam1.width, dtype=np.float64), np.arange(cam1.height, dtype=np.float64))
+    px1 = np.column_stack([u.ravel(), v.ravel()])
+    px0 = cam0.project(cam1.backproject_to_plane(px1, 0.0))
+    px0 = np.nan_to_num(px0, nan=-1.0).astype(np.float32)
+    shape = (cam1.height, cam1.width)
+    return px0[:, 0].reshape(shape), px0[:, 1].reshape(shape)
+
+
+def _warped_first_view(
+    gray0: np.ndarray, gray1: np.ndarray, cam0: CameraModel, cam1: CameraModel, around_px: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The first view warped into the second through the table plane, and the second view, both cut to
+    the rectangle WARP_MARGIN_PX around pixels around_px (n, 2) of the second view, and that rectangle's
+    top-left corner (2,)."""
+    map_x, map_y = _table_warp(cam0, cam1)
+    h, w = gray1.shape[:2]
+    finite = around_px[np.isfinite(around_px).all(axis=1)]
+    lo = np.clip(np.floor(finite.min(axis=0)) - WARP_MARGIN_PX, 0, [w - 1, h - 1]).astype(int)
+    hi = np.clip(np.ceil(finite.max(axis=0)) + WARP_MARGIN_PX + 1, 1, [w, h]).astype(int)
+    rows, cols = slice(lo[1], hi[1]), slice(lo[0], hi[0])
+    warped = cv2.remap(gray0, map_x[rows, cols], map_y[rows, cols], cv2.INTER_LINEAR)
+    return warped, np.ascontiguousarray(gray1[rows, cols]), lo.astype(np.float64)
+
+
 def match_across(
     gray0: np.ndarray,
     gray1: np.ndarray,
@@ -79,24 +113,31 @@ def match_across(
     n = len(px0)
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
-    guess = cam1.project(cam0.backproject_to_plane(px0, 0.0) if guess_m is None else guess_m)
+    on_table = cam1.project(cam0.backproject_to_plane(px0, 0.0))  # px0's content in the warped view
+    guess = on_table if guess_m is None else cam1.project(guess_m)
+    if not np.isfinite(on_table).all(axis=1).any():
+        return np.full((n, 2), np.nan), np.zeros(n, bool)
+    warped, gray1_cut, corner = _warped_first_view(gray0, gray1, cam0, cam1, np.vstack([on_table, guess]))
     searching = levels > TRACKING_LEVELS
     side = MATCH_WINDOW_PX if searching else TRACKING_WINDOW_PX
     window, criteria = (side, side), (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
     flags = cv2.OPTFLOW_USE_INITIAL_FLOW
-    p0 = px0.astype(np.float32).reshape(-1, 1, 2)
-    g = np.nan_to_num(guess, nan=-1.0).astype(np.float32).reshape(-1, 1, 2)
+    p0 = np.nan_to_num(on_table - corner, nan=-1.0).astype(np.float32).reshape(-1, 1, 2)
+    g = np.nan_to_num(guess - corner, nan=-1.0).astype(np.float32).reshape(-1, 1, 2)
     p1, st1, _ = cv2.calcOpticalFlowPyrLK(
-        gray0, gray1, p0, g, winSize=window, maxLevel=levels, criteria=criteria, flags=flags
+        warped, gray1_cut, p0, g, winSize=window, maxLevel=levels, criteria=criteria, flags=flags
     )
-    px1 = p1.reshape(-1, 2).astype(np.float64)
+    px1 = p1.reshape(-1, 2).astype(np.float64) + corner
     h, w = gray1.shape[:2]
     inside = (px1[:, 0] >= 0) & (px1[:, 0] <= w - 1) & (px1[:, 1] >= 0) & (px1[:, 1] <= h - 1)
-    ok = st1.ravel().astype(bool) & np.isfinite(guess).all(axis=1) & inside
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(
-        gray1, gray0, p1, p0.copy(), winSize=window, maxLevel=levels, criteria=criteria, flags=flags
+    ok = (
+        st1.ravel().astype(bool) & np.isfinite(guess).all(axis=1) & np.isfinite(on_table).all(axis=1) & inside
     )
-    ok &= st2.ravel().astype(bool) & (np.linalg.norm(back.reshape(-1, 2) - px0, axis=1) < MATCH_FB_MAX_PX)
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(
+        gray1_cut, warped, p1, p0.copy(), winSize=window, maxLevel=levels, criteria=criteria, flags=flags
+    )
+    led_back = np.linalg.norm(back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1) < MATCH_FB_MAX_PX
+    ok &= st2.ravel().astype(bool) & led_back
     line_px0 = px0 if seen_px0 is None else seen_px0
     ok &= epipolar_distance_px(cam0, line_px0, cam1, px1, cfg.max_height_m) < cfg.epipolar_max_px
     return px1, ok
