@@ -37,6 +37,9 @@ from hwsim.texture import (
 MAX_ARMS = 4
 BELT_LOOP_M = 0.2  # belt texture period along the direction of travel
 DECK_TILE_M = 0.3  # deck texture tile; it repeats (small, so it stays in cache)
+# The belts and deck are made at this density for every camera, each camera sampling the mip level that
+# suits it: made at each camera's own density, their noise came out a different pattern in each view.
+TABLE_TEXELS_PER_M = 2000.0
 _EMPTY_KEY = 2**62
 _TRI_BITS = 21  # triangle index bits in a z-buffer key; depth in micrometres above them
 _VISIBLE_DEPTH_TOL_M = 0.003
@@ -58,6 +61,13 @@ def _texture_field(tex: np.ndarray) -> ti.MatrixField:
     field = ti.Vector.field(3, ti.f32, shape=tex.shape[:2])
     field.from_numpy(np.ascontiguousarray(tex, dtype=np.float32))
     return field
+
+
+def _texel_offset(level: int) -> float:
+    """Level 0's texel i is centred at i + 0.5, and cv2.pyrDown centres level L's texel i on level 0's
+    2**L i: level L's coordinate is (level 0's - 0.5) / 2**L. (- 0.5 at every level shifted the pattern
+    between cameras sampling different levels: a disparity, read as height.)"""
+    return 0.5 / 2**level
 
 
 @ti.func
@@ -137,6 +147,7 @@ class Renderer:
         px_per_m = self.hi.K[0, 0] / abs(self.hi.centre_m[2])
         self.cloth_tex: list[ti.MatrixField] = []
         self.cloth_texels_per_m: list[float] = []
+        self.cloth_texel_offset: list[float] = []
         self.cloth_slopes: list[ti.MatrixField] = []
         self.relief: list[bool] = []
         for spec, size in fabric_textures(scenario):
@@ -152,6 +163,7 @@ class Renderer:
         level = mip_level_for(spec.texels_per_m, px_per_m)
         self.cloth_tex.append(_texture_field(mip_pyramid(tex, level + 1)[level]))
         self.cloth_texels_per_m.append(spec.texels_per_m / 2**level)
+        self.cloth_texel_offset.append(_texel_offset(level))
         # The relief's slopes, low-passed to the same mip level as the colour (a 1 x 1 dummy without).
         self.relief.append(spec.relief_m > 0)
         slopes = np.zeros((1, 1, 2), np.float32)
@@ -165,11 +177,13 @@ class Renderer:
 
     def _load_table(self, scenario: Scenario, px_per_m: float) -> None:
         spec = scenario.texture
-        belt_tpm = max(px_per_m, 500.0)
-        belt = belt_texture(spec.seed + 1, BELT_LOOP_M, self.table_spec.module_size_m, belt_tpm)
-        self.belt_tex = _texture_field(belt)
-        self.belt_texels_per_m = belt_tpm
-        self.deck_tex = _texture_field(deck_texture(spec.seed + 2, (DECK_TILE_M, DECK_TILE_M), belt_tpm))
+        level = mip_level_for(TABLE_TEXELS_PER_M, px_per_m)
+        belt = belt_texture(spec.seed + 1, BELT_LOOP_M, self.table_spec.module_size_m, TABLE_TEXELS_PER_M)
+        deck = deck_texture(spec.seed + 2, (DECK_TILE_M, DECK_TILE_M), TABLE_TEXELS_PER_M)
+        self.belt_tex = _texture_field(mip_pyramid(belt, level + 1)[level])
+        self.deck_tex = _texture_field(mip_pyramid(deck, level + 1)[level])
+        self.belt_texels_per_m = TABLE_TEXELS_PER_M / 2**level
+        self.table_texel_offset = _texel_offset(level)
 
     def render(self, states: list[SceneState]) -> tuple[np.ndarray, np.ndarray]:
         """Average renders of `states` (one per motion-blur sample; the last is the frame's instant).
@@ -314,6 +328,7 @@ class Renderer:
         for q in ti.static(range(len(self.cloth_tex))):
             if fabric == q:
                 tpm = ti.static(self.cloth_texels_per_m[q])
+                off = ti.static(self.cloth_texel_offset[q])
                 if ti.static(self.relief[q]):
                     # Tilt the normal by the relief's slopes: n - dh/ds T_s - dh/dt T_t (a height field on
                     # the sheet).
@@ -322,9 +337,9 @@ class Renderer:
                     for k in ti.static(range(3)):
                         ts += pw[k] * self.vtan_s[c[k, 0], c[k, 1], c[k, 2]]
                         tt += pw[k] * self.vtan_t[c[k, 0], c[k, 1], c[k, 2]]
-                    g = _bilinear2(self.cloth_slopes[q], s * tpm - 0.5, t * tpm - 0.5)
+                    g = _bilinear2(self.cloth_slopes[q], s * tpm - off, t * tpm - off)
                     n = n.normalized() - g[0] * ts.normalized() - g[1] * tt.normalized()
-                albedo = _bilinear(self.cloth_tex[q], s * tpm - 0.5, t * tpm - 0.5, False)
+                albedo = _bilinear(self.cloth_tex[q], s * tpm - off, t * tpm - off, False)
         n = n.normalized()
         return albedo * (ambient + (1.0 - ambient) * ti.max(0.0, n.dot(light)))
 
@@ -345,13 +360,15 @@ class Renderer:
         if hit[3] > 0.0:
             m = ti.cast(hit[0], ti.i32)
             bt = ti.static(self.belt_texels_per_m)
+            off = ti.static(self.table_texel_offset)
             # The surface runs along +heading, so its pattern sits at (along - travel).
             along = ti.cast(hit[1], ti.f32) - self.travel[m]
             across = ti.cast(hit[2], ti.f32) + half_belt
-            colour = _bilinear(self.belt_tex, along * bt - 0.5, across * bt - 0.5, True)
+            colour = _bilinear(self.belt_tex, along * bt - off, across * bt - off, True)
         else:
             dt = ti.static(self.belt_texels_per_m)
-            colour = _bilinear(self.deck_tex, p[0] * dt - 0.5, (p[1] % DECK_TILE_M) * dt - 0.5, True)
+            off = ti.static(self.table_texel_offset)
+            colour = _bilinear(self.deck_tex, p[0] * dt - off, (p[1] % DECK_TILE_M) * dt - off, True)
         return colour * flat_shade
 
     @ti.func

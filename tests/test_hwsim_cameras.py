@@ -1,5 +1,6 @@
 """hwsim with several cameras: the scenario's `cameras`, `hwsim record`'s cameras/NAME/, the height
-precision of a pair, and `hwsim serve`'s stream per camera."""
+precision of a pair, every camera seeing the same patterns where they lie, and `hwsim serve`'s stream per
+camera."""
 
 from __future__ import annotations
 
@@ -19,9 +20,12 @@ import yaml
 
 from hwsim import scenario as scenarios
 from hwsim.camera import Camera
-from hwsim.recording import record
+from hwsim.recording import record, render_frame
+from hwsim.renderer import Renderer
 from hwsim.serve import frame_intervals
 from hwsim.stereo import height_precision_mm, oblique_spec, sees_table
+from hwsim.taichi_runtime import ensure_taichi
+from hwsim.world import World
 
 # A quarter-size picture of the live cell's two cameras: f_px / 4 keeps the view, at 1/16 of the pixels.
 SMALL_TOP = {"width": 160, "height": 120, "f_px": 225.0}
@@ -176,3 +180,32 @@ def test_other_cameras_frames_coincide_with_the_first_cameras() -> None:
     assert frame_intervals(30.0, 2, 15.0, 7.5) == [2, 4]
     assert frame_intervals(30.0, 3, 15.0, 10.0) == [2, 4, 4]  # every 3 steps would miss the first camera
     assert frame_intervals(30.0, 1, 15.0, 5.0) == [2]
+
+
+def _top_down_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One world rendered by two cameras straight down from 1 m, f 450 and f 900 (different mip levels of
+    every texture): their images (grey), and the homography that takes the first's pixels to the second's."""
+    near = {"width": 640, "height": 480, "f_px": 900.0}
+    far = {"width": 320, "height": 240, "f_px": 450.0}
+    sc = scenarios.parse({**_small(), "cameras": [far, {**near, "name": "near"}]})
+    world = World(sc, log_commands=False)
+    world.step()
+    images = []
+    for spec in sc.camera_specs:
+        image, _ = render_frame(world, Renderer(sc, Camera.from_spec(spec), world.cloth.grid), 0.0)
+        images.append(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
+    K = [Camera.from_spec(spec).K for spec in sc.camera_specs]
+    return images[0], images[1], K[1] @ np.linalg.inv(K[0])
+
+
+def test_every_camera_sees_the_same_cloth_and_belts_where_they_lie() -> None:
+    """Two cameras, each texture sampled at its own mip level: the pattern lies in the same place on the
+    cloth and on the belts in both (no disparity where there is no height)."""
+    ensure_taichi()
+    far, near, H = _top_down_pair()
+    far_in_near = cv2.warpPerspective(far, H, (near.shape[1], near.shape[0]), flags=cv2.INTER_CUBIC)
+    window = cv2.createHanningWindow((128, 128), cv2.CV_32F)
+    for name, (x, y) in {"cloth": (320, 240), "belt": (560, 80)}.items():
+        a, b = (img[y - 64 : y + 64, x - 64 : x + 64].astype(np.float32) for img in (far_in_near, near))
+        (dx, dy), response = cv2.phaseCorrelate(a, b, window)
+        assert math.hypot(dx, dy) < 0.1 and response > 0.3, name
