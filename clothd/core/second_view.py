@@ -15,7 +15,7 @@ from clothd.core.camera_model import CameraModel
 from clothd.core.feature_set import FeatureSet
 from clothd.core.mesh import Binding, QuadMesh, blend
 from clothd.core.messages import PairedView
-from clothd.core.stereo import HeightField, fit_height_field, measure_surface, quad_highest
+from clothd.core.stereo import HeightField, fit_height_field, measure_surface, quad_highest, table_warp
 
 # Tracking begins on a frame a further view pairs (its surface is measured then): this many frames are
 # waited for one before tracking begins on one view.
@@ -47,6 +47,8 @@ class SecondView:
         self._waits = 0
         self._nodes_before: tuple[float, np.ndarray] | None = None
         self._due: HeightsFrame | None = None
+        for other in self.others:  # the warp between the views, made now rather than in a frame
+            table_warp(first, other)
 
     def reset(self) -> None:
         self._waits = 0

@@ -27,8 +27,8 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
+import scipy.linalg as sla
 import scipy.sparse as sps
-import scipy.sparse.linalg as spla
 
 from clothd.config import StereoConfig
 from clothd.core.camera_model import CameraModel
@@ -66,7 +66,7 @@ def epipolar_distance_px(
 
 
 @lru_cache(maxsize=16)
-def _table_warp(cam0: CameraModel, cam1: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+def table_warp(cam0: CameraModel, cam1: CameraModel) -> tuple[np.ndarray, np.ndarray]:
     """For every pixel of the second view, the first view's pixel that sees the same table point: the maps
     (h, w) float32 of cv2.remap that warp the first view into the second through the table plane.
     Cameras are fixed: made once for a pair (CameraModel hashes by identity)."""
@@ -84,7 +84,7 @@ def _warped_first_view(
     """The first view warped into the second through the table plane, and the second view, both cut to
     the rectangle WARP_MARGIN_PX around pixels around_px (n, 2) of the second view, and that rectangle's
     top-left corner (2,)."""
-    map_x, map_y = _table_warp(cam0, cam1)
+    map_x, map_y = table_warp(cam0, cam1)
     h, w = gray1.shape[:2]
     finite = around_px[np.isfinite(around_px).all(axis=1)]
     lo = np.clip(np.floor(finite.min(axis=0)) - WARP_MARGIN_PX, 0, [w - 1, h - 1]).astype(int)
@@ -258,9 +258,15 @@ def _solve_field(w: np.ndarray, idx: np.ndarray, z_m: np.ndarray, shape: tuple[i
     rows = np.repeat(np.arange(len(w)), 4)
     data = sps.csr_matrix((w.ravel() / POINT_SIGMA_M, (rows, idx.ravel())), shape=(len(w), n))
     curvature = _second_differences(gy, gx) / CURVATURE_SIGMA_M
-    A = (data.T @ data + curvature.T @ curvature + sps.identity(n) / ZERO_SIGMA_M**2).tocsc()
+    A = (data.T @ data + curvature.T @ curvature + sps.identity(n) / ZERO_SIGMA_M**2).tocoo()
     rhs = data.T @ (z_m / POINT_SIGMA_M)
-    return np.asarray(spla.spsolve(A, rhs))
+    # Symmetric positive definite and banded (a grid node couples to nodes up to two rows away): a banded
+    # Cholesky solve, half of SuperLU's time on a piece's grid.
+    band = 2 * gx
+    upper = A.col >= A.row
+    ab = np.zeros((band + 1, n))
+    ab[band + A.row[upper] - A.col[upper], A.col[upper]] = A.data[upper]
+    return np.asarray(sla.solveh_banded(ab, rhs))
 
 
 def _second_differences(gy: int, gx: int) -> sps.csr_matrix:
