@@ -19,13 +19,15 @@ def _rates(text: str) -> list[float]:
 
 
 def _cmd_bench_flow(args: argparse.Namespace) -> int:
-    from clothd.tools.bench_flow import format_result, run_bench, write_json
+    from clothd.tools.bench_flow import format_result, plot_rates, run_bench, write_json
 
     rates = [args.rate] + [r for r in (args.rates or []) if r != args.rate]
     result = run_bench(args.minutes, rates, args.seed, args.cameras)
     print(format_result(result))
     if args.json:
         write_json(result, args.json)
+    if args.plot:
+        plot_rates(result, args.plot)
     return 0
 
 
@@ -39,4 +41,5 @@ def add_flow(bsub: Subparsers) -> None:
     bf.add_argument("--seed", type=int, default=0, help="seeds the pieces' draws")
     add_cameras(bf, None, "the flow cell's first N cameras (default: all)")
     bf.add_argument("--json", type=Path, help="also write the figures and every piece as JSON")
+    bf.add_argument("--plot", type=Path, help="also draw success and throughput against the rate (PNG)")
     bf.set_defaults(func=_cmd_bench_flow)

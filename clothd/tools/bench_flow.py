@@ -140,3 +140,35 @@ def format_result(result: dict[str, Any]) -> str:
 
 def write_json(result: dict[str, Any], path: Path) -> None:
     path.write_text(json.dumps(result, indent=2) + "\n")
+
+
+def plot_rates(result: dict[str, Any], path: Path) -> None:
+    """Success and throughput against the rate pieces are laid at, with the 98 % bar."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = result.get("rates") or [result]
+    rates = [r["rate_per_min"] for r in runs]
+    fig, ax = plt.subplots(figsize=(6.5, 3.8), dpi=110)
+    right = ax.twinx()
+    ax.plot(rates, [r["success_pct"] for r in runs], "o-", color="C0", label="success (%)")
+    right.plot(rates, [r["throughput_per_min"] for r in runs], "s--", color="C1", label="throughput (/min)")
+    ax.axhline(98.0, color="k", linewidth=0.8, linestyle="-.", label="bar: 98 %")
+    ax.set_xlabel("pieces laid per minute")
+    ax.set_ylabel("pieces flat and placed, %")
+    right.set_ylabel("pieces flat and placed per minute")
+    ax.set_ylim(0, 105)
+    right.set_ylim(bottom=0)
+    ax.grid(True, alpha=0.3)
+    left_h, left_l = ax.get_legend_handles_labels()
+    right_h, right_l = right.get_legend_handles_labels()
+    ax.legend(left_h + right_h, left_l + right_l, fontsize=7, loc="lower left")
+    ax.set_title(
+        f"Production flow: {result['minutes']:g} min a rate, seed {result['seed']}, "
+        f"{result['cameras']} camera(s)"
+    )
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
