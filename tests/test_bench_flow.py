@@ -35,11 +35,18 @@ def test_a_short_flow_writes_the_interface_keys_and_every_piece_judged(tmp_path:
     assert first["pose_error_mm"] <= 5.0 and first["pose_error_deg"] <= 1.0
     assert result["success_pct"] == 100.0 and result["rejects"] == 0
     assert result["throughput_per_min"] == result["pieces_out"] / 0.2
+    assert result["laid_per_min"] == 1 / 0.2 and result["waiting_at_end"] == 0  # piece 1, laid at 10 s
 
 
 def test_the_plot_draws_success_against_rate(tmp_path: Path) -> None:
     def run(rate: float, success: float) -> dict[str, float]:
-        return {"rate_per_min": rate, "success_pct": success, "throughput_per_min": rate * success / 100}
+        laid = min(rate, 6.0)
+        return {
+            "rate_per_min": rate,
+            "success_pct": success,
+            "throughput_per_min": laid * success / 100,
+            "laid_per_min": laid,
+        }
 
     result = {"minutes": 5.0, "seed": 0, "cameras": 2, "rates": [run(6, 100.0), run(9, 97.0), run(12, 80.0)]}
     path = tmp_path / "rates.png"
