@@ -59,7 +59,21 @@ class Daemon:
         return dict(httpx.get(f"{self.base}/api/v1/status", timeout=5).json())
 
     def put_setpoint(self, body: dict[str, Any]) -> None:
-        httpx.put(f"{self.base}/api/v1/setpoint", json=body, timeout=5).raise_for_status()
+        r = httpx.put(f"{self.base}/api/v1/setpoint", json=body, timeout=5)
+        if r.is_error:  # the daemon's reason, which a bare status code hides from a failed test's report
+            raise httpx.HTTPStatusError(f"{r.status_code}: {r.text}", request=r.request, response=r)
+
+    def tracking_near(self, xy_m: tuple[float, float], tol_m: float = 0.01) -> bool:
+        """Tracking a cloth within tol_m of xy_m: after POST /reset, the status says `tracking` until the
+        reset takes effect, so the state alone cannot tell the new track from the old."""
+        s = self.status()
+        pose = s["pose"]
+        return bool(
+            s["state"] == "tracking"
+            and pose is not None
+            and abs(pose["x_m"] - xy_m[0]) < tol_m
+            and abs(pose["y_m"] - xy_m[1]) < tol_m
+        )
 
     def post(self, path: str) -> None:
         httpx.post(f"{self.base}/api/v1{path}", timeout=5).raise_for_status()

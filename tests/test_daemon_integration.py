@@ -109,7 +109,7 @@ def test_a_cloth_halted_past_the_edge_is_moved_back_to_the_centre(cell: Cell, da
     wait(lambda: not any(cell.truth()["module_speed_m_s"]), 5, "belts still")
     httpx.post(f"{cell.http}/cloth", json={"x_m": 0.0, "y_m": 0.103, "theta_rad": 0.0}, timeout=5)
     daemon.post("/reset")
-    wait(lambda: daemon.status()["state"] == "tracking", 30, "tracking the re-laid cloth", every_s=0.2)
+    wait(lambda: daemon.tracking_near((0.0, 0.103)), 30, "tracking the re-laid cloth", every_s=0.2)
     daemon.put_setpoint({"mode": "move", "x_m": 0.0, "y_m": 0.0, "theta_rad": 0.0})
     took = wait(lambda: _pose_error(cell.truth()["pose"], [0, 0, 0])[0] < 0.005, 15, "back at the centre")
     halt = daemon.status()["halt_reason"]
