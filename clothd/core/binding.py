@@ -58,8 +58,8 @@ def cloth_coordinates(mesh: QuadMesh, nodes_px: np.ndarray, px: np.ndarray) -> t
         return st, found
     xe = invert_bilinear(corners[cand_q], px[cand_px])
     good = np.all(np.abs(xe) <= 1.0 + 1e-6, axis=1)
-    for p, q, e in zip(cand_px[good], cand_q[good], xe[good], strict=True):
-        if not found[p]:
-            st[p] = shape_functions(e[None])[0] @ rest[quads[q]]
-            found[p] = True
+    p, q, e = cand_px[good], cand_q[good], xe[good]
+    p, first = np.unique(p, return_index=True)  # candidates come in pixel, then quad order
+    st[p] = np.einsum("mk,mkd->md", shape_functions(e[first]), rest[quads[q[first]]])
+    found[p] = True
     return st, found
