@@ -27,10 +27,9 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
-import scipy.linalg as sla
-import scipy.sparse as sps
 
 from clothd.config import StereoConfig
+from clothd.core.banded import gram_band, solve_band, transpose_times
 from clothd.core.camera_model import CameraModel
 from clothd.core.mesh import QuadMesh
 from clothd.core.messages import PairedView
@@ -253,31 +252,31 @@ def fit_height_field(
 
 
 def _solve_field(w: np.ndarray, idx: np.ndarray, z_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    # Symmetric positive definite and banded: a grid node couples to nodes up to two rows away. Numbered
+    # column by column when the rows are the longer, the band is the narrower (the solve's cost goes
+    # with its square).
     gy, gx = shape
     n = gy * gx
-    rows = np.repeat(np.arange(len(w)), 4)
-    data = sps.csr_matrix((w.ravel() / POINT_SIGMA_M, (rows, idx.ravel())), shape=(len(w), n))
-    curvature = _second_differences(gy, gx) / CURVATURE_SIGMA_M
-    A = (data.T @ data + curvature.T @ curvature + sps.identity(n) / ZERO_SIGMA_M**2).tocoo()
-    rhs = data.T @ (z_m / POINT_SIGMA_M)
-    # Symmetric positive definite and banded (a grid node couples to nodes up to two rows away): a banded
-    # Cholesky solve, half of SuperLU's time on a piece's grid.
-    band = 2 * gx
-    upper = A.col >= A.row
-    ab = np.zeros((band + 1, n))
-    ab[band + A.row[upper] - A.col[upper], A.col[upper]] = A.data[upper]
-    return np.asarray(sla.solveh_banded(ab, rhs))
+    renumber = np.arange(n).reshape(gy, gx).T.ravel().argsort() if gx > gy else np.arange(n)
+    short = min(gy, gx)
+    cols = renumber[idx]
+    ab = _prior_band(n // short, short) + gram_band(cols, w / POINT_SIGMA_M, n, 2 * short)
+    return solve_band(ab, transpose_times(cols, w / POINT_SIGMA_M, z_m / POINT_SIGMA_M, n))[renumber]
 
 
-def _second_differences(gy: int, gx: int) -> sps.csr_matrix:
-    """The grid's second differences along both axes, as rows of a sparse matrix on the flat heights."""
-
-    def along(n: int) -> sps.csr_matrix:
-        return sps.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(n - 2, n))
-
-    x = sps.kron(sps.identity(gy), along(gx))
-    y = sps.kron(along(gy), sps.identity(gx))
-    return sps.vstack([x, y]).tocsr()
+@lru_cache(maxsize=8)
+def _prior_band(gy: int, gx: int) -> np.ndarray:
+    """The field's prior in band storage: smooth (the grid's second differences along both axes, each
+    within CURVATURE_SIGMA_M) and, far from any point, on the table (ZERO_SIGMA_M). Read-only: shared."""
+    grid = np.arange(gy * gx).reshape(gy, gx)
+    along_x = np.stack([grid[:, :-2], grid[:, 1:-1], grid[:, 2:]], axis=-1).reshape(-1, 3)
+    along_y = np.stack([grid[:-2], grid[1:-1], grid[2:]], axis=-1).reshape(-1, 3)
+    cols = np.concatenate([along_x, along_y])
+    values = np.broadcast_to(np.array([1.0, -2.0, 1.0]) / CURVATURE_SIGMA_M, cols.shape)
+    ab = gram_band(cols, values, gy * gx, 2 * gx)
+    ab[-1] += 1.0 / ZERO_SIGMA_M**2
+    ab.flags.writeable = False
+    return ab
 
 
 def quad_highest(quads: np.ndarray, z_m: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

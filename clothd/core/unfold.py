@@ -15,9 +15,8 @@ later (docs/flattening.md).
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sps
-import scipy.sparse.linalg as spla
 
+from clothd.core.banded import gram_band, solve_band, transpose_times
 from clothd.core.binding import cloth_coordinates
 from clothd.core.mesh import QuadMesh
 from clothd.core.stereo import HeightField
@@ -48,24 +47,24 @@ def _edges(ny: int, nx: int) -> np.ndarray:
     return np.concatenate([np.stack([a.ravel(), b.ravel()], axis=1) for a, b in pairs])
 
 
-def unfold_layout(grid_m: np.ndarray, lengths_m: np.ndarray, edges: np.ndarray) -> np.ndarray:
+def unfold_layout(grid_m: np.ndarray, lengths_m: np.ndarray, edges: np.ndarray, nx: int) -> np.ndarray:
     """Node positions (n, 2) in the plane whose edges have the given lengths, as near as least squares
-    gets them, starting from grid_m (n, 2)."""
+    gets them, starting from grid_m (n, 2): the nodes of a grid nx wide, numbered row by row, whose edges
+    join nodes at most a row and a column apart (so the normal equations are banded)."""
     x = grid_m.copy()
-    n, k = len(x), len(edges)
+    n = len(x)
     a, b = edges[:, 0], edges[:, 1]
-    rows = np.repeat(np.arange(k), 4)
-    anchor = sps.identity(2 * n) * ANCHOR_WEIGHT
+    cols = np.stack([2 * a, 2 * a + 1, 2 * b, 2 * b + 1], axis=1)
+    band = 2 * nx + 3  # x of a node to y of the node a row and a column on
     for _ in range(GAUSS_NEWTON_STEPS):
         d = x[b] - x[a]
         length = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
         u = d / length[:, None]
-        cols = np.stack([2 * a, 2 * a + 1, 2 * b, 2 * b + 1], axis=1).ravel()
-        J = sps.csr_matrix((np.concatenate([-u, u], axis=1).ravel(), (rows, cols)), shape=(k, 2 * n))
-        r = lengths_m - length
-        A = (J.T @ J + anchor.T @ anchor).tocsc()
-        rhs = J.T @ r - anchor.T @ (anchor @ (x - grid_m).ravel())
-        x = x + np.asarray(spla.spsolve(A, rhs)).reshape(n, 2)
+        J = np.concatenate([-u, u], axis=1)
+        ab = gram_band(cols, J, 2 * n, band)
+        ab[-1] += ANCHOR_WEIGHT**2
+        rhs = transpose_times(cols, J, lengths_m - length, 2 * n) - ANCHOR_WEIGHT**2 * (x - grid_m).ravel()
+        x = x + solve_band(ab, rhs).reshape(n, 2)
     return x
 
 
@@ -76,7 +75,7 @@ def unfold(footprint: QuadMesh, field: HeightField) -> tuple[QuadMesh, np.ndarra
     grid = footprint.rest_nodes_m().reshape(-1, 2)
     edges = _edges(ny, nx)
     lengths = surface_lengths_m(field, grid[edges[:, 0]], grid[edges[:, 1]])
-    flat = unfold_layout(grid, lengths, edges)
+    flat = unfold_layout(grid, lengths, edges, nx)
     a1, a2 = footprint.axes
     laid = flat.reshape(ny, nx, 2)
     width = float(np.mean((laid[:, -1] - laid[:, 0]) @ a1))
