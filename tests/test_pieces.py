@@ -79,8 +79,12 @@ def test_each_piece_gets_its_own_tracker_and_is_tracked_where_it_lies(scene: tup
         cfg.flow, model, Workspace.of_cell(cfg.cell), lambda: Tracker(cfg.tracker, model, layout)
     )
     period = cfg.loop.period_s
-    for k in range(cfg.flow.search_every + 2):  # the second look sees them still
+    tracked_per_frame = []
+    for k in range(cfg.flow.search_every + 3):  # the second look sees them still
         pieces = tracking.track(image, k * period, None)
+        tracked_per_frame.append(sum(p.tracking for p in pieces))
+    # No tracker starts on a look's frame, and one starts a frame.
+    assert tracked_per_frame[-3:] == [0, 1, 2]
     assert len(pieces) == 2 and len({p.id for p in pieces}) == 2
     assert len({p.slot for p in pieces}) == 2
     for piece in pieces:
@@ -109,7 +113,7 @@ def test_a_piece_that_leaves_frees_its_tracker_for_the_next(scene: tuple) -> Non
 
     tracking = PieceTracking(cfg.flow, model, Workspace.of_cell(cfg.cell), make)
     period = cfg.loop.period_s
-    for k in range(cfg.flow.search_every + 2):
+    for k in range(cfg.flow.search_every + 3):
         tracking.track(image, k * period, None)
     first = min(tracking.pieces, key=lambda p: p.centre_m[0])
     tracking.leave(first, 1.0)

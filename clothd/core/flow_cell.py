@@ -67,6 +67,10 @@ class FlowCell:
     ) -> None:
         self.tracking.track(image, t_s, commands, views)
 
+    def upkeep(self) -> None:
+        """This frame's work that its commands do not wait for: call after `step`."""
+        self.tracking.upkeep()
+
     def step(self, now_s: float) -> ModuleCommands:
         """This tick's commands; the pieces that have gone are let go."""
         commands, gone = self.controller.step(self.tracking.pieces, now_s)

@@ -1,16 +1,18 @@
 """Several pieces on the table at once: each found as it comes in, given its own tracker once all of it is
 in and still, told apart from the others, and released when it leaves (docs/flow.md).
 
-Finding pieces costs a whole-frame segmentation (~20 ms on a 640 x 480 frame), so it runs every
-`flow.search_every` frames; tracking runs every frame, a tracker per piece. A piece is known by where it
-lies on the table: a region found in a frame is the tracked piece whose estimated outline holds its
-centre, else the untracked piece last seen nearest it, else a new piece. Pieces lie apart, so a region's
-centre lies inside one outline only, however close their edges come.
+Finding pieces costs a whole-frame segmentation (12-20 ms on a 960 x 480 frame), so it runs every
+`flow.search_every` frames, beside the frame's tracking; tracking runs every frame, a tracker per piece.
+A piece is known by where it lies on the table: a region found in a frame is the tracked piece whose
+estimated outline holds its centre, else the untracked piece last seen nearest it, else a new piece.
+Pieces lie apart, so a region's centre lies inside one outline only, however close their edges come.
 
 A tracker starts on a piece only when the piece lies inside the workspace and has not moved between two
-looks: tracking begins on a cloth at rest, as the single-piece tracker's does. The trackers come from a
-pool and go back to it when a piece leaves; a new piece reuses one, so that nothing grows with the
-number of pieces that passed.
+looks: tracking begins on a cloth at rest, as the single-piece tracker's does. It starts on the frame
+after that look, one start a frame: a start costs as much as tracking two pieces, and on top of a look
+or another start it would keep the frame's commands past the tick. The trackers come from a pool and go
+back to it when a piece leaves; a new piece reuses one, so that nothing grows with the number of pieces
+that passed.
 
 This module only sees. Which state a piece is in past `tracked` (flattening, placing, leaving) is the flow
 controller's (core/flow.py), which also says when a piece has left.
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -130,11 +133,14 @@ class PieceTracking:
         self.gone: deque[Piece] = deque(maxlen=GONE_KEPT)  # left or rejected and gone, oldest first
         self._next_id = 0
         self._frames = 0
+        self._segmenter = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pieces-look")
 
     def warm(self, width: int, height: int, frames: int = 10) -> None:
         """Build every tracker of the pool and run each over a few frames of noise: a tracker's first
-        frames compile its Taichi kernels (~0.5 s), which in a tick would stall the loop past its bound."""
+        frames compile its Taichi kernels (~0.5 s), and the first segmentation costs ~80 ms more than
+        the next, which in a tick would stall the loop past its bound."""
         image = np.random.default_rng(0).integers(0, 256, (height, width, 3), dtype=np.uint8)
+        find_cloths(image)
         region = full_frame_region(width, height)
         while len(self._trackers) < self.max_pieces:
             tracker = self._make_tracker()
@@ -160,18 +166,23 @@ class PieceTracking:
         commands: ModuleCommands | None,
         views: Sequence[PairedView | None] = (),
     ) -> list[Piece]:
-        """Track every piece in this frame, and look for pieces every `search_every` frames."""
+        """Track every piece in this frame, and look for pieces every `search_every` frames. The look's
+        segmentation runs on a second thread while the pieces are tracked (both spend their time in
+        OpenCV and numpy, which let go of the GIL); the regions it finds are told apart after."""
         look = self._frames % self.cfg.search_every == 0
         self._frames += 1
-        if look:
-            self._look(image, t_s)
+        regions = self._segmenter.submit(find_cloths, image) if look else None
+        starting = look  # a tracker's start (~25 ms) waits for a frame that has no look and no other start
         for piece in self.pieces:
             if piece.slot is None:
                 piece.estimate = None
                 continue
+            if piece.region is not None:
+                if starting:
+                    continue
+                starting = True
             tracker = self._trackers[piece.slot]
             estimate = tracker.track(image, t_s, commands, views)
-            tracker.upkeep()
             piece.estimate = estimate
             if estimate.tracking and estimate.outline_m is not None:
                 piece.outline_m = estimate.outline_m
@@ -181,7 +192,16 @@ class PieceTracking:
                     piece.enter(PieceState.TRACKED, t_s)
             elif piece.region is None or not tracker.initialising:
                 self._release(piece)  # lost: found again by a later look, and started again when still
+        if regions is not None:
+            self._look(regions.result(), image.shape, t_s)
         return self.pieces
+
+    def upkeep(self) -> None:
+        """The trackers' work on this frame that its commands do not wait for (Tracker.upkeep): done
+        after them, or else by each tracker at its next frame."""
+        for piece in self.pieces:
+            if piece.slot is not None:
+                self._trackers[piece.slot].upkeep()
 
     def leave(self, piece: Piece, now_s: float) -> None:
         """The flow controller's word that a piece has gone: its tracker goes back to the pool."""
@@ -192,10 +212,10 @@ class PieceTracking:
 
     # -- finding pieces -------------------------------------------------------------------------------
 
-    def _look(self, image: np.ndarray, t_s: float) -> None:
-        h, w = image.shape[:2]
+    def _look(self, regions: list[ClothRegion], frame_shape: tuple[int, ...], t_s: float) -> None:
+        h, w = frame_shape[:2]
         seen: set[int] = set()
-        for region in find_cloths(image):
+        for region in regions:
             outline = self.camera_model.backproject_to_plane(region.corners_px.astype(np.float64))[:, :2]
             centre = outline.mean(axis=0)
             piece = self._owner(centre, seen)

@@ -63,6 +63,7 @@ class LockstepFlow:
         self.cell = FlowCell(
             cfg.flow, cfg.tracker, cfg.control, cfg.cell, models[0], models[1:], self.period_s
         )
+        self.cell.tracking.warm(models[0].width, models[0].height)  # as the daemon does at its start
         self.commands = self.cell.stop()
         self.ticks = 0
         self.multi_piece_ticks = 0  # two or more pieces on the table, by hwsim's truth
@@ -108,3 +109,4 @@ class LockstepFlow:
         self.control_ms.append((t2 - t1) * 1e3)
         if frame:
             self.frame_ms.append((t2 - t0) * 1e3)
+            self.cell.upkeep()  # after the commands, as the compute process does after its reply
