@@ -80,11 +80,13 @@ def test_each_piece_gets_its_own_tracker_and_is_tracked_where_it_lies(scene: tup
     )
     period = cfg.loop.period_s
     tracked_per_frame = []
-    for k in range(cfg.flow.search_every + 3):  # the second look sees them still
+    for k in range(cfg.flow.search_every + 2):  # the second look sees them still
         pieces = tracking.track(image, k * period, None)
-        tracked_per_frame.append(sum(p.tracking for p in pieces))
-    # No tracker starts on a look's frame, and one starts a frame.
-    assert tracked_per_frame[-3:] == [0, 1, 2]
+        tracked = sum(p.tracking for p in pieces)
+        tracking.upkeep()
+        tracked_per_frame.append((tracked, sum(p.tracking for p in pieces)))
+    # A piece's tracking starts after its frame's commands (upkeep), one piece a frame.
+    assert tracked_per_frame[-3:] == [(0, 0), (0, 1), (1, 2)]
     assert len(pieces) == 2 and len({p.id for p in pieces}) == 2
     assert len({p.slot for p in pieces}) == 2
     for piece in pieces:
@@ -113,8 +115,9 @@ def test_a_piece_that_leaves_frees_its_tracker_for_the_next(scene: tuple) -> Non
 
     tracking = PieceTracking(cfg.flow, model, Workspace.of_cell(cfg.cell), make)
     period = cfg.loop.period_s
-    for k in range(cfg.flow.search_every + 3):
+    for k in range(cfg.flow.search_every + 2):
         tracking.track(image, k * period, None)
+        tracking.upkeep()
     first = min(tracking.pieces, key=lambda p: p.centre_m[0])
     tracking.leave(first, 1.0)
     assert first not in tracking.pieces and list(tracking.gone) == [first] and first.slot is None
@@ -126,12 +129,14 @@ def test_a_piece_that_leaves_frees_its_tracker_for_the_next(scene: tuple) -> Non
     t_s = 2.0
     for _ in range(cfg.flow.search_every + 1):
         tracking.track(without, t_s, None)
+        tracking.upkeep()
         t_s += period
     (other,) = tracking.pieces
     assert other.tracking
     # A new piece where the first lay takes the tracker the first gave back.
     for _ in range(2 * cfg.flow.search_every + 1):
         tracking.track(image, t_s, None)
+        tracking.upkeep()
         t_s += period
     assert len(made) == 2  # no third tracker was built
     assert len(tracking.pieces) == 2 and all(p.tracking for p in tracking.pieces)

@@ -68,7 +68,7 @@ class FlowCell:
         self.tracking.track(image, t_s, commands, views)
 
     def upkeep(self) -> None:
-        """This frame's work that its commands do not wait for: call after `step`."""
+        """This frame's work that its commands do not wait for (PieceTracking.upkeep): call after `step`."""
         self.tracking.upkeep()
 
     def step(self, now_s: float) -> ModuleCommands:

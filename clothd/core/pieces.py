@@ -8,11 +8,9 @@ estimated outline holds its centre, else the untracked piece last seen nearest i
 Pieces lie apart, so a region's centre lies inside one outline only, however close their edges come.
 
 A tracker starts on a piece only when the piece lies inside the workspace and has not moved between two
-looks: tracking begins on a cloth at rest, as the single-piece tracker's does. It starts on the frame
-after that look, one start a frame: a start costs as much as tracking two pieces, and on top of a look
-or another start it would keep the frame's commands past the tick. The trackers come from a pool and go
-back to it when a piece leaves; a new piece reuses one, so that nothing grows with the number of pieces
-that passed.
+looks: tracking begins on a cloth at rest, as the single-piece tracker's does. It starts after that
+frame's commands (`upkeep`), one piece a frame. The trackers come from a pool and go back to it when a
+piece leaves; a new piece reuses one, so that nothing grows with the number of pieces that passed.
 
 This module only sees. Which state a piece is in past `tracked` (flattening, placing, leaving) is the flow
 controller's (core/flow.py), which also says when a piece has left.
@@ -36,6 +34,9 @@ from clothd.core.modes import PieceState
 from clothd.core.segmentation import ClothRegion, find_cloths, full_frame_region
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
+
+# A frame as `track` took it: (image, t_s, commands in force, further views).
+_Frame = tuple[np.ndarray, float, ModuleCommands | None, Sequence[PairedView | None]]
 
 GONE_KEPT = 50  # pieces that left or were rejected, kept for the API
 MATCH_M = 0.08  # an untracked piece is the region seen this near where it was last seen
@@ -134,6 +135,7 @@ class PieceTracking:
         self._next_id = 0
         self._frames = 0
         self._segmenter = ThreadPoolExecutor(max_workers=1, thread_name_prefix="pieces-look")
+        self._frame: _Frame | None = None  # the last frame tracked, for `upkeep`
 
     def warm(self, width: int, height: int, frames: int = 10) -> None:
         """Build every tracker of the pool and run each over a few frames of noise: a tracker's first
@@ -158,6 +160,7 @@ class PieceTracking:
             self._release(piece)
         self.pieces.clear()
         self._frames = 0
+        self._frame = None
 
     def track(
         self,
@@ -168,40 +171,55 @@ class PieceTracking:
     ) -> list[Piece]:
         """Track every piece in this frame, and look for pieces every `search_every` frames. The look's
         segmentation runs on a second thread while the pieces are tracked (both spend their time in
-        OpenCV and numpy, which let go of the GIL); the regions it finds are told apart after."""
+        OpenCV and numpy, which let go of the GIL); the regions it finds are told apart after. A piece
+        whose tracking is to start starts in `upkeep`."""
         look = self._frames % self.cfg.search_every == 0
         self._frames += 1
         regions = self._segmenter.submit(find_cloths, image) if look else None
-        starting = look  # a tracker's start (~25 ms) waits for a frame that has no look and no other start
         for piece in self.pieces:
             if piece.slot is None:
                 piece.estimate = None
-                continue
-            if piece.region is not None:
-                if starting:
-                    continue
-                starting = True
-            tracker = self._trackers[piece.slot]
-            estimate = tracker.track(image, t_s, commands, views)
-            piece.estimate = estimate
-            if estimate.tracking and estimate.outline_m is not None:
-                piece.outline_m = estimate.outline_m
-                if piece.region is not None:  # its tracking began with this frame
-                    piece.region, piece.tracked_since_s = None, t_s
-                if piece.state == PieceState.ENTERING:
-                    piece.enter(PieceState.TRACKED, t_s)
-            elif piece.region is None or not tracker.initialising:
-                self._release(piece)  # lost: found again by a later look, and started again when still
+            elif piece.region is None:
+                self._track_piece(piece, image, t_s, commands, views)
         if regions is not None:
             self._look(regions.result(), image.shape, t_s)
+        self._frame = (image, t_s, commands, views)
         return self.pieces
 
     def upkeep(self) -> None:
-        """The trackers' work on this frame that its commands do not wait for (Tracker.upkeep): done
-        after them, or else by each tracker at its next frame."""
+        """This frame's work that its commands do not wait for, done after them: the trackers' upkeep
+        (Tracker.upkeep; else each tracker does it at its next frame), and one piece's start of tracking
+        on this frame. A piece whose tracking starts lies still with its modules stopped, so no command
+        waits for its start (~25 ms, as much as tracking two pieces: in the frame, beside the others, it
+        kept the frame's commands past the tick)."""
+        frame, self._frame = self._frame, None
         for piece in self.pieces:
-            if piece.slot is not None:
+            if piece.slot is not None and piece.region is None:
                 self._trackers[piece.slot].upkeep()
+        starting = next((p for p in self.pieces if p.region is not None), None)
+        if frame is not None and starting is not None:
+            self._track_piece(starting, *frame)
+
+    def _track_piece(
+        self,
+        piece: Piece,
+        image: np.ndarray,
+        t_s: float,
+        commands: ModuleCommands | None,
+        views: Sequence[PairedView | None],
+    ) -> None:
+        assert piece.slot is not None
+        tracker = self._trackers[piece.slot]
+        estimate = tracker.track(image, t_s, commands, views)
+        piece.estimate = estimate
+        if estimate.tracking and estimate.outline_m is not None:
+            piece.outline_m = estimate.outline_m
+            if piece.region is not None:  # its tracking began with this frame
+                piece.region, piece.tracked_since_s = None, t_s
+            if piece.state == PieceState.ENTERING:
+                piece.enter(PieceState.TRACKED, t_s)
+        elif piece.region is None or not tracker.initialising:
+            self._release(piece)  # lost: found again by a later look, and started again when still
 
     def leave(self, piece: Piece, now_s: float) -> None:
         """The flow controller's word that a piece has gone: its tracker goes back to the pool."""

@@ -8,8 +8,9 @@ travel: along it the crossing itself fixes where it is).
 
 The interface (docs/benchmarks.md, "Production flow"): `--minutes M --rate R --seed S --json F`, whose
 JSON has pieces_in, pieces_out, success_pct, rejects, throughput_per_min, multi_piece_time_pct and
-missed_tick_pct. A missed tick is a frame whose tracking and control took longer than one tick on this
-machine (the lockstep itself has no deadline).
+missed_tick_pct. A missed tick is a tick whose commands came later than one tick after it began on this
+machine (the lockstep itself has no deadline): its frame's tracking and control, after whatever work the
+last tick left for after its commands (a frame's upkeep, a piece's start) ran past the tick.
 """
 
 from __future__ import annotations
