@@ -75,6 +75,7 @@ class FeatureEngine:
         half = max(1, cfg.block_size_px // 2)
         self._subpix_win = (half, half)
         self._subpix_criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.01)
+        self._crop_margin_px = cfg.block_size_px + 2 * half + 8  # past what either reads, and any slide
         # Rounding an avoided point to its pixel moves it up to 0.71 px: pad the exclusion disc by 1.
         r = int(np.ceil(cfg.min_distance_px)) + 1
         self._avoid_kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
@@ -106,23 +107,31 @@ class FeatureEngine:
             seeds = np.zeros((h, w), np.uint8)
             seeds[ij[on, 1], ij[on, 0]] = 255
             allowed = cv2.bitwise_and(mask, cv2.bitwise_not(cv2.dilate(seeds, self._avoid_kernel)))
+        # Only the mask's bounding box, with the margin the corner response and the sub-pixel window
+        # read: a piece covers a fraction of the frame, and the response costs per pixel. The corners are
+        # the whole frame's (the quality level is relative to the best corner in the mask).
+        x, y, bw, bh = cv2.boundingRect(allowed)
+        if bw == 0:
+            return empty
+        m = self._crop_margin_px
+        x0, y0 = max(x - m, 0), max(y - m, 0)
+        x1, y1 = min(x + bw + m, mask.shape[1]), min(y + bh + m, mask.shape[0])
+        gray = frame.gray[y0:y1, x0:x1]
         corners = cv2.goodFeaturesToTrack(
-            frame.gray,
+            gray,
             maxCorners=max_count + int(np.ceil(_SPARE_FRACTION * max_count)),
             qualityLevel=c.quality_level,
             minDistance=c.min_distance_px,
-            mask=allowed,
+            mask=allowed[y0:y1, x0:x1],
             blockSize=c.block_size_px,
             useHarrisDetector=False,
         )
         if corners is None:
             return empty
         corners = np.asarray(corners, np.float32).reshape(-1, 1, 2)
-        refined = cv2.cornerSubPix(
-            frame.gray, corners.copy(), self._subpix_win, (-1, -1), self._subpix_criteria
-        )
+        refined = cv2.cornerSubPix(gray, corners.copy(), self._subpix_win, (-1, -1), self._subpix_criteria)
         jumped = np.linalg.norm(refined - corners, axis=2) > _MAX_SUBPIX_SHIFT_PX
-        pts = np.where(jumped[:, :, None], corners, refined).reshape(-1, 2)
+        pts = np.where(jumped[:, :, None], corners, refined).reshape(-1, 2) + np.array([x0, y0], np.float32)
         ij = np.round(pts).astype(np.int64)
         h, w = mask.shape
         inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
