@@ -29,7 +29,7 @@ class CellClient:
     def close(self) -> None:
         self.http.close()
 
-    def _call(self, method: str, path: str, body: object | None = None) -> dict[str, Any]:
+    def _call(self, method: str, path: str, body: object | None = None) -> Any:
         try:
             r = self.http.request(method, path, json=body)
         except httpx.HTTPError as err:
@@ -40,10 +40,18 @@ class CellClient:
             except ValueError:
                 detail = r.text
             raise CellError(f"{method} {path}: {r.status_code} {detail}")
-        return dict(r.json())
+        return r.json()
 
     def status(self) -> dict[str, Any]:
-        return self._call("GET", "/status")
+        return dict(self._call("GET", "/status"))
+
+    def set_mode(self, mode: str) -> None:
+        """A setpoint that is a mode alone (idle, hold, flatten, flow)."""
+        self._call("PUT", "/setpoint", {"mode": mode})
+
+    def outfeed(self) -> list[dict[str, Any]]:
+        """hwsim's judgement of each piece that left, oldest first (against the simulated cell only)."""
+        return list(self._call("GET", "/sim/outfeed"))
 
     def record_start(self, name: str | None) -> Path:
         """Start recording into `name` inside the daemon's recording.dir; where it records."""

@@ -27,8 +27,9 @@ def _free_port() -> int:
 
 
 @contextlib.contextmanager
-def sim_daemon(scenario: str, workdir: Path) -> Iterator[str]:
-    """The daemon's URL while it runs; stopped (its process group) on leaving."""
+def sim_daemon(scenario: str, workdir: Path, cameras: int | None = None) -> Iterator[str]:
+    """The daemon's URL while it runs (on the cell's first `cameras` cameras; None: all); stopped (its
+    process group) on leaving."""
     port = _free_port()
     config = workdir / "clothd-sim.yaml"
     config.write_text(
@@ -41,6 +42,8 @@ def sim_daemon(scenario: str, workdir: Path) -> Iterator[str]:
         )
     )
     cmd = [sys.executable, "-m", "clothd.cli", "run", "--sim", scenario, "--config", str(config)]
+    if cameras is not None:
+        cmd += ["--cameras", str(cameras)]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
     url = f"http://127.0.0.1:{port}"
     try:

@@ -1,0 +1,140 @@
+"""`clothd bench flow --realtime`: the production flow once in real time, as a plant runs it.
+
+hwsim serves the flow scenario (at the rate and seed asked) and `clothd run --sim` runs against it, as
+separate processes with the real drivers (the stepper link on hwsim's pty, the video stream). The bench
+sets mode flow over the API, lets the minutes pass on the wall clock, and reads hwsim's outfeed and the
+daemon's pieces and tick counters through the API: the lockstep's figures (bench_flow.py) where the API
+has them. Two differ in kind:
+- `multi_piece_time_pct` is the share of status polls (every POLL_S) in which the daemon had two or more
+  pieces on the table, not hwsim's truth tick by tick;
+- `missed_tick_pct` counts the ticks the loop missed outright and those it sent with the last commands
+  because the compute had not answered (both: a tick that carried no fresh commands), over the flow's
+  ticks.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from tqdm import tqdm
+
+from clothd.tools.bench_flow import judged_ok
+from clothd.tools.cell_client import CellClient
+from clothd.tools.lockstep_flow import flow_scenario
+from clothd.tools.sim_daemon import sim_daemon
+
+POLL_S = 0.5
+DRAIN_S = 3.0  # after the minutes, for the outfeed's last judgement to reach the API
+
+
+def run_flow_live(
+    minutes: float, rate_per_min: float, seed: int, cameras: int | None = None
+) -> dict[str, Any]:
+    sc = flow_scenario(rate_per_min, seed)
+    with tempfile.TemporaryDirectory(prefix="clothd-flow-") as tmp:
+        work = Path(tmp)
+        scenario = work / "flow.yaml"
+        scenario.write_text(yaml.safe_dump(sc.model_dump(mode="json"), sort_keys=False))
+        with sim_daemon(str(scenario), work, cameras) as url:
+            client = CellClient(url)
+            try:
+                return _run(client, minutes, rate_per_min, seed)
+            finally:
+                client.close()
+
+
+def _run(client: CellClient, minutes: float, rate_per_min: float, seed: int) -> dict[str, Any]:
+    before = client.status()
+    client.set_mode("flow")
+    t0 = time.monotonic()
+    polls = multi = 0
+    run_s = minutes * 60.0
+    with tqdm(total=round(run_s), desc=f"flow {rate_per_min:g}/min, live", unit="s", leave=False) as bar:
+        while (elapsed := time.monotonic() - t0) < run_s:
+            time.sleep(POLL_S)
+            status = client.status()
+            on_table = [p for p in status.get("pieces") or [] if p["left_t_mono_s"] is None]
+            polls += 1
+            multi += len(on_table) >= 2
+            bar.n = min(round(elapsed), bar.total)
+            bar.refresh()
+    time.sleep(DRAIN_S)
+    after = client.status()
+    wall_s = time.monotonic() - t0
+    outfeed = client.outfeed()
+    pieces = after.get("pieces") or []
+    gone = sorted((p for p in pieces if p["left_t_mono_s"] is not None), key=lambda p: p["left_t_mono_s"])
+    rejected = [p for p in pieces if p["state"] == "rejected"]
+    # The daemon's pieces leave in the order hwsim judges them: matched in order when both saw as many.
+    matched = len(gone) == len(outfeed)
+    reasons = [p["reason"] if p["state"] == "rejected" else None for p in gone] if matched else []
+    reasons += [None] * (len(outfeed) - len(reasons))
+    rows = [
+        {**r, "rejected": reason, "ok": judged_ok(r) and reason is None}
+        for r, reason in zip(outfeed, reasons, strict=True)
+    ]
+    good = [r for r in rows if not r["flap"]]
+    successes = sum(r["ok"] for r in good)
+    times = np.array([r["t_s"] for r in rows] or [np.nan])
+    t0_timing, t1_timing = before["timing"], after["timing"]
+    due = (t1_timing["ticks"] + t1_timing["missed_ticks"]) - (t0_timing["ticks"] + t0_timing["missed_ticks"])
+    missed = t1_timing["missed_ticks"] - t0_timing["missed_ticks"]
+    overruns = t1_timing["compute_overruns"] - t0_timing["compute_overruns"]
+    ftc = t1_timing["frame_to_command"]
+    return {
+        "realtime": True,
+        "minutes": minutes,
+        "rate_per_min": rate_per_min,
+        "seed": seed,
+        "cameras": len(after.get("cameras") or []) or 1,
+        "pieces_in": len({p["id"] for p in pieces}),
+        "pieces_out": len(rows),
+        "success_pct": round(100.0 * successes / len(good), 2) if good else 0.0,
+        "rejects": len(rejected),
+        "throughput_per_min": round(successes / minutes, 3),
+        "multi_piece_time_pct": round(100.0 * multi / max(polls, 1), 2),
+        "missed_tick_pct": round(100.0 * (missed + overruns) / max(due, 1), 3),
+        "ticks": due,
+        "ticks_missed": missed,
+        "compute_overruns": overruns,
+        "frame_to_command_ms_p50": ftc["p50_ms"],
+        "frame_to_command_ms_p99": ftc["p99_ms"],
+        "time_in_cell_s_median": round(float(np.median(times)), 2),
+        "time_in_cell_s_p90": round(float(np.percentile(times, 90)), 2),
+        "matched_rejects": matched,
+        "rejected": [{"id": p["id"], "reason": p["reason"]} for p in rejected],
+        "halt_reason": after.get("halt_reason"),
+        "mode_at_end": after.get("mode"),
+        "wall_s": round(wall_s, 1),
+        "pieces": rows,
+    }
+
+
+def format_live(result: dict[str, Any]) -> str:
+    r = result
+    lines = [
+        f"clothd bench flow --realtime: {r['minutes']:g} min at {r['rate_per_min']:g} pieces/min, seed "
+        f"{r['seed']}, {r['cameras']} camera(s), {r['wall_s']:.0f} s of wall time",
+        f"  pieces in {r['pieces_in']}, out {r['pieces_out']}, success {r['success_pct']:.1f} %, "
+        f"rejects {r['rejects']}, throughput {r['throughput_per_min']:.2f}/min",
+        f"  two or more pieces on the table {r['multi_piece_time_pct']:.1f} % of the polls; time in the "
+        f"cell median {r['time_in_cell_s_median']:.1f} s, p90 {r['time_in_cell_s_p90']:.1f} s",
+        f"  missed ticks {r['missed_tick_pct']:.2f} % of {r['ticks']} ({r['ticks_missed']} missed, "
+        f"{r['compute_overruns']} sent with the last commands); frame to command p50 "
+        f"{r['frame_to_command_ms_p50']} ms, p99 {r['frame_to_command_ms_p99']} ms",
+        f"  at the end: mode {r['mode_at_end']}, halt reason {r['halt_reason']}",
+    ]
+    for p in r["rejected"]:
+        lines.append(f"    rejected piece {p['id']}: {p['reason']}")
+    for p in r["pieces"]:
+        verdict = "ok" if p["ok"] else "FAIL" + (f" ({p['rejected']})" if p["rejected"] else "")
+        lines.append(
+            f"    piece {p['id']:3d} {p['t_s']:6.1f} s  height {p['max_height_mm']:5.2f} mm"
+            f"  y {p['pose_error_mm']:5.2f} mm  {p['pose_error_deg']:5.2f} deg  {verdict}"
+        )
+    return "\n".join(lines)
