@@ -26,14 +26,17 @@ def _piece(pid: int, state: str, left: float | None, reason: str | None = None) 
 class _Daemon:
     """Two pieces on the table at every poll; then three gone (the second rejected) and one on the table."""
 
-    def __init__(self) -> None:
+    def __init__(self, halts: bool = False) -> None:
         self.modes: list[str] = []
         self.polls = 0
+        self.halts = halts
 
     def status(self) -> dict[str, Any]:
         self.polls += 1
+        if self.halts and self.polls > 2:
+            return {"timing": _timing(150, 1, 2), "pieces": None, "mode": "idle", "halt_reason": "lost"}
         if self.polls == 1:
-            return {"timing": _timing(100, 1, 2), "pieces": [], "cameras": [{}, {}]}
+            return {"timing": _timing(100, 1, 2), "pieces": [], "cameras": [{}, {}], "mode": "idle"}
         gone = [_piece(0, "left", 5.0), _piece(1, "rejected", 9.0, "a corner is folded over")]
         gone.append(_piece(2, "left", 12.0))
         on_table = [_piece(3, "flattening", None), _piece(4, "entering", None)]
@@ -67,3 +70,13 @@ def test_the_live_figures_come_from_the_api(monkeypatch: pytest.MonkeyPatch) -> 
     # Of the 1002 ticks due since flow began, 2 were missed and 4 went out with the last commands.
     assert r["ticks"] == 1002 and r["missed_tick_pct"] == pytest.approx(100 * 6 / 1002, abs=1e-3)
     assert r["multi_piece_time_pct"] == 100.0
+
+
+def test_a_flow_that_halts_is_reported_with_its_reason_and_the_pieces_seen(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.setattr(bench_flow_live, "POLL_S", 0.01)
+    monkeypatch.setattr(bench_flow_live, "DRAIN_S", 0.0)
+    r = bench_flow_live._run(_Daemon(halts=True), 1.0, 6.0, 0)  # type: ignore[arg-type]
+    assert r["halt_reason"] == "lost" and r["halted_after_s"] is not None and r["halted_after_s"] < 5
+    assert r["pieces_in"] == 5  # seen before the halt, though the status lists none after it

@@ -54,10 +54,16 @@ def _run(client: CellClient, minutes: float, rate_per_min: float, seed: int) -> 
     t0 = time.monotonic()
     polls = multi = 0
     run_s = minutes * 60.0
+    pieces_by_id: dict[int, dict[str, Any]] = {}  # every piece the daemon reported, as last reported
+    halted: tuple[float, str | None] | None = None  # when mode flow ended, and why
     with tqdm(total=round(run_s), desc=f"flow {rate_per_min:g}/min, live", unit="s", leave=False) as bar:
         while (elapsed := time.monotonic() - t0) < run_s:
             time.sleep(POLL_S)
             status = client.status()
+            if status.get("mode") != "flow":  # a fault or the camera lost it: nothing moves any more
+                halted = (round(time.monotonic() - t0, 1), status.get("halt_reason"))
+                break
+            pieces_by_id.update({p["id"]: p for p in status.get("pieces") or []})
             on_table = [p for p in status.get("pieces") or [] if p["left_t_mono_s"] is None]
             polls += 1
             multi += len(on_table) >= 2
@@ -67,7 +73,8 @@ def _run(client: CellClient, minutes: float, rate_per_min: float, seed: int) -> 
     after = client.status()
     wall_s = time.monotonic() - t0
     outfeed = client.outfeed()
-    pieces = after.get("pieces") or []
+    pieces_by_id.update({p["id"]: p for p in after.get("pieces") or []})
+    pieces = list(pieces_by_id.values())
     gone = sorted((p for p in pieces if p["left_t_mono_s"] is not None), key=lambda p: p["left_t_mono_s"])
     rejected = [p for p in pieces if p["state"] == "rejected"]
     # The daemon's pieces leave in the order hwsim judges them: matched in order when both saw as many.
@@ -108,8 +115,8 @@ def _run(client: CellClient, minutes: float, rate_per_min: float, seed: int) -> 
         "time_in_cell_s_p90": round(float(np.percentile(times, 90)), 2),
         "matched_rejects": matched,
         "rejected": [{"id": p["id"], "reason": p["reason"]} for p in rejected],
-        "halt_reason": after.get("halt_reason"),
-        "mode_at_end": after.get("mode"),
+        "halted_after_s": None if halted is None else halted[0],
+        "halt_reason": None if halted is None else halted[1],
         "wall_s": round(wall_s, 1),
         "pieces": rows,
     }
@@ -126,9 +133,10 @@ def format_live(result: dict[str, Any]) -> str:
         f"cell median {r['time_in_cell_s_median']:.1f} s, p90 {r['time_in_cell_s_p90']:.1f} s",
         f"  missed ticks {r['missed_tick_pct']:.2f} % of {r['ticks']} ({r['ticks_missed']} missed, "
         f"{r['compute_overruns']} sent with the last commands); frame to command p50 "
-        f"{r['frame_to_command_ms_p50']} ms, p99 {r['frame_to_command_ms_p99']} ms",
-        f"  at the end: mode {r['mode_at_end']}, halt reason {r['halt_reason']}",
+        f"{_ms(r['frame_to_command_ms_p50'])}, p99 {_ms(r['frame_to_command_ms_p99'])}",
     ]
+    if r["halted_after_s"] is not None:
+        lines.append(f"  mode flow ended after {r['halted_after_s']:g} s: {r['halt_reason']}")
     for p in r["rejected"]:
         lines.append(f"    rejected piece {p['id']}: {p['reason']}")
     for p in r["pieces"]:
@@ -138,3 +146,7 @@ def format_live(result: dict[str, Any]) -> str:
             f"  y {p['pose_error_mm']:5.2f} mm  {p['pose_error_deg']:5.2f} deg  {verdict}"
         )
     return "\n".join(lines)
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f} ms"
