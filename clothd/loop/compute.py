@@ -325,12 +325,10 @@ class Compute:
 
     def _do_after(self, after: _AfterReply) -> None:
         timing = self._late_timing
-        if self.flow is not None:  # the trackers' upkeep, and a piece's start of tracking
-            t_upkeep = time.perf_counter()
+        t_upkeep = time.perf_counter()
+        if self.flow is not None:
             self.flow.upkeep()
-            upkeep_s: float | None = time.perf_counter() - t_upkeep
-        else:
-            upkeep_s = self.tracker.upkeep()
+        upkeep_s = self.tracker.upkeep() if self.flow is None else time.perf_counter() - t_upkeep
         if upkeep_s is not None:
             timing["tracker_resample"] = upkeep_s
         frame, req = after.frame, after.req
