@@ -57,6 +57,39 @@ def _matched_rejects(outfeed: list[dict[str, Any]], gone: list[Piece]) -> list[s
     return reasons
 
 
+def judge(
+    outfeed: list[dict[str, Any]], reasons: list[str | None], minutes: float
+) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """Each piece hwsim's outfeed judged, with the reason the cell rejected it (None: not) and whether it
+    succeeded; and the figures over them: pieces out, success among those that are not flaps,
+    throughput, time in the cell."""
+    rows = [
+        {**r, "rejected": reason, "ok": reason is None and judged_ok(r)}
+        for r, reason in zip(outfeed, reasons, strict=True)
+    ]
+    good = [r for r in rows if not r["flap"]]
+    successes = sum(r["ok"] for r in good)
+    times = np.array([r["t_s"] for r in rows] or [np.nan])
+    return rows, {
+        "pieces_out": len(rows),
+        "success_pct": round(100.0 * successes / len(good), 2) if good else 0.0,
+        "throughput_per_min": round(successes / minutes, 3),
+        "time_in_cell_s_median": round(float(np.median(times)), 2),
+        "time_in_cell_s_p90": round(float(np.percentile(times, 90)), 2),
+    }
+
+
+def piece_line(p: dict[str, Any]) -> str:
+    """One judged piece, as the benches print it."""
+    verdict = "ok" if p["ok"] else "FAIL" + (f" ({p['rejected']})" if p["rejected"] else "")
+    flap = "  flap" if p["flap"] else ""
+    return (
+        f"    piece {p['id']:3d} {p.get('fabric', ''):8s} {p['t_s']:6.1f} s"
+        f"  height {p['max_height_mm']:5.2f} mm"
+        f"  y {p['pose_error_mm']:5.2f} mm  {p['pose_error_deg']:5.2f} deg{flap}  {verdict}"
+    )
+
+
 def run_flow(minutes: float, rate_per_min: float, seed: int, cameras: int | None = None) -> dict[str, Any]:
     sc = flow_scenario(rate_per_min, seed)
     cell = LockstepFlow(load_config(None), sc, cameras=cameras)
@@ -66,14 +99,7 @@ def run_flow(minutes: float, rate_per_min: float, seed: int, cameras: int | None
         cell.run(1.0)
     wall_s = time.perf_counter() - t_wall
     outfeed = list(cell.world.outfeed)
-    reasons = _matched_rejects(outfeed, list(cell.cell.tracking.gone))
-    rows = [
-        {**r, "rejected": reason, "ok": reason is None and judged_ok(r)}
-        for r, reason in zip(outfeed, reasons, strict=True)
-    ]
-    good = [r for r in rows if not r["flap"]]
-    successes = sum(r["ok"] for r in good)
-    times = np.array([r["t_s"] for r in rows] or [np.nan])
+    rows, figures = judge(outfeed, _matched_rejects(outfeed, list(cell.cell.tracking.gone)), minutes)
     seen = cell.summary()
     assert cell.world.infeed is not None
     return {
@@ -85,14 +111,10 @@ def run_flow(minutes: float, rate_per_min: float, seed: int, cameras: int | None
         # The infeed waits while the last piece is still in its way: the rate laid is the cell's pace.
         "laid_per_min": round(cell.world.infeed.laid_count / minutes, 3),
         "waiting_at_end": cell.world.infeed.waiting(cell.world.t_s),
-        "pieces_out": len(rows),
-        "success_pct": round(100.0 * successes / len(good), 2) if good else 0.0,
+        **figures,
         "rejects": len(seen["rejected"]),
-        "throughput_per_min": round(successes / minutes, 3),
         "multi_piece_time_pct": seen["multi_piece_time_pct"],
         "missed_tick_pct": seen["missed_tick_pct"],
-        "time_in_cell_s_median": round(float(np.median(times)), 2),
-        "time_in_cell_s_p90": round(float(np.percentile(times, 90)), 2),
         "frame_ms_p50": seen["frame_ms_p50"],
         "frame_ms_p99": seen["frame_ms_p99"],
         "realtime_factor": round(minutes * 60.0 / wall_s, 3),
@@ -128,13 +150,7 @@ def format_result(result: dict[str, Any]) -> str:
         f"  missed ticks {r['missed_tick_pct']:.2f} % (frame p50 {r['frame_ms_p50']:.1f} ms, "
         f"p99 {r['frame_ms_p99']:.1f} ms)",
     ]
-    for p in r["pieces"]:
-        verdict = "ok" if p["ok"] else "FAIL" + (f" ({p['rejected']})" if p["rejected"] else "")
-        flap = "  flap" if p["flap"] else ""
-        lines.append(
-            f"    piece {p['id']:3d} {p['fabric']:8s} {p['t_s']:6.1f} s  height {p['max_height_mm']:5.2f} mm"
-            f"  y {p['pose_error_mm']:5.2f} mm  {p['pose_error_deg']:5.2f} deg{flap}  {verdict}"
-        )
+    lines += [piece_line(p) for p in r["pieces"]]
     for rate in r.get("rates", []):
         lines.append(
             f"  rate {rate['rate_per_min']:g}/min: laid {rate['laid_per_min']:.2f}/min"

@@ -19,11 +19,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 from tqdm import tqdm
 
-from clothd.tools.bench_flow import judged_ok
+from clothd.tools.bench_flow import judge, piece_line
 from clothd.tools.cell_client import CellClient
 from clothd.tools.lockstep_flow import flow_scenario
 from clothd.tools.sim_daemon import sim_daemon
@@ -81,13 +80,7 @@ def _run(client: CellClient, minutes: float, rate_per_min: float, seed: int) -> 
     matched = len(gone) == len(outfeed)
     reasons = [p["reason"] if p["state"] == "rejected" else None for p in gone] if matched else []
     reasons += [None] * (len(outfeed) - len(reasons))
-    rows = [
-        {**r, "rejected": reason, "ok": judged_ok(r) and reason is None}
-        for r, reason in zip(outfeed, reasons, strict=True)
-    ]
-    good = [r for r in rows if not r["flap"]]
-    successes = sum(r["ok"] for r in good)
-    times = np.array([r["t_s"] for r in rows] or [np.nan])
+    rows, figures = judge(outfeed, reasons, minutes)
     t0_timing, t1_timing = before["timing"], after["timing"]
     due = (t1_timing["ticks"] + t1_timing["missed_ticks"]) - (t0_timing["ticks"] + t0_timing["missed_ticks"])
     missed = t1_timing["missed_ticks"] - t0_timing["missed_ticks"]
@@ -100,10 +93,8 @@ def _run(client: CellClient, minutes: float, rate_per_min: float, seed: int) -> 
         "seed": seed,
         "cameras": len(after.get("cameras") or []) or 1,
         "pieces_in": len({p["id"] for p in pieces}),
-        "pieces_out": len(rows),
-        "success_pct": round(100.0 * successes / len(good), 2) if good else 0.0,
+        **figures,
         "rejects": len(rejected),
-        "throughput_per_min": round(successes / minutes, 3),
         "multi_piece_time_pct": round(100.0 * multi / max(polls, 1), 2),
         "missed_tick_pct": round(100.0 * (missed + overruns) / max(due, 1), 3),
         "ticks": due,
@@ -111,8 +102,6 @@ def _run(client: CellClient, minutes: float, rate_per_min: float, seed: int) -> 
         "compute_overruns": overruns,
         "frame_to_command_ms_p50": ftc["p50_ms"],
         "frame_to_command_ms_p99": ftc["p99_ms"],
-        "time_in_cell_s_median": round(float(np.median(times)), 2),
-        "time_in_cell_s_p90": round(float(np.percentile(times, 90)), 2),
         "matched_rejects": matched,
         "rejected": [{"id": p["id"], "reason": p["reason"]} for p in rejected],
         "halted_after_s": None if halted is None else halted[0],
@@ -139,12 +128,7 @@ def format_live(result: dict[str, Any]) -> str:
         lines.append(f"  mode flow ended after {r['halted_after_s']:g} s: {r['halt_reason']}")
     for p in r["rejected"]:
         lines.append(f"    rejected piece {p['id']}: {p['reason']}")
-    for p in r["pieces"]:
-        verdict = "ok" if p["ok"] else "FAIL" + (f" ({p['rejected']})" if p["rejected"] else "")
-        lines.append(
-            f"    piece {p['id']:3d} {p['t_s']:6.1f} s  height {p['max_height_mm']:5.2f} mm"
-            f"  y {p['pose_error_mm']:5.2f} mm  {p['pose_error_deg']:5.2f} deg  {verdict}"
-        )
+    lines += [piece_line(p) for p in r["pieces"]]
     return "\n".join(lines)
 
 
