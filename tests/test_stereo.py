@@ -20,7 +20,7 @@ from clothd.core.messages import ModuleCommands, PairedView
 from clothd.core.modes import FlatnessBasis
 from clothd.core.stereo import epipolar_distance_px, fit_height_field, quad_highest, triangulate
 from clothd.core.tracker import Tracker
-from clothd.core.unfold import unfold
+from clothd.core.unfold import outline_rectangle, unfold
 from clothd.formats import read_camera
 from clothd.taichi_runtime import start_taichi
 from hwsim import scenario as scenarios
@@ -279,3 +279,60 @@ def test_heights_measured_after_the_estimate_are_those_measured_in_the_tick() ->
         measured_before = later.quad_height_m
     later.measure_heights(views)  # measured once: nothing left to measure, the heights stay
     np.testing.assert_array_equal(later.quad_height_m, measured_before)
+
+
+def test_a_tall_ridge_laid_across_the_weave_is_measured_to_its_crest_and_unfolded_to_the_cloths_size() -> (
+    None
+):
+    """The default cloth's twill repeats every ~5 px, while a 17 mm ridge shifts a point ~6.5 px along its
+    epipolar line: matched in one pass, a third of the ridge's points ended a period off, and the mesh's
+    highest node stood at 4 mm."""
+    cfg = Config()
+    start_taichi(cfg.taichi.arch)
+    world, cameras, sensors = _wrinkled_cell(0.017)
+    layout = ConveyorLayout.of_cell(cfg.cell)
+    tracker = Tracker(cfg.tracker, cameras[0], layout, other_cameras=cameras[1:])
+    world.step()
+    images = [cv2.imdecode(np.frombuffer(s.jpeg(world, 0), np.uint8), cv2.IMREAD_COLOR) for s in sensors]
+    stopped = ModuleCommands.all_stop(layout.n_modules)
+    est = tracker.track(images[0], world.t_s, stopped, [PairedView(images[1], world.t_s)])
+    assert est.tracking and est.nodes_m is not None and est.cloth_size_m is not None
+    assert est.flatness_basis == FlatnessBasis.MEASURED
+    assert est.nodes_m[..., 2].max() > 0.85 * world.sheet_measures()["max_height_m"]
+    rest_m = np.array(world.cloth.grid.st_m[-1, -1] - world.cloth.grid.st_m[0, 0])  # the cloth's, 250 x 200
+    np.testing.assert_allclose(est.cloth_size_m, rest_m, atol=0.005)
+
+
+def test_the_rectangle_an_outline_traces_lies_through_its_sides_not_its_bumps() -> None:
+    rng = np.random.default_rng(5)
+    width, height, turn = 0.25, 0.2, 0.3
+    perimeter = np.linspace(0.0, 2 * (width + height), 900, endpoint=False)
+    local = np.array([_on_rectangle(p, width, height) for p in perimeter])
+    # The cut edge as a camera outlines it: a wave of a pixel or so, and every fifth point 3 mm proud.
+    outward = np.sign(local) * (np.abs(local) / [width / 2, height / 2] > 0.999)
+    local += outward * (
+        0.0005 * rng.standard_normal((len(local), 1)) + 0.003 * (rng.random((len(local), 1)) < 0.2)
+    )
+    c, s = math.cos(turn), math.sin(turn)
+    outline = local @ np.array([[c, s], [-s, c]]) + [0.05, -0.03]
+    corners = outline_rectangle(outline)
+    mesh = QuadMesh.covering(corners, 4, 4)
+    assert mesh.width_m == pytest.approx(width, abs=0.001) and mesh.height_m == pytest.approx(
+        height, abs=0.001
+    )
+    assert mesh.theta_rad == pytest.approx(turn, abs=math.radians(0.2))
+    np.testing.assert_allclose(mesh.centre_m, [0.05, -0.03], atol=0.0005)
+    # The minimum-area rectangle lies on the bumps.
+    (_, _), (w, h), _ = cv2.minAreaRect(outline.astype(np.float32))
+    assert min(w, h) > height + 0.004
+
+
+def _on_rectangle(p: float, width: float, height: float) -> tuple[float, float]:
+    """The point at perimeter distance p round a width x height rectangle about the origin."""
+    if p < width:
+        return (p - width / 2, -height / 2)
+    if p < width + height:
+        return (width / 2, p - width - height / 2)
+    if p < 2 * width + height:
+        return (width / 2 - (p - width - height), height / 2)
+    return (-width / 2, height / 2 - (p - 2 * width - height))

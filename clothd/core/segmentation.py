@@ -92,6 +92,11 @@ class ClothRegion:
     area_px: int
     colour: ClothColour | None = None
 
+    def outline_px(self) -> np.ndarray:
+        """(k, 2) float64: the mask's largest outline, every boundary pixel in order around it."""
+        contours, _ = cv2.findContours(self.mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        return np.asarray(max(contours, key=cv2.contourArea).reshape(-1, 2), dtype=np.float64)
+
 
 def _disk(diameter_px: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (diameter_px, diameter_px))

@@ -41,10 +41,13 @@ TRACKING_WINDOW_PX = 11  # ... in a window as tracking's own
 # Forward-backward, searching or not: the match must lead back within this. The epipolar check alone let
 # a look-alike on the line through (0.2 px per mm of height): a flat cloth's feature read 3.3 mm high.
 MATCH_FB_MAX_PX = 1.0
+SEARCH_BLUR_PX = 1.5  # Gaussian sigma: a weave period of ~5 px is cut to a fifth of its contrast
 WARP_MARGIN_PX = 80  # the first view is warped this far around the features' guesses: LK's search and window
 FIELD_PITCH_M = 0.004  # the height field's grid spacing, finer than a ridge (hwsim's σ is 12 mm)
 POINT_SIGMA_M = 0.001  # one triangulated height, about (0.2 px at the default cell's geometry)
-CURVATURE_SIGMA_M = 0.0015  # a second difference over FIELD_PITCH_M: a 20 mm ridge of σ 12 mm has ~2.2
+# A second difference over FIELD_PITCH_M: a 20 mm ridge of σ 12 mm has ~2.2 mm at its crest. Held to 1.5 mm
+# the field cut a 17 mm crest to 15 mm and laid out two thirds of its slack.
+CURVATURE_SIGMA_M = 0.004
 ZERO_SIGMA_M = 0.05  # far from any point the field settles to the table
 OUTLIER_SIGMA = 4.0  # the refit drops points this many robust sigmas off the first fit
 MIN_OUTLIER_M = 0.0015  # ... but never tighter than this
@@ -117,29 +120,42 @@ def match_across(
     if not np.isfinite(on_table).all(axis=1).any():
         return np.full((n, 2), np.nan), np.zeros(n, bool)
     warped, gray1_cut, corner = _warped_first_view(gray0, gray1, cam0, cam1, np.vstack([on_table, guess]))
-    searching = levels > TRACKING_LEVELS
-    side = MATCH_WINDOW_PX if searching else TRACKING_WINDOW_PX
-    window, criteria = (side, side), (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
-    flags = cv2.OPTFLOW_USE_INITIAL_FLOW
     p0 = np.nan_to_num(on_table - corner, nan=-1.0).astype(np.float32).reshape(-1, 1, 2)
     g = np.nan_to_num(guess - corner, nan=-1.0).astype(np.float32).reshape(-1, 1, 2)
-    p1, st1, _ = cv2.calcOpticalFlowPyrLK(
-        warped, gray1_cut, p0, g, winSize=window, maxLevel=levels, criteria=criteria, flags=flags
-    )
+    ok = np.isfinite(guess).all(axis=1) & np.isfinite(on_table).all(axis=1)
+    if levels > TRACKING_LEVELS:
+        # The search's wide window spans a ridge's whole rise at the coarse levels, and at the finest the
+        # weave repeats every few pixels: it ended a weave period off on a third to a half of a 17 mm
+        # ridge's points (10-14 mm low). So the search runs on both views blurred past the weave, and
+        # only brings each point near; a small window finds it from there.
+        blurred = [cv2.GaussianBlur(view, (0, 0), SEARCH_BLUR_PX) for view in (warped, gray1_cut)]
+        g, searched = _lk_both_ways(blurred[0], blurred[1], p0, g, MATCH_WINDOW_PX, levels)
+        ok &= searched
+    p1, found = _lk_both_ways(warped, gray1_cut, p0, g, TRACKING_WINDOW_PX, TRACKING_LEVELS)
     px1 = p1.reshape(-1, 2).astype(np.float64) + corner
     h, w = gray1.shape[:2]
     inside = (px1[:, 0] >= 0) & (px1[:, 0] <= w - 1) & (px1[:, 1] >= 0) & (px1[:, 1] <= h - 1)
-    ok = (
-        st1.ravel().astype(bool) & np.isfinite(guess).all(axis=1) & np.isfinite(on_table).all(axis=1) & inside
-    )
-    back, st2, _ = cv2.calcOpticalFlowPyrLK(
-        gray1_cut, warped, p1, p0.copy(), winSize=window, maxLevel=levels, criteria=criteria, flags=flags
-    )
-    led_back = np.linalg.norm(back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1) < MATCH_FB_MAX_PX
-    ok &= st2.ravel().astype(bool) & led_back
+    ok &= found & inside
     line_px0 = px0 if seen_px0 is None else seen_px0
     ok &= epipolar_distance_px(cam0, line_px0, cam1, px1, cfg.max_height_m) < cfg.epipolar_max_px
     return px1, ok
+
+
+def _lk_both_ways(
+    view0: np.ndarray, view1: np.ndarray, p0: np.ndarray, guess: np.ndarray, side_px: int, levels: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Points p0 (n, 1, 2) of view0 found in view1 by LK from guess (n, 1, 2): where (n, 1, 2), and
+    whether (n,) LK found them and found its way back from there to within MATCH_FB_MAX_PX of p0."""
+    window, criteria = (side_px, side_px), (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 0.01)
+    flags = cv2.OPTFLOW_USE_INITIAL_FLOW
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(
+        view0, view1, p0, guess.copy(), winSize=window, maxLevel=levels, criteria=criteria, flags=flags
+    )
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(
+        view1, view0, p1, p0.copy(), winSize=window, maxLevel=levels, criteria=criteria, flags=flags
+    )
+    led_back = np.linalg.norm(back.reshape(-1, 2) - p0.reshape(-1, 2), axis=1) < MATCH_FB_MAX_PX
+    return p1, st1.ravel().astype(bool) & st2.ravel().astype(bool) & led_back
 
 
 def measure_surface(

@@ -358,16 +358,16 @@ class Tracker:
         """The tracking mesh (self.mesh) over the cloth found in the first frame: over its footprint, or,
         where a second view measures the surface, over the cloth as it would lie flat. The nodes' positions
         now (n, 3) in the second case, None in the first (they lie on the footprint)."""
-        corners_world = self.camera_model.backproject_to_plane(region.corners_px.astype(np.float64))[:, :2]
+        to_table = self.camera_model.backproject_to_plane
+        corners_world = to_table(region.corners_px.astype(np.float64))[:, :2]
         footprint = QuadMesh.covering(corners_world, self.cfg.mesh.nodes_x, self.cfg.mesh.nodes_y)
         self.mesh, self.flatness_basis = footprint, FlatnessBasis.SINCE_START
         # Where the cloth lies on running belts, it moves with them between the two captures.
-        on_table = self.camera_model.backproject_to_plane(px)
-        velocity = None if self._belts is None else self._belts.velocity_at(on_table)[0]
+        velocity = None if self._belts is None else self._belts.velocity_at(to_table(px))[0]
         field = self.second_view.surface(frame.gray, px, velocity, t_s, views, footprint)
         if field is None:
             return None
-        self.mesh, nodes_m = unfold(footprint, field)
+        self.mesh, nodes_m = unfold(footprint, field, to_table(region.outline_px()))
         self.flatness_basis = FlatnessBasis.MEASURED
         return nodes_m
 

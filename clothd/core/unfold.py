@@ -14,11 +14,12 @@ later (docs/flattening.md).
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from clothd.core.banded import gram_band, solve_band, transpose_times
 from clothd.core.binding import cloth_coordinates
-from clothd.core.mesh import QuadMesh
+from clothd.core.mesh import QuadMesh, blend
 from clothd.core.stereo import HeightField
 
 ARC_SAMPLES = 12  # points along each edge to follow the surface over it (a ridge can be narrower than one)
@@ -68,24 +69,53 @@ def unfold_layout(grid_m: np.ndarray, lengths_m: np.ndarray, edges: np.ndarray, 
     return x
 
 
-def unfold(footprint: QuadMesh, field: HeightField) -> tuple[QuadMesh, np.ndarray]:
+def outline_rectangle(outline_m: np.ndarray) -> np.ndarray:
+    """The 4 corners (4, 2) of the rectangle an outline (k, 2) traces: turned as its minimum-area
+    rectangle, each side at the median of the outline's points along that side's middle 80 %. The
+    minimum-area rectangle itself lies on the outline's outermost points: a cloth's edge waves by a few
+    pixels (2 to 3 mm on the default cell), and it came out 4 mm wider than the cloth."""
+    (cx, cy), (w, h), angle_deg = cv2.minAreaRect(outline_m.astype(np.float32))
+    a = np.radians(angle_deg)
+    axes = np.array([[np.cos(a), np.sin(a)], [-np.sin(a), np.cos(a)]])
+    local = (outline_m - [cx, cy]) @ axes.T
+    lo, hi = np.empty(2), np.empty(2)
+    for k, half_across in ((0, 0.4 * h), (1, 0.4 * w)):
+        side = np.abs(local[:, 1 - k]) < half_across
+        lo[k] = np.median(local[side & (local[:, k] < 0), k])
+        hi[k] = np.median(local[side & (local[:, k] > 0), k])
+    corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+    return np.asarray(corners @ axes + [cx, cy])
+
+
+def unfold(
+    footprint: QuadMesh, field: HeightField, outline_m: np.ndarray | None = None
+) -> tuple[QuadMesh, np.ndarray]:
     """The material mesh (a regular grid over the cloth laid flat, nx x ny like the footprint's) and its
-    nodes' positions now (n, 3): on the table where the material points lie, at the surface's height."""
+    nodes' positions now (n, 3): on the table where the material points lie, at the surface's height.
+    outline_m (k, 2) (or (k, 3), z unused): the cloth's outline on the table, whose laid-out rectangle
+    the material is; None: the laid-out grid's mean extents."""
     nx, ny = footprint.nx, footprint.ny
     grid = footprint.rest_nodes_m().reshape(-1, 2)
     edges = _edges(ny, nx)
     lengths = surface_lengths_m(field, grid[edges[:, 0]], grid[edges[:, 1]])
     flat = unfold_layout(grid, lengths, edges, nx)
-    a1, a2 = footprint.axes
-    laid = flat.reshape(ny, nx, 2)
-    width = float(np.mean((laid[:, -1] - laid[:, 0]) @ a1))
-    height = float(np.mean((laid[-1, :] - laid[0, :]) @ a2))
-    origin = flat.mean(axis=0) - 0.5 * width * a1 - 0.5 * height * a2
-    material = QuadMesh(nx, ny, origin, footprint.theta_rad, width, height)
+    if outline_m is not None and len(outline_m) >= 3:
+        # An oblique ridge shifts the cloth beyond it sideways too: the footprint's rectangle is wider than
+        # the cloth and turned off its axes (by 1.5 deg, 4 mm on the default cloth), and the laid-out grid
+        # with it. The outline laid out is the cloth's own rectangle again.
+        material = QuadMesh.covering(outline_rectangle(blend(flat, footprint.bind(outline_m[:, :2]))), nx, ny)
+    else:
+        a1, a2 = footprint.axes
+        laid = flat.reshape(ny, nx, 2)
+        width = float(np.mean((laid[:, -1] - laid[:, 0]) @ a1))
+        height = float(np.mean((laid[-1, :] - laid[0, :]) @ a2))
+        origin = flat.mean(axis=0) - 0.5 * width * a1 - 0.5 * height * a2
+        material = QuadMesh(nx, ny, origin, footprint.theta_rad, width, height)
     rest = material.rest_nodes_m().reshape(-1, 2)
     # A material node lies where the footprint point of the same place in the laid-out grid does: the
-    # laid-out grid's quads map back onto the footprint's. Nodes just past its border (the mean extents
-    # round off the rows' own) keep their offset from the nearest laid-out node.
+    # laid-out grid's quads map back onto the footprint's. Nodes just past its border (the material's
+    # rectangle rounds off the grid's own edges) keep their offset from the nearest laid-out node.
     xy, found = cloth_coordinates(footprint, flat, rest)
-    xy[~found] = grid[~found] + (rest[~found] - flat[~found])
+    nearest = np.argmin(np.linalg.norm(rest[~found, None] - flat[None], axis=2), axis=1)
+    xy[~found] = grid[nearest] + (rest[~found] - flat[nearest])
     return material, np.column_stack([xy, field.at(xy)])
