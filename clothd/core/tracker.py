@@ -294,9 +294,9 @@ class Tracker:
         self.initial_features = len(px)
         nodes_m = self._lay_mesh(frame, region, px, t_s, views)
         assert self.mesh is not None
-        if nodes_m is not None:  # the first frame's quads: as high as their highest corner on the surface
+        if nodes_m is not None:  # first frame's quads: their 2nd-highest corner (the highest: flat read 1.8)
             z = nodes_m[:, 2].reshape(self.mesh.ny, self.mesh.nx)
-            self.quad_height_m = np.maximum.reduce([z[:-1, :-1], z[:-1, 1:], z[1:, :-1], z[1:, 1:]])
+            self.quad_height_m = np.sort([z[:-1, :-1], z[:-1, 1:], z[1:, :-1], z[1:, 1:]], axis=0)[-2]
         self.estimator.start(self.mesh, np.array([*self.mesh.centre_m, self.mesh.theta_rad]), nodes_m)
         self.features = FeatureSet(self.mesh, self._next_feature_id)
         self.prev, self.prev_t_s = frame, t_s
