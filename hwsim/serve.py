@@ -37,6 +37,7 @@ from urllib.parse import parse_qs, urlparse
 import numpy as np
 
 from hwsim.camera import Camera
+from hwsim.firmware import Counters
 from hwsim.firmware_process import FirmwareProcess
 from hwsim.pieces import piece_truth
 from hwsim.recording import write_table
@@ -184,10 +185,12 @@ class Cell:
         while not self._stop.is_set():
             next_t += dt
             with self.lock:
+                # Read before the drives are applied: an e-stop the truth reports has reached the belts.
+                counters = [firmware.counters() for firmware in self.firmwares]
                 for firmware in self.firmwares:
                     firmware.bus.apply_to(self.world.table, firmware.modules)
                 self.world.step()
-                self._update_truth()
+                self._update_truth(counters)
             behind_s = time.monotonic() - next_t
             if any(self.world.frame_index % s.every == 0 for s in self.streams):
                 dropped_last = behind_s >= dt and not dropped_last
@@ -201,7 +204,9 @@ class Cell:
                 self.behind_real_time_s += behind_s
                 next_t = time.monotonic()
 
-    def _update_truth(self) -> None:
+    def _update_truth(self, counters: list[Counters] | None = None) -> None:
+        """counters: each firmware's, as of the drives the table runs now (None: read them now)."""
+        counters = counters or [firmware.counters() for firmware in self.firmwares]
         t = self.world.table
         lead: dict[str, Any] = {"pose": None, **dict.fromkeys(("max_height_m", "area_ratio", "folded_ratio"))}
         if self.world.pieces:
@@ -212,8 +217,10 @@ class Cell:
             "module_speed_m_s": t.speed_m_s.tolist(),
             "module_heading_rad": t.heading_rad.tolist(),
             "module_cmd_speed_m_s": t.cmd_speed_m_s.tolist(),
-            **self.firmware.counters(),
-            "controllers": [{"serial": str(f.link_path), **f.counters()} for f in self.firmwares],
+            **counters[0],
+            "controllers": [
+                {"serial": str(f.link_path), **c} for f, c in zip(self.firmwares, counters, strict=True)
+            ],
             "camera_frames_dropped": self.camera_frames_dropped,
             "behind_real_time_s": self.behind_real_time_s,
             **{k: v for k, v in lead.items() if k != "pose"},
