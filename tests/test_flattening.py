@@ -13,7 +13,7 @@ from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.ekf import UpdateStats
 from clothd.core.flatness import FlatnessMonitor
-from clothd.core.flattening import FlatteningRegulator, rigid_part
+from clothd.core.flattening import WIDEST_HOLD_S, FlatteningRegulator, rigid_part
 from clothd.core.messages import Estimate
 from clothd.outputs.view import ViewRenderer
 
@@ -259,3 +259,27 @@ def test_a_ridge_is_pulled_along_the_widest_it_was_seen() -> None:
     assert np.abs(v[far_end, 0]).min() > 1e-3
     v = watched.velocities(gone, flat, SIZE_M, under, np.zeros(3), 0.1)
     assert np.abs(v[far_end, 0]).min() > 1e-3
+
+
+def test_a_line_seen_once_stops_pulling_on_the_fragment_left_of_it_after_widest_hold_s() -> None:
+    """A one-camera estimate showed a 13-quad line once in a move, then only a quad of it at the cloth's
+    edge, for good: pulled along the whole line, the piece stalled 2.3 mm short of its placement. The
+    widest extent is held for WIDEST_HOLD_S after it was last seen that wide, then the fragment is the
+    ridge."""
+    wrinkled, flat = _mesh(0.0, ridge_col=7), _mesh(0.0, ridge_col=None)
+    shrunk = _partly(wrinkled, flat, rows=4)
+    under = (np.abs(LAYOUT.centres_m[:, 0]) < 0.20) & (np.abs(LAYOUT.centres_m[:, 1]) < 0.10)
+    monitor = FlatnessMonitor(FlatnessConfig())
+    first, later = (monitor.update(n, SIZE_M) for n in (wrinkled, shrunk))
+    regulator = FlatteningRegulator(FlattenConfig(), LAYOUT.centres_m, LAYOUT.module_size_m, STRAIN_LIMIT)
+    whole = regulator.velocities(first, wrinkled, SIZE_M, under, np.zeros(3), 0.0)
+    far_end = (np.abs(whole[:, 0]) > 1e-3) & (LAYOUT.centres_m[:, 1] > 0.0)
+    assert far_end.sum() >= 2
+    t_s = 0.0
+    while t_s < WIDEST_HOLD_S - 0.1:  # seen shrunk every tick: still pulled along its widest
+        t_s += 0.1
+        v = regulator.velocities(later, shrunk, SIZE_M, under, np.zeros(3), t_s)
+        assert np.abs(v[far_end, 0]).min() > 1e-3, t_s
+    v = regulator.velocities(later, shrunk, SIZE_M, under, np.zeros(3), WIDEST_HOLD_S + 0.1)
+    assert np.abs(v[far_end]).max() <= 1e-9
+    assert np.abs(v).max() > 1e-3  # the fragment itself is still pulled

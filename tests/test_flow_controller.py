@@ -109,9 +109,13 @@ def test_each_module_goes_to_at_most_one_piece_and_the_modules_between_them_stop
     commands, _ = flow.step([leaving, held], DT_S)
     out, hold = _under(leaving.outline_m), _under(held.outline_m)
     assert out.any() and hold.any() and not (out & hold).any()
-    assert (commands.speed_m_s[out] > 0).all()
+    # A piece driven out runs on every belt that reaches under it, not only those it covers the centre
+    # of: a stopped belt under its edge brakes it.
+    touched = flow._touched(leaving.outline_m)
+    assert (touched & ~out & ~hold).any()
+    assert (commands.speed_m_s[touched & ~hold] > 0).all()
     assert np.allclose(commands.speed_m_s[hold], 0.0, atol=1e-3)  # flat and held: no motion
-    assert not commands.speed_m_s[~(out | hold)].any()
+    assert not commands.speed_m_s[~(touched | hold)].any()
     # Outlines that overlap: the modules under both stop.
     overlapping = _tracked(2, (0.16 - 0.1, 0.0, 0.0), PieceState.LEAVING)
     both = out & _under(overlapping.outline_m)

@@ -40,6 +40,10 @@ SAME_QUAD_M = 0.008
 # Ridges seen longer ago than this (the regulator was not asked in between: idle, or tracking lost) are
 # forgotten rather than finished: the cloth may have been flattened or moved by hand since.
 SEEN_STALE_S = 0.5
+# A ridge's widest extent is held this long after it was last seen that wide: long enough for a ridge held
+# by friction to be pulled down while its ends fade from the estimate (flat within 0.4-0.9 s, p50-p90), and
+# no longer, so a line the cloth showed once in a move does not pull for good on the fragment left of it.
+WIDEST_HOLD_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -49,6 +53,7 @@ class _Remembered:
 
     last: Ridge
     widest: Ridge
+    widest_t_s: float  # when it was last seen that wide
     until_s: float = math.inf
 
     def is_seen_in(self, ridge: Ridge) -> bool:
@@ -57,9 +62,11 @@ class _Remembered:
         gap = np.linalg.norm(ridge.quad_centres_m[:, None] - known[None], axis=-1)
         return bool(gap.min() < SAME_QUAD_M)
 
-    def seen_as(self, ridge: Ridge) -> _Remembered:
+    def seen_as(self, ridge: Ridge, t_s: float) -> _Remembered:
         wider = len(ridge.quad_centres_m) >= len(self.widest.quad_centres_m)
-        return _Remembered(ridge, ridge if wider else self.widest)
+        if wider or t_s - self.widest_t_s > WIDEST_HOLD_S:
+            return _Remembered(ridge, ridge, t_s)
+        return _Remembered(ridge, self.widest, self.widest_t_s)
 
 
 def _ridge_in_cloth(ridge: Ridge, pose: np.ndarray) -> Ridge:
@@ -192,10 +199,10 @@ class FlatteningRegulator:
             # One ridge seen as two parts: the first (the highest) carries its extent on.
             before = next((m for m in known if id(m) not in matched and m.is_seen_in(local)), None)
             if before is None:
-                seen.append(_Remembered(local, local))
+                seen.append(_Remembered(local, local, t_s))
             else:
                 matched.add(id(before))
-                seen.append(before.seen_as(local))
+                seen.append(before.seen_as(local, t_s))
         unseen = [m for m in known if id(m) not in matched]
         finishing = [m for m in unseen if m.until_s < math.inf]
         lost = [replace(m, until_s=t_s + self.cfg.finish_s) for m in unseen if m.until_s == math.inf]

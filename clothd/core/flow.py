@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 from clothd.config import CellConfig, ControlConfig, FlowConfig
@@ -72,6 +73,7 @@ class FlowController:
         self.placement = np.array(cfg.placement.pose)
         # The belts reach half a module beyond the outer centres: past that the next station has it.
         self.exit_x_m = (cell.modules_x - 1) / 2 * cell.pitch_m + cell.module_size_m / 2
+        self.half_belt_m = cell.module_size_m / 2
         self._new_cell = lambda: CellController(
             control, cell, layout, workspace, period_s, strain_limit, estimates_shape
         )
@@ -131,7 +133,8 @@ class FlowController:
             ctl.hold_pose = est.pose.copy()
         self._judge(piece, ctl, pieces, now_s)
         if piece.state in DRIVEN_OUT:
-            return self._out(piece, ctl, est.pose, under), under
+            touched = self._touched(est.outline_m)
+            return self._out(piece, ctl, est.pose, touched), touched
         target = ctl.hold_pose if piece.state == PieceState.FLATTENING else self.placement
         mode = Mode.FLATTEN if piece.state == PieceState.FLATTENING else Mode.MOVE
         sp = Setpoint(mode, target, started_mono_s=piece.since_s)
@@ -212,12 +215,25 @@ class FlowController:
             twist[2] = g * math.remainder(float(self.placement[2] - pose[2]), 2 * math.pi)
         return _velocities(ctl.cell.pose.module_commands(pose, twist, under))
 
+    def _touched(self, outline_m: np.ndarray) -> np.ndarray:
+        """(n_modules,) bool: the modules whose belt reaches under the outline. A piece driven out runs on
+        all of them: a stopped belt under its edge brakes it, and a 221 x 207 mm piece on 4 running belts
+        and the edges of 8 stopped ones stood still."""
+        contour = outline_m.astype(np.float32).reshape(-1, 1, 2)
+        reach = -self.half_belt_m
+        return np.array(
+            [
+                cv2.pointPolygonTest(contour, (float(x), float(y)), True) > reach
+                for x, y in self.layout.centres_m
+            ]
+        )
+
     def _blind(self, piece: Piece, ctl: _PieceControl) -> tuple[np.ndarray, np.ndarray]:
         """A piece not tracked: one being driven out goes on out where it was last seen, moved on as its
         belts move it; any other is stopped until its tracking starts again."""
-        under = ctl.cell.pose.modules_under(piece.outline_m)
         if piece.state not in DRIVEN_OUT or not (ctl.driving_out or piece.state == PieceState.LEAVING):
-            return np.zeros((self.layout.n_modules, 2)), under
+            return np.zeros((self.layout.n_modules, 2)), ctl.cell.pose.modules_under(piece.outline_m)
+        under = self._touched(piece.outline_m)
         piece.outline_m = piece.outline_m + np.array([ctl.out_speed_m_s * self.period_s, 0.0])
         v = np.zeros((self.layout.n_modules, 2))
         v[:, 0] = ctl.out_speed_m_s
