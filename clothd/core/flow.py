@@ -71,8 +71,10 @@ class FlowController:
         self.workspace = workspace
         self.period_s = period_s
         self.placement = np.array(cfg.placement.pose)
-        # The belts reach half a module beyond the outer centres: past that the next station has it.
-        self.exit_x_m = (cell.modules_x - 1) / 2 * cell.pitch_m + cell.module_size_m / 2
+        # The table's edge, the outer turntables' (half a pitch past the outer centres): past that the
+        # next station has it. Let go at the end of the belts, 5 mm short, a piece lay there until the next
+        # one pushed it off.
+        self.exit_x_m = cell.modules_x / 2 * cell.pitch_m
         self.half_belt_m = cell.module_size_m / 2
         self._new_cell = lambda: CellController(
             control, cell, layout, workspace, period_s, strain_limit, estimates_shape
