@@ -56,8 +56,8 @@ def _tracked(pid: int, pose: tuple[float, float, float], state: PieceState, ridg
     return Piece(pid, state, 0.0, est.outline_m, 0.0, est, slot=pid, tracked_since_s=0.0)  # type: ignore[arg-type]
 
 
-def _under(outline_m: np.ndarray) -> np.ndarray:
-    return PoseController(ControlConfig(), CELL, LAYOUT.centres_m).modules_under(outline_m)
+def _under(outline_m: np.ndarray, margin_m: float | None = None) -> np.ndarray:
+    return PoseController(ControlConfig(), CELL, LAYOUT.centres_m).modules_under(outline_m, margin_m)
 
 
 def test_an_entering_piece_is_pulled_in_by_the_belts_under_it_alone_until_all_of_it_is_in() -> None:
@@ -111,7 +111,7 @@ def test_each_module_goes_to_at_most_one_piece_and_the_modules_between_them_stop
     assert out.any() and hold.any() and not (out & hold).any()
     # A piece driven out runs on every belt that reaches under it, not only those it covers the centre
     # of: a stopped belt under its edge brakes it.
-    touched = flow._touched(leaving.outline_m)
+    touched = _under(leaving.outline_m, margin_m=-CELL.module_size_m / 2)
     assert (touched & ~out & ~hold).any()
     assert (commands.speed_m_s[touched & ~hold] > 0).all()
     assert np.allclose(commands.speed_m_s[hold], 0.0, atol=1e-3)  # flat and held: no motion

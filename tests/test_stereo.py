@@ -111,7 +111,8 @@ def test_unfolding_lays_the_slack_of_a_ridge_out_flat() -> None:
     xy = rng.uniform([-0.12, -0.1], [0.12, 0.1], (2000, 2))
     height = 0.012
     field = fit_height_field(np.column_stack([xy, _gaussian_ridge(xy, height)]), footprint)
-    material, nodes = unfold(footprint, field)
+    outline = np.array([_on_rectangle(p, 0.24, 0.2) for p in np.linspace(0.0, 0.88, 880, endpoint=False)])
+    material, nodes = unfold(footprint, field, outline)
     slack = height**2 * math.sqrt(math.pi) / (4.0 * RIDGE_SIGMA_M)  # ½∫z'² across a Gaussian
     assert material.width_m - footprint.width_m == pytest.approx(slack, rel=0.25)
     assert material.height_m == pytest.approx(footprint.height_m, abs=2e-4)  # along the ridge: none
@@ -120,7 +121,7 @@ def test_unfolding_lays_the_slack_of_a_ridge_out_flat() -> None:
     np.testing.assert_allclose(nodes[:, 2], field.at(nodes[:, :2]))
     assert 0.5 * height < nodes[:, 2].max() <= height
     flat = fit_height_field(np.column_stack([xy, np.zeros(len(xy))]), footprint)
-    same, lying = unfold(footprint, flat)
+    same, lying = unfold(footprint, flat, outline)
     assert same.width_m == pytest.approx(footprint.width_m, abs=1e-6)
     np.testing.assert_allclose(lying[:, :2], footprint.rest_nodes_m().reshape(-1, 2), atol=1e-6)
 

@@ -110,10 +110,11 @@ class PoseController:
         self.twist = np.zeros(3)
         return ModuleCommands.all_stop(len(self.centres_m), self.heading_rad)
 
-    def modules_under(self, outline_xy: np.ndarray) -> np.ndarray:
-        """(n_modules,) bool: the module's centre lies at least `under_cloth_margin_m` inside the outline."""
+    def modules_under(self, outline_xy: np.ndarray, margin_m: float | None = None) -> np.ndarray:
+        """(n_modules,) bool: the module's centre lies at least margin_m (None: `under_cloth_margin_m`)
+        inside the outline; a negative margin reaches outside it."""
         contour = outline_xy.astype(np.float32).reshape(-1, 1, 2)
-        margin = self.cfg.under_cloth_margin_m
+        margin = self.cfg.under_cloth_margin_m if margin_m is None else margin_m
         return np.array(
             [cv2.pointPolygonTest(contour, (float(x), float(y)), True) >= margin for x, y in self.centres_m]
         )

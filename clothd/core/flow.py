@@ -24,7 +24,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from clothd.config import CellConfig, ControlConfig, FlowConfig
@@ -135,7 +134,7 @@ class FlowController:
             ctl.hold_pose = est.pose.copy()
         self._judge(piece, ctl, pieces, now_s)
         if piece.state in DRIVEN_OUT:
-            touched = self._touched(est.outline_m)
+            touched = self._touched(ctl, est.outline_m)
             return self._out(piece, ctl, est.pose, touched), touched
         target = ctl.hold_pose if piece.state == PieceState.FLATTENING else self.placement
         mode = Mode.FLATTEN if piece.state == PieceState.FLATTENING else Mode.MOVE
@@ -217,25 +216,18 @@ class FlowController:
             twist[2] = g * math.remainder(float(self.placement[2] - pose[2]), 2 * math.pi)
         return _velocities(ctl.cell.pose.module_commands(pose, twist, under))
 
-    def _touched(self, outline_m: np.ndarray) -> np.ndarray:
-        """(n_modules,) bool: the modules whose belt reaches under the outline. A piece driven out runs on
-        all of them: a stopped belt under its edge brakes it, and a 221 x 207 mm piece on 4 running belts
-        and the edges of 8 stopped ones stood still."""
-        contour = outline_m.astype(np.float32).reshape(-1, 1, 2)
-        reach = -self.half_belt_m
-        return np.array(
-            [
-                cv2.pointPolygonTest(contour, (float(x), float(y)), True) > reach
-                for x, y in self.layout.centres_m
-            ]
-        )
+    def _touched(self, ctl: _PieceControl, outline_m: np.ndarray) -> np.ndarray:
+        """The modules whose belt reaches under the outline. A piece driven out runs on all of them: a
+        stopped belt under its edge brakes it, and a 221 x 207 mm piece on 4 running belts and the edges of
+        8 stopped ones stood still."""
+        return ctl.cell.pose.modules_under(outline_m, margin_m=-self.half_belt_m)
 
     def _blind(self, piece: Piece, ctl: _PieceControl) -> tuple[np.ndarray, np.ndarray]:
         """A piece not tracked: one being driven out goes on out where it was last seen, moved on as its
         belts move it; any other is stopped until its tracking starts again."""
         if piece.state not in DRIVEN_OUT or not (ctl.driving_out or piece.state == PieceState.LEAVING):
             return np.zeros((self.layout.n_modules, 2)), ctl.cell.pose.modules_under(piece.outline_m)
-        under = self._touched(piece.outline_m)
+        under = self._touched(ctl, piece.outline_m)
         piece.outline_m = piece.outline_m + np.array([ctl.out_speed_m_s * self.period_s, 0.0])
         v = np.zeros((self.layout.n_modules, 2))
         v[:, 0] = ctl.out_speed_m_s

@@ -87,30 +87,20 @@ def outline_rectangle(outline_m: np.ndarray) -> np.ndarray:
     return np.asarray(corners @ axes + [cx, cy])
 
 
-def unfold(
-    footprint: QuadMesh, field: HeightField, outline_m: np.ndarray | None = None
-) -> tuple[QuadMesh, np.ndarray]:
+def unfold(footprint: QuadMesh, field: HeightField, outline_m: np.ndarray) -> tuple[QuadMesh, np.ndarray]:
     """The material mesh (a regular grid over the cloth laid flat, nx x ny like the footprint's) and its
     nodes' positions now (n, 3): on the table where the material points lie, at the surface's height.
     outline_m (k, 2) (or (k, 3), z unused): the cloth's outline on the table, whose laid-out rectangle
-    the material is; None: the laid-out grid's mean extents."""
+    the material is."""
     nx, ny = footprint.nx, footprint.ny
     grid = footprint.rest_nodes_m().reshape(-1, 2)
     edges = _edges(ny, nx)
     lengths = surface_lengths_m(field, grid[edges[:, 0]], grid[edges[:, 1]])
     flat = unfold_layout(grid, lengths, edges, nx)
-    if outline_m is not None and len(outline_m) >= 3:
-        # An oblique ridge shifts the cloth beyond it sideways too: the footprint's rectangle is wider than
-        # the cloth and turned off its axes (by 1.5 deg, 4 mm on the default cloth), and the laid-out grid
-        # with it. The outline laid out is the cloth's own rectangle again.
-        material = QuadMesh.covering(outline_rectangle(blend(flat, footprint.bind(outline_m[:, :2]))), nx, ny)
-    else:
-        a1, a2 = footprint.axes
-        laid = flat.reshape(ny, nx, 2)
-        width = float(np.mean((laid[:, -1] - laid[:, 0]) @ a1))
-        height = float(np.mean((laid[-1, :] - laid[0, :]) @ a2))
-        origin = flat.mean(axis=0) - 0.5 * width * a1 - 0.5 * height * a2
-        material = QuadMesh(nx, ny, origin, footprint.theta_rad, width, height)
+    # An oblique ridge shifts the cloth beyond it sideways too: the footprint's rectangle is wider than the
+    # cloth and turned off its axes (by 1.5 deg, 4 mm on the default cloth), and the laid-out grid with
+    # it. The outline laid out is the cloth's own rectangle again.
+    material = QuadMesh.covering(outline_rectangle(blend(flat, footprint.bind(outline_m[:, :2]))), nx, ny)
     rest = material.rest_nodes_m().reshape(-1, 2)
     # A material node lies where the footprint point of the same place in the laid-out grid does: the
     # laid-out grid's quads map back onto the footprint's. Nodes just past its border (the material's
