@@ -8,8 +8,6 @@ import pytest
 
 from clothd.cli import main
 
-pytestmark = pytest.mark.clock_free
-
 Recorder = Callable[[str], Path]
 
 

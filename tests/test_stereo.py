@@ -30,8 +30,6 @@ from hwsim.scenario import Pose
 from hwsim.sensor import Sensor
 from hwsim.world import World
 
-pytestmark = pytest.mark.clock_free
-
 RIDGE_SIGMA_M = 0.012
 
 
