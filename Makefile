@@ -73,8 +73,11 @@ firmware-stm32:
 	  else echo "make test: the STM32 build needs: sudo apt-get install gcc-arm-none-eabi qemu-system-arm"; exit 1; fi; }
 	$(MAKE) -C deploy/firmware stm32
 
+# The tests marked clock_free (no clock, no process, no server) run on every core; then the rest, whose
+# real-time loops and servers must not share the machine with another test, one at a time.
 test: lock-check lint browser postgres firmware firmware-stm32
-	$(BIN)/pytest -q
+	$(BIN)/pytest -q -n auto -m clock_free
+	$(BIN)/pytest -q -m "not clock_free"
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache out

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pytest
 
 from clothd.config import FeatureConfig
 from clothd.core.anchors import AnchorFrames
 from clothd.core.feature_set import NO_ANCHOR, FeatureSet
 from clothd.core.features import FeatureEngine, GrayFrame
 from clothd.core.mesh import QuadMesh
+
+pytestmark = pytest.mark.clock_free
 
 NOISE_GREY = 4.0
 

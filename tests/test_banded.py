@@ -5,6 +5,8 @@ import pytest
 
 from clothd.core.banded import gram_band, solve_band, transpose_times
 
+pytestmark = pytest.mark.clock_free
+
 
 def _dense(cols: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     J = np.zeros((len(cols), n))

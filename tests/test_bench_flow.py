@@ -7,9 +7,12 @@ import json
 from pathlib import Path
 
 import cv2
+import pytest
 
 from clothd.cli import main
 from clothd.tools.bench_flow import plot_rates
+
+pytestmark = pytest.mark.clock_free
 
 INTERFACE_KEYS = (
     "pieces_in",

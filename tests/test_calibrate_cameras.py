@@ -20,6 +20,8 @@ from hwsim import scenario as scenarios
 from hwsim.calibration_set import FLAT_NAME
 from hwsim.camera import Camera
 
+pytestmark = pytest.mark.clock_free
+
 VIEWS = 15  # held views besides the flat one, each seen by both cameras: with 8, cam1 was 0.51 mm off
 
 

@@ -4,6 +4,8 @@ import pytest
 from hwsim.camera import Camera
 from hwsim.scenario import CameraSpec
 
+pytestmark = pytest.mark.clock_free
+
 
 def test_straight_down_camera_projects_by_k_and_pose() -> None:
     cam = Camera.from_spec(CameraSpec(f_px=900.0, position_m=(0.0, 0.0, 1.0)))

@@ -14,6 +14,8 @@ from clothd.core.camera_model import CameraModel
 from clothd.errors import InputError
 from clothd.formats import read_camera
 
+pytestmark = pytest.mark.clock_free
+
 DIST = np.array([-0.12, 0.03, 0.001, -0.0015, 0.002])
 
 

@@ -4,6 +4,7 @@ script's timeline, flatten's one meaning, and a mode entered afresh."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from clothd.config import CellConfig, ControlConfig
 from clothd.core.cell_controller import CellController, ControlStep
@@ -14,6 +15,8 @@ from clothd.core.ekf import UpdateStats
 from clothd.core.messages import Estimate
 from clothd.core.modes import LoopState, Mode
 from clothd.core.workspace import Workspace, cloth_corners_m
+
+pytestmark = pytest.mark.clock_free
 
 CELL = CellConfig()
 LAYOUT = ConveyorLayout.of_cell(CELL)

@@ -12,6 +12,8 @@ import pytest
 from clothd.cli import build_parser
 from clothd.tools.bench_speed import STAGES, Row, format_rows, plot, read_rows, rows_json
 
+pytestmark = pytest.mark.clock_free
+
 
 def test_version_is_the_installed_packages(capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit) as done:

@@ -16,6 +16,8 @@ from clothd.core.messages import ModuleCommands
 from clothd.loop.compute import Compute
 from clothd.loop.compute_messages import TickRequest
 
+pytestmark = pytest.mark.clock_free
+
 IDLE = Setpoint("idle", None)
 
 

@@ -5,10 +5,13 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from clothd.config import CellConfig, ControlConfig
 from clothd.core.control import PoseController
 from clothd.core.conveyor import ConveyorLayout
+
+pytestmark = pytest.mark.clock_free
 
 CELL = CellConfig()
 LAYOUT = ConveyorLayout(CELL.modules_x, CELL.modules_y, CELL.pitch_m, CELL.module_size_m)

@@ -4,6 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
+
+pytestmark = pytest.mark.clock_free
+
 UNIT = Path(__file__).resolve().parent.parent / "deploy" / "clothd.service"
 
 

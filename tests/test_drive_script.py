@@ -13,6 +13,8 @@ from clothd.core.drive_script import DrivePlan, DriveScript, cloth_reach_m, swep
 from clothd.errors import InputError, InvalidRequestError
 from clothd.tools.drive import load_script
 
+pytestmark = pytest.mark.clock_free
+
 LAYOUT = ConveyorLayout(8, 6, 0.075, 0.065)
 
 

@@ -1,11 +1,14 @@
 """The filter steps against filterpy, the rigid model's Jacobian against finite differences, gating."""
 
 import numpy as np
+import pytest
 from filterpy.kalman import ExtendedKalmanFilter
 
 from clothd.config import EkfConfig
 from clothd.core import ekf, rigid
 from clothd.core.camera_model import CameraModel
+
+pytestmark = pytest.mark.clock_free
 
 
 def _spd(rng: np.random.Generator, n: int) -> np.ndarray:

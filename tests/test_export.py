@@ -21,6 +21,8 @@ from clothd.outputs.foxglove_channels import CellChannels, encode_jpeg
 from clothd.outputs.view import draw_tracking
 from clothd.tools.mcap_picture import read_cell_mcap
 
+pytestmark = pytest.mark.clock_free
+
 Recorder = Callable[[str], Path]
 
 

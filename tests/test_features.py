@@ -14,6 +14,8 @@ from hwsim.camera import Camera
 from hwsim.paths import frame_path
 from hwsim.truth import Truth, surface_points, surface_weights
 
+pytestmark = pytest.mark.clock_free
+
 Recorder = Callable[[str], Path]
 
 K = 12  # translate: at 0.4 s every belt has run at 30 mm/s for a while, about 0.9 px per frame

@@ -11,6 +11,8 @@ from clothd.core.flatness import FlatnessMonitor, Ridge, edge_apexes, find_ridge
 from hwsim.ridges import lay_ridges
 from hwsim.scenario import Ridge as HwsimRidge
 
+pytestmark = pytest.mark.clock_free
+
 SIZE_M = (0.25, 0.20)
 NX, NY = 12, 12
 SPACING_M = (SIZE_M[0] / (NX - 1), SIZE_M[1] / (NY - 1))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from clothd.config import CellConfig
 from clothd.core.workspace import Workspace
@@ -17,6 +18,8 @@ from clothd.tools.flatten_starts import (
     cloth_half_m,
     draw_start,
 )
+
+pytestmark = pytest.mark.clock_free
 
 
 def _corners(pose: list[float], half: tuple[float, float]) -> np.ndarray:

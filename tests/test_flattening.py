@@ -17,6 +17,8 @@ from clothd.core.flattening import WIDEST_HOLD_S, FlatteningRegulator, rigid_par
 from clothd.core.messages import Estimate
 from clothd.outputs.view import ViewRenderer
 
+pytestmark = pytest.mark.clock_free
+
 CELL = CellConfig()
 LAYOUT = ConveyorLayout.of_cell(CELL)
 SIZE_M = (0.25, 0.20)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 from test_cell_controller import _nodes
 
 from clothd.config import CellConfig, ControlConfig, FlowConfig
@@ -17,6 +18,8 @@ from clothd.core.messages import Estimate
 from clothd.core.modes import PieceState
 from clothd.core.pieces import Piece
 from clothd.core.workspace import Workspace, cloth_corners_m
+
+pytestmark = pytest.mark.clock_free
 
 CELL = CellConfig(modules_x=12, modules_y=6)
 LAYOUT = ConveyorLayout.of_cell(CELL)

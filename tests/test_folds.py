@@ -1,8 +1,11 @@
 """Node heights from inextensibility (clothd/core/folds.py), on hand-built meshes."""
 
 import numpy as np
+import pytest
 
 from clothd.core.folds import fold_heights_m
+
+pytestmark = pytest.mark.clock_free
 
 L_M = 0.02  # rest spacing along rows and columns
 NX, NY = 10, 6

@@ -7,6 +7,8 @@ import pytest
 from clothd.drivers.footage import CommandSchedule, natural_key, open_footage
 from clothd.errors import InputError
 
+pytestmark = pytest.mark.clock_free
+
 
 def test_image_directory_in_natural_order(tmp_path: Path) -> None:
     for k in (10, 2, 1):

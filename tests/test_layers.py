@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.clock_free
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # Lowest first. A module belongs to the first entry whose prefix it starts with.

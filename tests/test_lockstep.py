@@ -11,6 +11,8 @@ from clothd.config import load_config
 from clothd.tools.bench_flatten import FLAT_AREA_RATIO, FLAT_HEIGHT_M, PUSH_REACH_M, PUSH_S
 from clothd.tools.lockstep import LockstepCell
 
+pytestmark = pytest.mark.clock_free
+
 PUSH = {
     "at_m": [0.01, 0.0],
     "direction_rad": 1.2,

@@ -10,6 +10,8 @@ import pytest
 
 from clothd.loop.loop_stats import LoopStats
 
+pytestmark = pytest.mark.clock_free
+
 
 @pytest.fixture
 def stats() -> Iterator[LoopStats]:

@@ -11,6 +11,8 @@ import pytest
 from clothd.core.camera_model import CameraModel
 from clothd.core.mesh import QuadMesh, blend, measurement_jacobian, shape_functions
 
+pytestmark = pytest.mark.clock_free
+
 CORNERS_XI_ETA = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])  # N1..N4
 
 

@@ -24,6 +24,8 @@ from clothd.core.module_check import (
 from clothd.errors import InputError
 from clothd.formats import read_module_calibration, write_module_calibration
 
+pytestmark = pytest.mark.clock_free
+
 
 def _ribbed_texture(rng: np.random.Generator, n: int) -> np.ndarray:
     """A belt-like surface: ribs across x with speckle, smooth enough for sub-pixel shifts."""

@@ -4,12 +4,15 @@ frames whose truth is known exactly."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from clothd.core.camera_model import CameraModel
 from clothd.core.features import aperture_whitening
 from clothd.core.mesh import QuadMesh
 from clothd.core.outline_edges import OutlineEdges
 from clothd.core.segmentation import ClothColour
+
+pytestmark = pytest.mark.clock_free
 
 W_PX, H_PX, F_PX = 320, 240, 450.0
 

@@ -7,6 +7,8 @@ from hwsim import scenario as scenarios
 from hwsim.cloth_constants import GRAVITY_M_S2
 from hwsim.world import World
 
+pytestmark = pytest.mark.clock_free
+
 
 def _world(**overrides: object) -> World:
     data: dict[str, object] = {"name": "t", "duration_s": 2.0, "settle_s": 0.0}

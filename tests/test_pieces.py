@@ -29,6 +29,8 @@ from clothd.tools.lockstep_flow import config_for, flow_scenario
 from hwsim.scene import SceneCloth
 from hwsim.world import World
 
+pytestmark = pytest.mark.clock_free
+
 GAP_M = 0.020
 SIZE_M = (0.25, 0.20)
 

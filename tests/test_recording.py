@@ -17,6 +17,8 @@ from hwsim.paths import frame_path
 from hwsim.preview import write_preview
 from hwsim.verify import verify
 
+pytestmark = pytest.mark.clock_free
+
 Recorder = Callable[[str], Path]
 
 

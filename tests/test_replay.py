@@ -8,6 +8,8 @@ import pytest
 
 from clothd.cli import main
 
+pytestmark = pytest.mark.clock_free
+
 Recorder = Callable[[str], Path]
 
 

@@ -8,12 +8,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
+import pytest
 from recorded_frames import compute_on, tick
 
 from clothd.core.control import Setpoint
 from clothd.core.messages import ModuleCommands
 from clothd.loop.compute_messages import TickRequest
 from clothd.tools.procfs import rss_mb
+
+pytestmark = pytest.mark.clock_free
 
 RESETS = 60
 ALLOWED_GROWTH_MB = 20.0

@@ -5,6 +5,8 @@ import pytest
 from hwsim import scenario as scenarios
 from hwsim.cli import main
 
+pytestmark = pytest.mark.clock_free
+
 
 @pytest.mark.parametrize("name", scenarios.shipped_names())
 def test_shipped_scenarios_load(name: str) -> None:

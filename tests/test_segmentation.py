@@ -12,6 +12,8 @@ from hwsim.camera import Camera
 from hwsim.paths import frame_path
 from hwsim.truth import Truth
 
+pytestmark = pytest.mark.clock_free
+
 Recorder = Callable[[str], Path]
 
 

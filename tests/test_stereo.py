@@ -30,6 +30,8 @@ from hwsim.scenario import Pose
 from hwsim.sensor import Sensor
 from hwsim.world import World
 
+pytestmark = pytest.mark.clock_free
+
 RIDGE_SIGMA_M = 0.012
 
 

@@ -1,7 +1,10 @@
 import numpy as np
+import pytest
 
 from hwsim.scenario import Miscalibration, ModuleSelector, TableSpec
 from hwsim.table import Table
+
+pytestmark = pytest.mark.clock_free
 
 
 def test_layout_is_centred_and_row_major() -> None:

@@ -19,6 +19,8 @@ from hwsim.texture import (
     mip_pyramid,
 )
 
+pytestmark = pytest.mark.clock_free
+
 TEXELS_PER_M = 4000.0  # 4 texels per mm, the density the renderer uses for a 250 x 200 mm cloth
 CLOTH_M = (0.25, 0.2)
 

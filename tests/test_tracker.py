@@ -17,6 +17,8 @@ from clothd.tools.grading import material_coordinates, true_positions
 from clothd.tools.offline import OfflineTracking
 from hwsim.truth import Truth
 
+pytestmark = pytest.mark.clock_free
+
 Recorder = Callable[[str], Path]
 
 

@@ -12,6 +12,8 @@ from clothd.core.mesh_ekf import NodeBelief, _nanmedian_rows
 from clothd.core.physics import MassSpring, spring_pairs
 from clothd.taichi_runtime import start_taichi
 
+pytestmark = pytest.mark.clock_free
+
 LAYOUT = ConveyorLayout(8, 6, 0.075, 0.065)
 
 

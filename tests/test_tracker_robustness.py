@@ -18,6 +18,8 @@ from clothd.tools.recordings import recorded_exposure_s
 from hwsim.paths import frame_path
 from hwsim.truth import Truth
 
+pytestmark = pytest.mark.clock_free
+
 Recorder = Callable[[str], Path]
 
 

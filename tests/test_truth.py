@@ -1,6 +1,9 @@
 import numpy as np
+import pytest
 
 from hwsim.truth import surface_normals, surface_points, surface_weights
+
+pytestmark = pytest.mark.clock_free
 
 
 def _grid(nx: int = 5, ny: int = 4, d: float = 0.01) -> tuple[np.ndarray, np.ndarray]:

@@ -15,6 +15,8 @@ from hwsim.renderer import Renderer
 from hwsim.texture import CHECK_PERIOD_M, TWILL_ANGLE_DEG, TWILL_PERIOD_M, cloth_texture, weave_slopes
 from hwsim.world import World
 
+pytestmark = pytest.mark.clock_free
+
 WEAVES = ("twill-turn-left", "twill-turn-right", "twill-push", "twill-spin")
 FAST = {
     "fast-050": 0.05,

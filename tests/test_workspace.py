@@ -9,6 +9,8 @@ import pytest
 
 from clothd.core.workspace import Workspace, cloth_corners_m, rigid_step
 
+pytestmark = pytest.mark.clock_free
+
 BOX = Workspace(-0.3, 0.3, -0.2, 0.2)
 SIZE_M = (0.25, 0.20)
 DT_S = 1 / 30

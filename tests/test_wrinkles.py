@@ -13,6 +13,8 @@ from hwsim.ridges import lay_ridges
 from hwsim.stretch import stretch_under_turn
 from hwsim.world import World
 
+pytestmark = pytest.mark.clock_free
+
 CELL_CLOTH = scenarios.load("cell").cloth.model_dump()  # the live cell's cloth, as `hwsim serve` runs it
 RECORDED_CLOTH = scenarios.ClothSpec().model_dump()  # the finer cloth `hwsim record`'s scenarios default to
 ELASTIC_CLOTH = CELL_CLOTH | {"bending_hysteresis_n": 0.0}  # ... without the yarns' friction in bending
