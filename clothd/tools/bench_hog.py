@@ -28,7 +28,7 @@ import tempfile
 import time
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import httpx
 from tqdm import tqdm
@@ -40,6 +40,9 @@ BROWSER_STARTS = 3
 TARGETS = ((0.05, 0.03, 0.2), (-0.05, -0.03, -0.2))
 MOVE_TIMEOUT_S = 20.0
 WORLD_REALTIME_PRIORITY = 10  # below the daemon's loop (loop.realtime_priority, 20) and the firmware (40)
+# How a phase runs hwsim: as clothd run --sim starts it, with its world in the real-time class too, or
+# every thread at nice 0.
+HwsimAs = Literal["started", "world_realtime", "normal"]
 HOG_LIMIT_S = 600.0  # a hog ends by itself even if the bench is killed
 BROWSER_FLAGS = (
     "--headless",
@@ -146,7 +149,7 @@ def run_move(d: DaemonProcess, target: tuple[float, float, float]) -> str:
     return "timed out"
 
 
-def measure_phase(d: DaemonProcess, n_hogs: int, hwsim_as: str = "started") -> dict[str, Any]:
+def measure_phase(d: DaemonProcess, n_hogs: int, hwsim_as: HwsimAs = "started") -> dict[str, Any]:
     """hwsim_as: 'started' (as clothd run --sim starts it), 'world_realtime' or 'normal' (all at nice 0)."""
     # Each phase from a tracker started afresh on the still cloth, as the first: a lagging angle left by
     # one phase's browser starts is not the next phase's.
