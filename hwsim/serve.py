@@ -164,9 +164,13 @@ class Cell:
         return True
 
     def truth(self, with_nodes: bool) -> dict[str, Any]:
+        # The cache is replaced whole after every step, never changed in place: it is read without the
+        # lock, which a world behind real time takes back at once (a reader waited seconds for it).
+        if not with_nodes:
+            return dict(self._truth_cache)
         with self.lock:
             out = dict(self._truth_cache)
-            if with_nodes and self.world.pieces:
+            if self.world.pieces:
                 out["nodes_m"] = self.world.cloth.positions_m().round(5).tolist()
         return out
 

@@ -20,7 +20,7 @@ from hwsim import scenario as scenarios
 from hwsim.cloth_grid import ClothGrid
 from hwsim.infeed import InfeedPlan
 from hwsim.scenario import ScenarioError
-from hwsim.serve import _Handler
+from hwsim.serve import Cell, _Handler
 from hwsim.world import World
 
 SPEED_M_S = 0.2  # the modules' and the infeed conveyor's: matched, so nothing pulls a ridge flat
@@ -166,3 +166,17 @@ def test_get_outfeed_serves_the_judged_pieces() -> None:
     finally:
         server.shutdown()
         server.server_close()
+
+
+def test_the_truth_without_nodes_answers_while_the_world_holds_its_lock() -> None:
+    """A world behind real time takes its lock back at once after every step: a reader of the truth waited
+    seconds for it. The truth without nodes is the cache of the last step, read without the lock."""
+    cell = Cell.__new__(Cell)  # the world thread's state only: no world, cameras or firmware
+    cell.lock = threading.Lock()
+    cell._truth_cache = {"t_s": 2.0, "behind_real_time_s": 0.5}
+    answered: list[dict[str, Any]] = []
+    with cell.lock:  # the world stepping
+        reader = threading.Thread(target=lambda: answered.append(cell.truth(with_nodes=False)))
+        reader.start()
+        reader.join(timeout=5.0)
+        assert answered == [{"t_s": 2.0, "behind_real_time_s": 0.5}]

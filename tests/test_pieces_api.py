@@ -166,6 +166,7 @@ def test_sim_outfeed_relays_hwsims_judged_pieces_beside_its_truth(hwsim_url: str
     r = client.get("/api/v1/sim/outfeed")
     assert r.status_code == 200 and r.json() == _StubCell.judged
     assert client.get("/api/v1/sim/truth").json() == {"t_s": 3.0, "with_nodes": True}
+    assert client.get("/api/v1/sim/truth?nodes=false").json() == {"t_s": 3.0, "with_nodes": False}
 
 
 def test_sim_outfeed_is_404_without_hwsim_and_503_when_hwsim_does_not_serve_it(hwsim_url: str) -> None:

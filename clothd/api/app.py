@@ -186,10 +186,11 @@ def _add_view_routes(
         return CameraInfo(width=cam.width, height=cam.height, table_to_pixel=cam.table_homography().tolist())
 
     @api.get("/sim/truth", responses=SIM_DOC)
-    async def sim_truth() -> JSONResponse:
-        """hwsim's ground truth (pose, module states, cloth nodes), relayed for the dashboard's truth
-        overlay; 404 unless the daemon runs against the simulated cell."""
-        return await _relay_sim(sim_truth_url, "truth", {"nodes": 1})
+    async def sim_truth(nodes: bool = True) -> JSONResponse:
+        """hwsim's ground truth (pose, module states, whether it keeps real time, and the lead cloth's
+        nodes unless `nodes=false`), relayed for the dashboard's truth overlay and the benches; 404 unless
+        the daemon runs against the simulated cell."""
+        return await _relay_sim(sim_truth_url, "truth", {"nodes": 1} if nodes else None)
 
     @api.get("/sim/outfeed", responses={200: {"model": list[OutfeedPiece]}, **SIM_DOC})
     async def sim_outfeed() -> JSONResponse:

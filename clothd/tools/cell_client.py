@@ -49,6 +49,10 @@ class CellClient:
         """A setpoint that is a mode alone (idle, hold, flatten, flow)."""
         self._call("PUT", "/setpoint", {"mode": mode})
 
+    def sim_truth(self) -> dict[str, Any]:
+        """hwsim's truth without the cloth's nodes (against the simulated cell only)."""
+        return dict(self._call("GET", "/sim/truth?nodes=false"))
+
     def outfeed(self) -> list[dict[str, Any]]:
         """hwsim's judgement of each piece that left, oldest first (against the simulated cell only)."""
         return list(self._call("GET", "/sim/outfeed"))
