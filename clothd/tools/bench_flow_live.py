@@ -132,10 +132,11 @@ def format_live(result: dict[str, Any]) -> str:
         f"{r['compute_overruns']} sent with the last commands); frame to command p50 "
         f"{_ms(r['frame_to_command_ms_p50'])}, p99 {_ms(r['frame_to_command_ms_p99'])}",
     ]
-    if r["sim_behind_real_time_s"] > 0.0:
+    if r["sim_behind_real_time_s"] > 0.0 or r["sim_camera_frames_dropped"] > 0:
         lines.append(
-            f"  hwsim fell {r['sim_behind_real_time_s']:.1f} s behind real time and dropped "
-            f"{r['sim_camera_frames_dropped']} camera frames: the simulated cell was not real time"
+            f"  hwsim dropped {r['sim_camera_frames_dropped']} camera frames to keep up with real time "
+            f"and fell {r['sim_behind_real_time_s']:.1f} s behind it for good: the simulated cell was not "
+            "real time"
         )
     if r["halted_after_s"] is not None:
         lines.append(f"  mode flow ended after {r['halted_after_s']:g} s: {r['halt_reason']}")
