@@ -30,6 +30,13 @@ class _Daemon:
         self.modes: list[str] = []
         self.polls = 0
         self.halts = halts
+        self.truths = 0
+
+    def sim_truth(self) -> dict[str, Any]:
+        """hwsim's lag: before the run, then 246 more frames dropped and 1.5 s more lost for good."""
+        self.truths += 1
+        first = self.truths == 1
+        return {"camera_frames_dropped": 4 if first else 250, "behind_real_time_s": 0.5 if first else 2.0}
 
     def status(self) -> dict[str, Any]:
         self.polls += 1
@@ -70,6 +77,8 @@ def test_the_live_figures_come_from_the_api(monkeypatch: pytest.MonkeyPatch) -> 
     # Of the 1002 ticks due since flow began, 2 were missed and 4 went out with the last commands.
     assert r["ticks"] == 1002 and r["missed_tick_pct"] == pytest.approx(100 * 6 / 1002, abs=1e-3)
     assert r["multi_piece_time_pct"] == 100.0
+    assert r["sim_camera_frames_dropped"] == 246 and r["sim_behind_real_time_s"] == 1.5
+    assert "hwsim dropped 246 camera frames" in bench_flow_live.format_live(r)
 
 
 def test_a_flow_that_halts_is_reported_with_its_reason_and_the_pieces_seen(

@@ -185,7 +185,7 @@ def _add_view_routes(
         cam = camera_model
         return CameraInfo(width=cam.width, height=cam.height, table_to_pixel=cam.table_homography().tolist())
 
-    @api.get("/sim/truth", responses=SIM_DOC)
+    @api.get("/sim/truth", responses={**SIM_DOC, 422: ERROR_DOC[422]})
     async def sim_truth(nodes: bool = True) -> JSONResponse:
         """hwsim's ground truth (pose, module states, whether it keeps real time, and the lead cloth's
         nodes unless `nodes=false`), relayed for the dashboard's truth overlay and the benches; 404 unless
