@@ -119,6 +119,7 @@ class Cell:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="world", daemon=True)
         self._truth_cache: dict[str, Any] = {}
+        self._outfeed_cache: tuple[dict[str, object], ...] = ()  # replaced whole, as the truth's cache
 
     def _make_stream(self, index: int, every: int) -> Stream:
         spec = self.scenario.camera_specs[index]
@@ -175,8 +176,7 @@ class Cell:
         return out
 
     def outfeed(self) -> list[dict[str, object]]:
-        with self.lock:
-            return list(self.world.outfeed)
+        return list(self._outfeed_cache)
 
     def _run(self) -> None:
         """Step at absolute deadlines. A world held up (a loaded PC) catches up by stepping without
@@ -215,6 +215,8 @@ class Cell:
         lead: dict[str, Any] = {"pose": None, **dict.fromkeys(("max_height_m", "area_ratio", "folded_ratio"))}
         if self.world.pieces:
             lead = {"pose": self.world.cloth_pose().tolist(), **self.world.sheet_measures()}
+        if len(self.world.outfeed) != len(self._outfeed_cache):  # the outfeed only grows
+            self._outfeed_cache = tuple(self.world.outfeed)
         self._truth_cache = {
             "t_s": self.world.t_s,
             "pose": lead["pose"],

@@ -168,15 +168,20 @@ def test_get_outfeed_serves_the_judged_pieces() -> None:
         server.server_close()
 
 
-def test_the_truth_without_nodes_answers_while_the_world_holds_its_lock() -> None:
+def test_the_truth_without_nodes_and_the_outfeed_answer_while_the_world_holds_its_lock() -> None:
     """A world behind real time takes its lock back at once after every step: a reader of the truth waited
-    seconds for it. The truth without nodes is the cache of the last step, read without the lock."""
+    seconds for it. The truth without nodes and the outfeed are the last step's, read without the lock."""
     cell = Cell.__new__(Cell)  # the world thread's state only: no world, cameras or firmware
     cell.lock = threading.Lock()
     cell._truth_cache = {"t_s": 2.0, "behind_real_time_s": 0.5}
-    answered: list[dict[str, Any]] = []
+    cell._outfeed_cache = ({"id": 0, "max_height_mm": 0.2},)
+    answered: list[object] = []
+
+    def read() -> None:
+        answered.extend([cell.truth(with_nodes=False), cell.outfeed()])
+
     with cell.lock:  # the world stepping
-        reader = threading.Thread(target=lambda: answered.append(cell.truth(with_nodes=False)))
+        reader = threading.Thread(target=read)
         reader.start()
         reader.join(timeout=5.0)
-        assert answered == [{"t_s": 2.0, "behind_real_time_s": 0.5}]
+        assert answered == [{"t_s": 2.0, "behind_real_time_s": 0.5}, [{"id": 0, "max_height_mm": 0.2}]]
