@@ -316,9 +316,10 @@ def test_every_camera_is_in_the_status_metrics_and_health_and_only_the_first_is_
     assert status.json()["camera"]["source"] == "0"  # the first camera, as before
     # A further camera streaming with its pairing measured; the first lost.
     stats = PairingStats(skew_ms=4.5, skew_p95_ms=7.0, paired_pct=98.0)
-    parts.daemon.further = (CameraReport(FrameSourceHealth("streaming", True, None, 2), stats),)
+    parts.daemon.further = (CameraReport(FrameSourceHealth("streaming", True, None, 2, 12.5, 133.4), stats),)
     parts.daemon.publish()
     side = c.get("/api/v1/status").json()["cameras"][1]
+    assert (side["fps"], side["longest_gap_ms"]) == (12.5, 133.4)
     assert (side["skew_ms"], side["skew_p95_ms"], side["paired_pct"], side["reconnects"]) == (
         4.5,
         7.0,
@@ -335,6 +336,8 @@ def test_every_camera_is_in_the_status_metrics_and_health_and_only_the_first_is_
         and 'clothd_camera_healthy{camera="cam0"} 0.0' in text
     )
     assert 'clothd_camera_paired_ratio{camera="side"} 0.98' in text
+    assert 'clothd_camera_fps{camera="side"} 12.5' in text and 'clothd_camera_fps{camera="cam0"}' not in text
+    assert 'clothd_camera_longest_gap_ms{camera="side"} 133.4' in text
     health = c.get("/healthz").json()
     assert "camera" in health["problems"] and health["degraded"] == []
     # The further camera lost: degraded, not a problem (tracking goes on with the first view).

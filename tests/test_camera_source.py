@@ -8,6 +8,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from clothd.config import CameraSourceConfig
 from clothd.drivers.camera import VideoCaptureSource
@@ -70,3 +71,22 @@ def test_newer_than_returns_a_frame_as_it_arrives_and_gives_up_at_its_bound(tmp_
         assert newest is not None and got.index <= newest.index < never
     finally:
         cam.stop()
+
+
+def test_health_gives_the_rate_frames_arrive_at_and_the_longest_wait(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A camera dropping frames shows as a lower rate and a long gap before it is lost; frames older than
+    the window age out, so a stalled camera reports no rate."""
+    now = [0.0]
+    monkeypatch.setattr(time, "monotonic", lambda: now[0])
+    cam = VideoCaptureSource(CameraSourceConfig(source="unused", stale_after_s=30.0))  # never started
+    image = np.zeros((4, 4, 3), np.uint8)
+    assert cam.health().fps is None and cam.health().longest_gap_ms is None
+    for t_s in (0.0, 1 / 15, 2 / 15, 0.2 + 2 / 15):  # 15 frames/s, then one frame dropped and another
+        now[0] = t_s
+        cam._publish(image)
+    now[0] = 0.4
+    health = cam.health()
+    assert health.fps == pytest.approx(3 / (0.2 + 2 / 15))
+    assert health.longest_gap_ms == pytest.approx(200.0)
+    now[0] = 0.2 + 2 / 15 + 5.5  # nothing new for longer than the window
+    assert cam.health().fps is None and cam.health().longest_gap_ms is None

@@ -232,7 +232,9 @@ def test_both_cameras_stream_their_frames_pair_and_the_flatness_says_its_basis(d
     first, second = s["cameras"]
     print(
         f"second camera: skew {second['skew_ms']:.1f} ms (p95 {second['skew_p95_ms']:.1f}), "
-        f"{second['paired_pct']:.0f} % paired; flatness basis {s['flatness']['basis']}"
+        f"{second['paired_pct']:.0f} % paired; flatness basis {s['flatness']['basis']}; frames/s "
+        f"{first['fps']:.1f} and {second['fps']:.1f}, longest gaps {first['longest_gap_ms']:.0f} and "
+        f"{second['longest_gap_ms']:.0f} ms"
     )
     assert (first["name"], second["name"]) == ("cam0", "cam1")
     assert first["skew_ms"] is None and first["paired_pct"] is None  # the first is the reference
@@ -240,7 +242,10 @@ def test_both_cameras_stream_their_frames_pair_and_the_flatness_says_its_basis(d
     assert 0 <= second["paired_pct"] <= 100
     assert s["camera"]["source"] == first["source"]  # `camera` stays the first camera
     assert s["flatness"]["basis"] in ("measured", "since_start")
+    for cam in (first, second):  # both streams deliver frames at a rate: a gap is at least a frame's time
+        assert cam["fps"] > 0 and cam["longest_gap_ms"] >= 1e3 / cam["fps"]
     metrics = httpx.get(f"{daemon.base}/metrics", timeout=5).text
+    assert 'clothd_camera_fps{camera="cam0"}' in metrics and 'clothd_camera_fps{camera="cam1"}' in metrics
     assert 'clothd_camera_skew_ms{camera="cam1"}' in metrics
     assert 'clothd_camera_healthy{camera="cam1"} 1.0' in metrics
 

@@ -98,9 +98,10 @@ def test_page_loads_and_shows_the_live_state(page: Page) -> None:
         "document.getElementById('basis').textContent.startsWith('· basis: ')", timeout=10000
     )
     assert (page.text_content("#basis") or "").removeprefix("· basis: ") in ("measured", "since start")
-    # Both cameras of the default cell, the second with its skew to the first measured.
+    # Both cameras of the default cell with the rate their frames arrive at, the second with its skew to
+    # the first measured.
     page.wait_for_function(
-        "/^cam0 streaming \\| cam1 streaming · skew [+-]\\d+\\.\\d ms/"
+        "/^cam0 streaming \\d+\\.\\d fps \\| cam1 streaming \\d+\\.\\d fps · skew [+-]\\d+\\.\\d ms/"
         ".test(document.getElementById('cameras').textContent)",
         timeout=20000,
     )

@@ -122,8 +122,11 @@ def test_one_camera_reads_as_one_entry_and_no_flatness_as_an_empty_basis() -> No
             cell, idx = await _cell(client)
             names = await cell.get_child([f"{idx}:Cameras", f"{idx}:Name"])
             skews = await cell.get_child([f"{idx}:Cameras", f"{idx}:Skew_ms"])
+            fps = await cell.get_child([f"{idx}:Cameras", f"{idx}:Fps"])
             basis = await cell.get_child([f"{idx}:Flatness", f"{idx}:Basis"])
             assert await names.read_value() == ["cam0"]
+            (rate,) = await fps.read_value()
+            assert math.isnan(rate)  # no camera has delivered a frame here
             (skew,) = await skews.read_value()
             assert math.isnan(skew)  # the first camera has no skew to itself
             assert await basis.read_value() == ""  # not tracking: no flatness

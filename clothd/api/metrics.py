@@ -126,13 +126,24 @@ def _cameras(s: Status) -> Iterator[Metric]:
         "Share of the first camera's recent frames a further camera had a frame within max_skew_ms of",
         labels=["camera"],
     )
+    fps = GaugeMetricFamily(
+        "clothd_camera_fps", "Frames that arrived per second over the last 5 s", labels=["camera"]
+    )
+    gap = GaugeMetricFamily(
+        "clothd_camera_longest_gap_ms",
+        "The longest wait between two frames over the last 5 s",
+        labels=["camera"],
+    )
     for cam in s.cameras:
         up.add_metric([cam.name], float(cam.healthy))
+        if cam.fps is not None and cam.longest_gap_ms is not None:
+            fps.add_metric([cam.name], cam.fps)
+            gap.add_metric([cam.name], cam.longest_gap_ms)
         if cam.skew_ms is not None:
             skew.add_metric([cam.name], cam.skew_ms)
         if cam.paired_pct is not None:
             paired.add_metric([cam.name], cam.paired_pct / 100)
-    yield from (up, skew, paired)
+    yield from (up, fps, gap, skew, paired)
 
 
 def registry_for(hub: StreamHub) -> CollectorRegistry:

@@ -120,6 +120,8 @@ VARIABLES: tuple[Var, ...] = (
     Var("Cameras/Name", S, lambda s: [c.name for c in s.cameras]),
     Var("Cameras/State", S, lambda s: [c.state for c in s.cameras]),
     Var("Cameras/Healthy", B, lambda s: [c.healthy for c in s.cameras]),
+    Var("Cameras/Fps", D, lambda s: [_num(c.fps) for c in s.cameras]),
+    Var("Cameras/LongestGap_ms", D, lambda s: [_num(c.longest_gap_ms) for c in s.cameras]),
     Var("Cameras/Skew_ms", D, lambda s: [_num(c.skew_ms) for c in s.cameras]),
     Var("Cameras/Paired_pct", D, lambda s: [_num(c.paired_pct) for c in s.cameras]),
     Var("Link/State", S, lambda s: s.link.state),

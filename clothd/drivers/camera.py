@@ -2,7 +2,9 @@
 
 A capture thread reads continuously and keeps only the newest frame, stamped with the host's monotonic
 clock when it arrived (`t_mono_s`), so a tick always gets the freshest image and never a backlog. A
-source that fails or goes quiet is reopened with exponential backoff; `state` says which.
+source that fails or goes quiet is reopened with exponential backoff; `state` says which. The rate frames
+arrive at, and the longest wait between two, over the last RATE_WINDOW_S, show a camera that drops frames
+(a saturated USB bus, a slow exposure) before it is lost.
 Files and image directories are played at their frame rate, looping, as a camera would deliver them.
 """
 
@@ -11,6 +13,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 from pathlib import Path
 from urllib.parse import urlsplit, urlunsplit
 
@@ -22,6 +25,8 @@ from clothd.drivers.footage import DEFAULT_FPS, IMAGE_SUFFIXES, natural_key
 from clothd.drivers.ports import CameraFrame, FrameSourceHealth
 
 log = logging.getLogger(__name__)
+
+RATE_WINDOW_S = 5.0
 
 
 def redact_source(source: str) -> str:
@@ -44,6 +49,7 @@ class VideoCaptureSource:
         self.shown = redact_source(cfg.source)  # for logs and status: no credentials
         self._frame: CameraFrame | None = None
         self._count = 0
+        self._arrivals_s: deque[float] = deque()  # arrival times over the last RATE_WINDOW_S
         self._lock = threading.Lock()
         self._arrived = threading.Condition(self._lock)  # notified with each new frame
         self._stop = threading.Event()
@@ -76,7 +82,14 @@ class VideoCaptureSource:
         return self.latest() is not None
 
     def health(self) -> FrameSourceHealth:
-        return FrameSourceHealth(self.state, self.healthy, self.last_error, self.reconnects)
+        fps = gap_ms = None
+        with self._lock:
+            arrivals = np.array(self._arrivals_s)
+        arrivals = arrivals[arrivals >= time.monotonic() - RATE_WINDOW_S]  # a stalled source's age out
+        if len(arrivals) >= 2:
+            fps = float((len(arrivals) - 1) / (arrivals[-1] - arrivals[0]))
+            gap_ms = float(np.diff(arrivals).max() * 1e3)
+        return FrameSourceHealth(self.state, self.healthy, self.last_error, self.reconnects, fps, gap_ms)
 
     # -- capture ----------------------------------------------------------------------------------
 
@@ -154,6 +167,9 @@ class VideoCaptureSource:
         with self._arrived:
             self._frame = CameraFrame(self._count, now, image)
             self._count += 1
+            self._arrivals_s.append(now)
+            while now - self._arrivals_s[0] > RATE_WINDOW_S:
+                self._arrivals_s.popleft()
             self._arrived.notify_all()
         if self.state != "streaming":
             log.info("camera streaming from %s", self.shown)

@@ -27,6 +27,8 @@ class FrameSourceHealth:
     healthy: bool  # a frame fresher than the source's stale limit is there
     last_error: str | None
     reconnects: int
+    fps: float | None = None  # frames delivered per second over the recent window; None before two
+    longest_gap_ms: float | None = None  # the longest wait between two of those frames
 
 
 class FrameSource(Protocol):

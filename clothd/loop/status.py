@@ -98,12 +98,18 @@ class Timing(BaseModel):
     )
 
 
+FPS_DOC = "frames that arrived per second over the last 5 s; null before two"
+GAP_DOC = "the longest wait between two of those frames: a camera dropping frames shows here first"
+
+
 class CameraState(BaseModel):
     state: str
     healthy: bool
     source: str
     last_error: str | None
     reconnects: int
+    fps: float | None = Field(None, description=FPS_DOC)
+    longest_gap_ms: float | None = Field(None, description=GAP_DOC)
 
 
 class CameraEntry(BaseModel):
@@ -115,6 +121,8 @@ class CameraEntry(BaseModel):
     healthy: bool = Field(description="a frame fresher than camera.stale_after_s is there")
     last_error: str | None
     reconnects: int
+    fps: float | None = Field(None, description=FPS_DOC)
+    longest_gap_ms: float | None = Field(None, description=GAP_DOC)
     skew_ms: float | None = Field(
         description="median over recent pairs of this camera's frame time minus the first camera's "
         "(arrival, host monotonic); null for the first camera and before any pair"

@@ -75,7 +75,7 @@ const BASIS_WORDS = { measured: "measured", since_start: "since start" }; // sta
 
 // Every camera's state; a further one's skew to the first (median, ms) and the share of frames paired.
 function showCameras(cameras) {
-  $("cameras").textContent = cameras.map((c, i) => `${c.name} ${c.state}` + (i === 0 ? "" :
+  $("cameras").textContent = cameras.map((c, i) => `${c.name} ${c.state} ${fmt(c.fps, 1)} fps` + (i === 0 ? "" :
     ` · skew ${c.skew_ms === null ? "–" : `${c.skew_ms >= 0 ? "+" : ""}${fmt(c.skew_ms, 1)}`} ms, ` +
     `${fmt(c.paired_pct, 0)} % paired`)).join(" | ") || "–";
   $("cameras").className = `small${cameras.some((c) => !c.healthy) ? " warn" : ""}`;
