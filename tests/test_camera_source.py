@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
 
 from clothd.config import CameraSourceConfig
+from clothd.drivers import camera as camera_module
 from clothd.drivers.camera import VideoCaptureSource
 from clothd.drivers.footage import DEFAULT_FPS
 
@@ -77,7 +79,8 @@ def test_health_gives_the_rate_frames_arrive_at_and_the_longest_wait(monkeypatch
     """A camera dropping frames shows as a lower rate and a long gap before it is lost; frames older than
     the window age out, so a stalled camera reports no rate."""
     now = [0.0]
-    monkeypatch.setattr(time, "monotonic", lambda: now[0])
+    # The camera module's clock only: threads elsewhere keep the real one.
+    monkeypatch.setattr(camera_module, "time", SimpleNamespace(monotonic=lambda: now[0]))
     cam = VideoCaptureSource(CameraSourceConfig(source="unused", stale_after_s=30.0))  # never started
     image = np.zeros((4, 4, 3), np.uint8)
     assert cam.health().fps is None and cam.health().longest_gap_ms is None
