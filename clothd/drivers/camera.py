@@ -86,7 +86,7 @@ class VideoCaptureSource:
         with self._lock:
             arrivals = np.array(self._arrivals_s)
         arrivals = arrivals[arrivals >= time.monotonic() - RATE_WINDOW_S]  # a stalled source's age out
-        if len(arrivals) >= 2:
+        if len(arrivals) >= 2 and arrivals[-1] > arrivals[0]:
             fps = float((len(arrivals) - 1) / (arrivals[-1] - arrivals[0]))
             gap_ms = float(np.diff(arrivals).max() * 1e3)
         return FrameSourceHealth(self.state, self.healthy, self.last_error, self.reconnects, fps, gap_ms)
