@@ -48,7 +48,9 @@ class _Daemon:
         gone.append(_piece(2, "left", 12.0))
         on_table = [_piece(3, "flattening", None), _piece(4, "entering", None)]
         timing = _timing(1100, 3, 6)
-        return {"timing": timing, "pieces": on_table + gone, "cameras": [{}, {}], "mode": "flow"}
+        camera = {"fps": 15.0 if self.polls % 2 else 9.0}  # frames dropped every other 5 s window
+        pieces = on_table + gone
+        return {"timing": timing, "pieces": pieces, "cameras": [{}, {}], "camera": camera, "mode": "flow"}
 
     def set_mode(self, mode: str) -> None:
         self.modes.append(mode)
@@ -79,6 +81,7 @@ def test_the_live_figures_come_from_the_api(monkeypatch: pytest.MonkeyPatch) -> 
     assert r["multi_piece_time_pct"] == 100.0
     assert r["sim_camera_frames_dropped"] == 246 and r["sim_behind_real_time_s"] == 1.5
     assert "hwsim dropped 246 camera frames" in bench_flow_live.format_live(r)
+    assert r["camera_fps_min"] == 9.0 and 9.0 <= r["camera_fps_median"] <= 15.0
 
 
 def test_a_flow_that_halts_is_reported_with_its_reason_and_the_pieces_seen(

@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import yaml
 from tqdm import tqdm
 
@@ -55,6 +56,7 @@ def _run(client: CellClient, minutes: float, rate_per_min: float, seed: int) -> 
     run_s = minutes * 60.0
     pieces_by_id: dict[int, dict[str, Any]] = {}  # every piece the daemon reported, as last reported
     halted: tuple[float, str | None] | None = None  # when mode flow ended, and why
+    fps_seen: list[float] = []  # the first camera's frames per second as the daemon received them, each poll
     with tqdm(total=round(run_s), desc=f"flow {rate_per_min:g}/min, live", unit="s", leave=False) as bar:
         while (elapsed := time.monotonic() - t0) < run_s:
             time.sleep(POLL_S)
@@ -66,6 +68,9 @@ def _run(client: CellClient, minutes: float, rate_per_min: float, seed: int) -> 
             on_table = [p for p in status.get("pieces") or [] if p["left_t_mono_s"] is None]
             polls += 1
             multi += len(on_table) >= 2
+            fps = (status.get("camera") or {}).get("fps")
+            if fps is not None:
+                fps_seen.append(float(fps))
             bar.n = min(round(elapsed), bar.total)
             bar.refresh()
     time.sleep(DRAIN_S)
@@ -108,6 +113,8 @@ def _run(client: CellClient, minutes: float, rate_per_min: float, seed: int) -> 
         # slower than the belts the daemon drove, and those figures are not a real cell's.
         "sim_behind_real_time_s": round(_gained(sim_before, sim_after, "behind_real_time_s"), 2),
         "sim_camera_frames_dropped": int(_gained(sim_before, sim_after, "camera_frames_dropped")),
+        "camera_fps_median": round(float(np.median(fps_seen)), 2) if fps_seen else None,
+        "camera_fps_min": round(min(fps_seen), 2) if fps_seen else None,
         "halted_after_s": None if halted is None else halted[0],
         "halt_reason": None if halted is None else halted[1],
         "wall_s": round(wall_s, 1),
@@ -132,6 +139,11 @@ def format_live(result: dict[str, Any]) -> str:
         f"{r['compute_overruns']} sent with the last commands); frame to command p50 "
         f"{_ms(r['frame_to_command_ms_p50'])}, p99 {_ms(r['frame_to_command_ms_p99'])}",
     ]
+    if r["camera_fps_median"] is not None:
+        lines.append(
+            f"  the daemon's first camera: {r['camera_fps_median']:.1f} frames/s median over the polls "
+            f"(5 s windows), {r['camera_fps_min']:.1f} at the lowest"
+        )
     if r["sim_behind_real_time_s"] > 0.0 or r["sim_camera_frames_dropped"] > 0:
         lines.append(
             f"  hwsim dropped {r['sim_camera_frames_dropped']} camera frames to keep up with real time "
