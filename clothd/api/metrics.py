@@ -13,7 +13,7 @@ from prometheus_client.registry import Collector, CollectorRegistry
 from clothd.api.piece_counts import PieceCounts, by_state
 from clothd.api.stream import StreamHub
 from clothd.core.modes import FlatnessBasis, LoopState
-from clothd.loop.status import Status
+from clothd.loop.status import FPS_DOC, GAP_DOC, Status
 
 
 class StatusCollector(Collector):
@@ -126,14 +126,8 @@ def _cameras(s: Status) -> Iterator[Metric]:
         "Share of the first camera's recent frames a further camera had a frame within max_skew_ms of",
         labels=["camera"],
     )
-    fps = GaugeMetricFamily(
-        "clothd_camera_fps", "Frames that arrived per second over the last 5 s", labels=["camera"]
-    )
-    gap = GaugeMetricFamily(
-        "clothd_camera_longest_gap_ms",
-        "The longest wait between two frames over the last 5 s",
-        labels=["camera"],
-    )
+    fps = GaugeMetricFamily("clothd_camera_fps", FPS_DOC, labels=["camera"])
+    gap = GaugeMetricFamily("clothd_camera_longest_gap_ms", GAP_DOC, labels=["camera"])
     for cam in s.cameras:
         up.add_metric([cam.name], float(cam.healthy))
         if cam.fps is not None and cam.longest_gap_ms is not None:

@@ -22,11 +22,9 @@ import numpy as np
 
 from clothd.config import CameraSourceConfig
 from clothd.drivers.footage import DEFAULT_FPS, IMAGE_SUFFIXES, natural_key
-from clothd.drivers.ports import CameraFrame, FrameSourceHealth
+from clothd.drivers.ports import RATE_WINDOW_S, CameraFrame, FrameSourceHealth
 
 log = logging.getLogger(__name__)
-
-RATE_WINDOW_S = 5.0
 
 
 def redact_source(source: str) -> str:

@@ -21,13 +21,16 @@ class CameraFrame:
     image: np.ndarray  # BGR
 
 
+RATE_WINDOW_S = 5.0  # a source's frame rate and longest gap are taken over this much of its recent frames
+
+
 @dataclass(frozen=True)
 class FrameSourceHealth:
     state: str  # connecting | streaming | lost
     healthy: bool  # a frame fresher than the source's stale limit is there
     last_error: str | None
     reconnects: int
-    fps: float | None = None  # frames delivered per second over the recent window; None before two
+    fps: float | None = None  # frames delivered per second over RATE_WINDOW_S; None before two
     longest_gap_ms: float | None = None  # the longest wait between two of those frames
 
 

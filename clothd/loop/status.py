@@ -22,7 +22,7 @@ from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.modes import FlatnessBasis, LoopState, Mode, PieceState
 from clothd.core.pieces import PieceReport
 from clothd.drivers.link_group import LinkGroup
-from clothd.drivers.ports import FrameSourceHealth, ModuleLink
+from clothd.drivers.ports import RATE_WINDOW_S, FrameSourceHealth, ModuleLink
 from clothd.loop.pairing import CameraReport, PairingStats
 from clothd.outputs.recorder import RecordingStatus
 
@@ -98,7 +98,7 @@ class Timing(BaseModel):
     )
 
 
-FPS_DOC = "frames that arrived per second over the last 5 s; null before two"
+FPS_DOC = f"frames that arrived per second over the last {RATE_WINDOW_S:g} s; null before two"
 GAP_DOC = "the longest wait between two of those frames: a camera dropping frames shows here first"
 
 

@@ -23,6 +23,7 @@ import numpy as np
 import yaml
 from tqdm import tqdm
 
+from clothd.drivers.ports import RATE_WINDOW_S
 from clothd.tools.bench_flow import judge, piece_line
 from clothd.tools.cell_client import CellClient
 from clothd.tools.lockstep_flow import flow_scenario
@@ -142,7 +143,7 @@ def format_live(result: dict[str, Any]) -> str:
     if r["camera_fps_median"] is not None:
         lines.append(
             f"  the daemon's first camera: {r['camera_fps_median']:.1f} frames/s median over the polls "
-            f"(5 s windows), {r['camera_fps_min']:.1f} at the lowest"
+            f"({RATE_WINDOW_S:g} s windows), {r['camera_fps_min']:.1f} at the lowest"
         )
     if r["sim_behind_real_time_s"] > 0.0 or r["sim_camera_frames_dropped"] > 0:
         lines.append(
