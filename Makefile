@@ -10,6 +10,11 @@ UV_VERSION := $(shell sed -n 's/^uv==\([^ ]*\).*/\1/p' $(LOCK))
 COMPILE = $(BIN)/uv pip compile --quiet pyproject.toml --extra dev --universal --generate-hashes \
 	--python-version 3.11
 
+# Python keeps the bytecode of what it imports (__pycache__/, git-ignored), as it does by default. A shell
+# that sets PYTHONDONTWRITEBYTECODE has every process compile clothd, hwsim and their libraries again,
+# 2-3 s each; the tests start hundreds (daemons, hwsim, the CLI, the compute process).
+unexport PYTHONDONTWRITEBYTECODE
+
 .PHONY: run test lint lock lock-check venv clean browser postgres firmware firmware-stm32
 
 venv: $(STAMP)
@@ -73,10 +78,11 @@ firmware-stm32:
 	  else echo "make test: the STM32 build needs: sudo apt-get install gcc-arm-none-eabi qemu-system-arm"; exit 1; fi; }
 	$(MAKE) -C deploy/firmware stm32
 
-# The tests marked clock_free (no clock, no process, no server) run on every core; then the rest, whose
-# real-time loops and servers must not share the machine with another test, one at a time.
+# The tests marked clock_free (nothing asserted of elapsed time, no deadline) run on every core, a module
+# marked xdist_group on one worker; then the rest, whose real-time loops must not share the machine with
+# another test, one at a time.
 test: lock-check lint browser postgres firmware firmware-stm32
-	$(BIN)/pytest -q -n auto -m clock_free
+	$(BIN)/pytest -q -n auto --dist loadgroup -m clock_free
 	$(BIN)/pytest -q -m "not clock_free"
 
 clean:

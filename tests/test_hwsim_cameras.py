@@ -27,6 +27,8 @@ from hwsim.stereo import height_precision_mm, oblique_spec, sees_table
 from hwsim.taichi_runtime import ensure_taichi
 from hwsim.world import World
 
+pytestmark = pytest.mark.clock_free
+
 # A quarter-size picture of the live cell's two cameras: f_px / 4 keeps the view, at 1/16 of the pixels.
 SMALL_TOP = {"width": 160, "height": 120, "f_px": 225.0}
 SMALL_OBLIQUE = {**SMALL_TOP, "name": "side", "position_m": [0.0, -0.423, 0.906], "tilt_rad": 0.436}

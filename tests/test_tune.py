@@ -37,6 +37,9 @@ from clothd.tools.tune_verdict import HeldOut, Spread, Verdict, format_verdict
 from hwsim import scenario as scenarios
 from hwsim.recording import record
 
+# On one worker: its module's recordings and tune are made once, not once per worker.
+pytestmark = [pytest.mark.clock_free, pytest.mark.xdist_group("tune")]
+
 # Small and quick: 1 s of footage, an 8 x 8 tracking mesh, 200 features.
 TRACKER = {"mesh": {"nodes_x": 8, "nodes_y": 8}, "features": {"max_features": 200}}
 # Wrong for any fabric that moves with its belts: the cloth barely feels them, and drags.
