@@ -15,6 +15,7 @@ import numpy as np
 
 from hwsim.cloth import ClothSim
 from hwsim.cloth_grid import ClothGrid
+from hwsim.cloth_spares import make_cloth
 from hwsim.scenario import ClothSpec, Pose, TableSpec
 
 
@@ -98,14 +99,14 @@ class ClothPool:
         started it only, and `hwsim serve` steps the world on a thread of its own: an infeed that made a
         cloth there failed (Taichi's "this_thread == main_thread" assertion)."""
         for _ in range(count):
-            self._parked.append(ClothSim(spec, self.table, Pose(), spec.substep_s, seed, self.capacity))
+            self._parked.append(make_cloth(spec, self.table, Pose(), spec.substep_s, seed, self.capacity))
 
     def take(self, spec: ClothSpec, pose: Pose, seed: int, module_heading_rad: np.ndarray) -> ClothSim:
         """A cloth of `spec` laid at `pose` on the belts as they are turned now."""
         if self._parked:
             cloth = self._parked.pop()
         else:  # made flat (nothing to settle), then laid as any reused one is
-            cloth = ClothSim(spec, self.table, Pose(), spec.substep_s, seed, self.capacity)
+            cloth = make_cloth(spec, self.table, Pose(), spec.substep_s, seed, self.capacity)
         cloth.infeed_belt.from_numpy(self.infeed_belt * [1.0, 1.0, 0.0])  # still while it is laid
         cloth.reuse(spec, pose, seed, module_heading_rad)
         cloth.infeed_belt.from_numpy(self.infeed_belt)
@@ -113,3 +114,6 @@ class ClothPool:
 
     def park(self, cloth: ClothSim) -> None:
         self._parked.append(cloth)
+
+    def parked(self) -> list[ClothSim]:
+        return list(self._parked)

@@ -13,6 +13,7 @@ acceleration ramps reach the cloth smoothly.
 from __future__ import annotations
 
 import math
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -20,6 +21,7 @@ import numpy as np
 
 from hwsim.cloth import ClothSim
 from hwsim.cloth_constants import LAY_IN_DAMPING_1_S
+from hwsim.cloth_spares import make_cloth, spare
 from hwsim.infeed import InfeedPlan, largest_specs
 from hwsim.outfeed import judge, leading_x_m, past_edge
 from hwsim.pieces import ClothPool, Piece, capacity_for, cloth_pose, sheet_measures
@@ -55,6 +57,11 @@ class _PushInProgress:
     wall_velocity_m_s: np.ndarray  # (ny, nx, 3)
 
 
+def _spare_cloths(pieces: list[Piece], pool: ClothPool) -> None:
+    """A world's cloths, on the table and parked, once nothing holds the world."""
+    spare([p.cloth for p in pieces] + pool.parked())
+
+
 class World:
     def __init__(self, scenario: Scenario, arch: str = "cpu", log_commands: bool = True) -> None:
         ensure_taichi(arch)
@@ -63,7 +70,7 @@ class World:
         self.table = Table(scenario.table)
         # Without an infeed the one cloth is sized to itself, as it always was.
         capacity = capacity_for(largest_specs(scenario)) if scenario.infeed else None
-        first = ClothSim(
+        first = make_cloth(
             scenario.cloth,
             scenario.table,
             scenario.initial_pose,
@@ -78,6 +85,8 @@ class World:
         self.pool = ClothPool(scenario.table, capacity or (first.grid.ny, first.grid.nx), belt)
         if scenario.infeed is not None:  # every cloth the table can hold, made on this thread
             self.pool.fill(scenario.infeed.max_pieces - 1, scenario.cloth, scenario.seed)
+        # Its cloths outlive the world, as spares for the next one (hwsim/cloth_spares.py).
+        weakref.finalize(self, _spare_cloths, self.pieces, self.pool)
         self.placement = scenario.flow.placement if scenario.flow else Placement()
         self.outfeed: list[dict[str, Any]] = []  # the judged pieces, in the order they left
         self.operator = Operator(scenario, self.table)
