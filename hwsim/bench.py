@@ -17,7 +17,7 @@ import numpy as np
 from hwsim import scenario as scenarios
 from hwsim.camera import Camera
 from hwsim.recording import record, render_frame
-from hwsim.renderer import Renderer
+from hwsim.renderer_spares import make_renderer
 from hwsim.world import World
 
 
@@ -29,7 +29,7 @@ def _stats_ms(samples_s: list[float]) -> dict[str, float]:
 def run_bench(scenario_name: str = "compress", frames: int = 90, record_s: float = 10.0) -> dict[str, object]:
     sc = scenarios.load(scenario_name)
     world = World(sc)
-    renderer = Renderer(sc, Camera.from_spec(sc.camera), world.cloth.grid)
+    renderer = make_renderer(sc, Camera.from_spec(sc.camera), world.cloth.grid, world)
     world.step()  # compile the physics kernel outside the timing
     render_frame(world, renderer)
     physics, render = [], []

@@ -1,17 +1,12 @@
-"""Cloths of worlds that are gone, kept for the next world of the same shape.
-
-A cloth's solver is compiled for its own fields: the live cell's took about 6 s, a second world in the
-same process as long again, and Taichi's offline cache finds a cloth's kernels only when a process
-allocates its fields in the same order as a run before. A process that builds world after world (the
-tests, the benchmarks, `hwsim record`) so compiled the solver 71 times in one run of the tests that read no
-clock, 407 s of its CPU (docs/benchmarks.md, "Installs"). A spare cloth is the same solver on the same
-fields, laid afresh by `ClothSim.reuse`: its state is all rewritten, so it runs bit for bit as a new one.
+"""Cloths of worlds that are gone, kept for the next world of the same shape (hwsim/spares.py says why:
+one run of the tests that read no clock compiled the cloth solver 71 times, 407 s of its CPU). A spare
+cloth is the same solver on the same fields, laid afresh by `ClothSim.reuse`: its state is all rewritten,
+so it runs bit for bit as a new one.
 """
 
 from __future__ import annotations
 
 import math
-import threading
 from collections.abc import Iterable
 
 import numpy as np
@@ -19,10 +14,10 @@ import numpy as np
 from hwsim.cloth import ClothSim
 from hwsim.cloth_grid import ClothGrid
 from hwsim.scenario import ClothSpec, Pose, TableSpec
+from hwsim.spares import Spares
 
 _Shape = tuple[tuple[int, int], int, int]  # the fields' capacity, and the table's modules (in the kernels)
-_spares: dict[_Shape, list[ClothSim]] = {}
-_lock = threading.Lock()  # a world is let go wherever the garbage collector runs
+_spares: Spares[_Shape, ClothSim] = Spares()
 
 
 def _shape(capacity: tuple[int, int], table: TableSpec) -> _Shape:
@@ -39,9 +34,7 @@ def make_cloth(
 ) -> ClothSim:
     """A ClothSim as its constructor makes it; a spare of the same shape where there is one."""
     grid = ClothGrid.from_spec(spec)
-    with _lock:
-        spares = _spares.get(_shape(capacity or (grid.ny, grid.nx), table))
-        cloth = spares.pop() if spares else None
+    cloth = _spares.take(_shape(capacity or (grid.ny, grid.nx), table))
     if cloth is None:
         return ClothSim(spec, table, pose, substep_s, seed, capacity)
     cloth.table, cloth.substep_s = table, substep_s
@@ -52,6 +45,5 @@ def make_cloth(
 
 def spare(cloths: Iterable[ClothSim]) -> None:
     """Keep cloths that no world holds any longer for `make_cloth`."""
-    with _lock:
-        for cloth in cloths:
-            _spares.setdefault(_shape(cloth.capacity, cloth.table), []).append(cloth)
+    for cloth in cloths:
+        _spares.give(_shape(cloth.capacity, cloth.table), cloth)

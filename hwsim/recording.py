@@ -26,6 +26,7 @@ from tqdm import tqdm
 from hwsim.camera import Camera
 from hwsim.paths import camera_dir, frame_path
 from hwsim.renderer import Renderer, to_sensor_bgr8
+from hwsim.renderer_spares import make_renderer
 from hwsim.scenario import Scenario, ScenarioError
 from hwsim.world import World
 
@@ -90,7 +91,7 @@ def record(scenario: Scenario, out_dir: Path, arch: str = "cpu") -> RecordStats:
     world = World(scenario, arch)
     specs = scenario.camera_specs
     cameras = [Camera.from_spec(spec) for spec in specs]
-    renderers = [Renderer(scenario, cam, world.cloth.grid) for cam in cameras]
+    renderers = [make_renderer(scenario, cam, world.cloth.grid, world) for cam in cameras]
     rngs = [noise_rng(scenario, i) for i in range(len(specs))]
     sinks = [FrameSink(camera_dir(out_dir, i, str(spec.name))) for i, spec in enumerate(specs)]
     n = scenario.frame_count

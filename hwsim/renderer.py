@@ -20,26 +20,13 @@ import taichi as ti
 from hwsim.belt_geometry import belt_at
 from hwsim.camera import Camera
 from hwsim.cloth_grid import ClothGrid
-from hwsim.infeed import fabric_textures, largest_specs
+from hwsim.infeed import largest_specs
 from hwsim.pieces import capacity_for
-from hwsim.scenario import Scenario, TextureSpec
+from hwsim.render_textures import DECK_TILE_M, RenderTextures, render_textures
+from hwsim.scenario import Scenario
 from hwsim.scene import SceneState
-from hwsim.texture import (
-    belt_texture,
-    cloth_texture,
-    deck_texture,
-    image_texture,
-    mip_level_for,
-    mip_pyramid,
-    weave_slopes,
-)
 
 MAX_ARMS = 4
-BELT_LOOP_M = 0.2  # belt texture period along the direction of travel
-DECK_TILE_M = 0.3  # deck texture tile; it repeats (small, so it stays in cache)
-# The belts and deck are made at this density for every camera, each camera sampling the mip level that
-# suits it: made at each camera's own density, their noise came out a different pattern in each view.
-TABLE_TEXELS_PER_M = 2000.0
 _EMPTY_KEY = 2**62
 _TRI_BITS = 21  # triangle index bits in a z-buffer key; depth in micrometres above them
 _VISIBLE_DEPTH_TOL_M = 0.003
@@ -55,19 +42,6 @@ def vertex_normals(nodes_m: np.ndarray) -> np.ndarray:
     dt = np.gradient(nodes_m, axis=0)
     n = np.cross(ds, dt)
     return np.asarray(n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12))
-
-
-def _texture_field(tex: np.ndarray) -> ti.MatrixField:
-    field = ti.Vector.field(3, ti.f32, shape=tex.shape[:2])
-    field.from_numpy(np.ascontiguousarray(tex, dtype=np.float32))
-    return field
-
-
-def _texel_offset(level: int) -> float:
-    """Level 0's texel i is centred at i + 0.5, and cv2.pyrDown centres level L's texel i on level 0's
-    2**L i: level L's coordinate is (level 0's - 0.5) / 2**L. (- 0.5 at every level shifted the pattern
-    between cameras sampling different levels: a disparity, read as height.)"""
-    return 0.5 / 2**level
 
 
 @ti.func
@@ -105,26 +79,49 @@ def _bilinear2(tex: ti.template(), x: ti.f32, y: ti.f32) -> ti.types.vector(2, t
     return top * (1 - fy) + bottom * fy
 
 
+def render_px_per_m(scenario: Scenario, camera: Camera) -> float:
+    """Pixel density on a flat cloth under the camera, at the render's (supersampled) resolution."""
+    hi = camera.scaled(scenario.supersample)
+    return float(hi.K[0, 0] / abs(hi.centre_m[2]))
+
+
+def _slots(scenario: Scenario, grid: ClothGrid) -> tuple[int, tuple[int, int]]:
+    """One slot per piece on the table, and the capacity (rows, columns) of each slot's grid."""
+    if scenario.infeed is None:
+        return 1, (grid.ny, grid.nx)
+    return scenario.infeed.max_pieces, capacity_for(largest_specs(scenario))
+
+
+def layout_key(
+    scenario: Scenario, camera: Camera, grid: ClothGrid, textures: RenderTextures
+) -> tuple[object, ...]:
+    """What a Renderer's fields' shapes and its kernels' constants depend on: two renders with the same key
+    can share one Renderer (`Renderer.load`)."""
+    tab = scenario.table
+    table = (tab.modules_x, tab.modules_y, tab.pitch_m, tab.module_size_m)
+    size = (camera.height, camera.width)
+    return (scenario.supersample, size, _slots(scenario, grid), table, textures.layout())
+
+
 @ti.data_oriented
 class Renderer:
-    def __init__(self, scenario: Scenario, camera: Camera, grid: ClothGrid) -> None:
+    """A camera's renders of a scenario. hwsim/renderer_spares.py hands a gone camera's Renderer to the next
+    of the same `layout_key`, its kernels compiled already."""
+
+    def __init__(
+        self, scenario: Scenario, camera: Camera, grid: ClothGrid, textures: RenderTextures | None = None
+    ) -> None:
+        textures = textures or render_textures(scenario, render_px_per_m(scenario, camera))
         self.ss = scenario.supersample
-        self.camera = camera
         self.hi = camera.scaled(self.ss)
-        self.grid = grid  # the lead piece's at the start: the visibility `render` returns is the lead's
-        # One slot per piece on the table, each a grid of this capacity.
-        self.slots = scenario.infeed.max_pieces if scenario.infeed else 1
-        self.cap = capacity_for(largest_specs(scenario)) if scenario.infeed else (grid.ny, grid.nx)
+        self.slots, self.cap = _slots(scenario, grid)
         self.tris_per_slot = 2 * (self.cap[0] - 1) * (self.cap[1] - 1)
-        tab = scenario.table
-        self.table_spec = tab
+        self.table_spec = scenario.table
         H, W = self.hi.height, self.hi.width
         self.key = ti.field(ti.i64, shape=(H, W))
         self.accum = ti.Vector.field(3, ti.f32, shape=(H, W))
         self.out = ti.Vector.field(3, ti.f32, shape=(camera.height, camera.width))
-        table_xy = np.nan_to_num(self.hi.table_points(), nan=1e3).astype(np.float32)
         self.table_xy = ti.Vector.field(2, ti.f32, shape=(H, W))
-        self.table_xy.from_numpy(table_xy)
         shape = (self.slots, *self.cap)
         self.slot_dims = ti.field(ti.i32, shape=(self.slots, 3))  # nx, ny, texture
         self.slot_spacing = ti.field(ti.f32, shape=(self.slots, 2))  # dx, dy
@@ -135,55 +132,41 @@ class Renderer:
         self.vtan_s = ti.Vector.field(3, ti.f32, shape=shape)
         self.vtan_t = ti.Vector.field(3, ti.f32, shape=shape)
         self.visible = ti.field(ti.i32, shape=shape)
-        n_mod = tab.modules_x * tab.modules_y
+        n_mod = self.table_spec.modules_x * self.table_spec.modules_y
         self.direction = ti.Vector.field(2, ti.f64, shape=n_mod)  # cos, sin of each module's heading
         self.travel = ti.field(ti.f32, shape=n_mod)
         self.arm_seg = ti.Vector.field(4, ti.f32, shape=MAX_ARMS)  # shoulder px, hand px
         self.arm_radius = ti.field(ti.f32, shape=MAX_ARMS)  # px; 0 = no arm
+        # The textures' sizes and samplers' constants are the kernels'; `load` fills them.
+        fabrics = textures.fabrics
+        self.cloth_tex = [ti.Vector.field(3, ti.f32, shape=f.colour.shape[:2]) for f in fabrics]
+        self.cloth_slopes = [ti.Vector.field(2, ti.f32, shape=f.slopes.shape[:2]) for f in fabrics]
+        self.cloth_texels_per_m = [f.texels_per_m for f in fabrics]
+        self.cloth_texel_offset = [f.texel_offset for f in fabrics]
+        self.relief = [f.relief for f in fabrics]
+        self.belt_tex = ti.Vector.field(3, ti.f32, shape=textures.belt.shape[:2])
+        self.deck_tex = ti.Vector.field(3, ti.f32, shape=textures.deck.shape[:2])
+        self.belt_texels_per_m = textures.table_texels_per_m
+        self.table_texel_offset = textures.table_texel_offset
+        self.load(scenario, camera, grid, textures)
+
+    def load(self, scenario: Scenario, camera: Camera, grid: ClothGrid, textures: RenderTextures) -> None:
+        """Render this camera's view of this scenario from now on; its `layout_key` must be this Renderer's.
+        Every field a frame does not write is written here, so a Renderer loaded again renders bit for bit
+        as a new one."""
+        self.camera = camera
+        self.hi = camera.scaled(self.ss)
+        self.grid = grid  # the lead piece's at the start: the visibility `render` returns is the lead's
+        self.table_spec = scenario.table
+        self.table_xy.from_numpy(np.nan_to_num(self.hi.table_points(), nan=1e3).astype(np.float32))
+        for fabric, colour, slopes in zip(textures.fabrics, self.cloth_tex, self.cloth_slopes, strict=True):
+            colour.from_numpy(fabric.colour)
+            slopes.from_numpy(fabric.slopes)
+        self.belt_tex.from_numpy(textures.belt)
+        self.deck_tex.from_numpy(textures.deck)
         light = np.asarray(scenario.light.direction, dtype=float)
         self.light = light / np.linalg.norm(light)
         self.ambient = scenario.light.ambient
-        # Pixel density on a flat cloth under the camera: f / distance, at the render's resolution.
-        px_per_m = self.hi.K[0, 0] / abs(self.hi.centre_m[2])
-        self.cloth_tex: list[ti.MatrixField] = []
-        self.cloth_texels_per_m: list[float] = []
-        self.cloth_texel_offset: list[float] = []
-        self.cloth_slopes: list[ti.MatrixField] = []
-        self.relief: list[bool] = []
-        for spec, size in fabric_textures(scenario):
-            self._load_fabric(spec, size, px_per_m)
-        self._load_table(scenario, px_per_m)
-
-    def _load_fabric(self, spec: TextureSpec, size: tuple[float, float], px_per_m: float) -> None:
-        if spec.kind == "image":
-            assert spec.path is not None
-            tex = image_texture(spec.path, size, spec.texels_per_m)
-        else:
-            tex = cloth_texture(spec.kind, spec.seed, size, spec.texels_per_m)
-        level = mip_level_for(spec.texels_per_m, px_per_m)
-        self.cloth_tex.append(_texture_field(mip_pyramid(tex, level + 1)[level]))
-        self.cloth_texels_per_m.append(spec.texels_per_m / 2**level)
-        self.cloth_texel_offset.append(_texel_offset(level))
-        # The relief's slopes, low-passed to the same mip level as the colour (a 1 x 1 dummy without).
-        self.relief.append(spec.relief_m > 0)
-        slopes = np.zeros((1, 1, 2), np.float32)
-        if spec.relief_m > 0:
-            assert spec.kind != "image"
-            slopes = weave_slopes(spec.kind, spec.seed, size, spec.texels_per_m, spec.relief_m)
-            slopes = mip_pyramid(slopes, level + 1)[level]
-        field = ti.Vector.field(2, ti.f32, shape=slopes.shape[:2])
-        field.from_numpy(np.ascontiguousarray(slopes, dtype=np.float32))
-        self.cloth_slopes.append(field)
-
-    def _load_table(self, scenario: Scenario, px_per_m: float) -> None:
-        spec = scenario.texture
-        level = mip_level_for(TABLE_TEXELS_PER_M, px_per_m)
-        belt = belt_texture(spec.seed + 1, BELT_LOOP_M, self.table_spec.module_size_m, TABLE_TEXELS_PER_M)
-        deck = deck_texture(spec.seed + 2, (DECK_TILE_M, DECK_TILE_M), TABLE_TEXELS_PER_M)
-        self.belt_tex = _texture_field(mip_pyramid(belt, level + 1)[level])
-        self.deck_tex = _texture_field(mip_pyramid(deck, level + 1)[level])
-        self.belt_texels_per_m = TABLE_TEXELS_PER_M / 2**level
-        self.table_texel_offset = _texel_offset(level)
 
     def render(self, states: list[SceneState]) -> tuple[np.ndarray, np.ndarray]:
         """Average renders of `states` (one per motion-blur sample; the last is the frame's instant).

@@ -8,7 +8,7 @@ import numpy as np
 from hwsim.camera import Camera
 from hwsim.cloth_grid import ClothGrid
 from hwsim.recording import noise_rng, render_frame
-from hwsim.renderer import Renderer
+from hwsim.renderer_spares import make_renderer
 from hwsim.scenario import Scenario
 from hwsim.world import World
 
@@ -22,7 +22,7 @@ class Sensor:
     def __init__(
         self, scenario: Scenario, camera: Camera, grid: ClothGrid, index: int = 0, skew_s: float = 0.0
     ) -> None:
-        self.renderer = Renderer(scenario, camera, grid)
+        self.renderer = make_renderer(scenario, camera, grid, self)
         self.skew_s = skew_s
         rng = noise_rng(scenario, index)
         shape = (camera.height, camera.width, 3)

@@ -21,7 +21,7 @@ import yaml
 from hwsim import scenario as scenarios
 from hwsim.camera import Camera
 from hwsim.recording import record, render_frame
-from hwsim.renderer import Renderer
+from hwsim.renderer_spares import make_renderer
 from hwsim.serve import frame_intervals
 from hwsim.stereo import height_precision_mm, oblique_spec, sees_table
 from hwsim.taichi_runtime import ensure_taichi
@@ -194,7 +194,8 @@ def _top_down_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     world.step()
     images = []
     for spec in sc.camera_specs:
-        image, _ = render_frame(world, Renderer(sc, Camera.from_spec(spec), world.cloth.grid), 0.0)
+        renderer = make_renderer(sc, Camera.from_spec(spec), world.cloth.grid, world)
+        image, _ = render_frame(world, renderer, 0.0)
         images.append(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY))
     K = [Camera.from_spec(spec).K for spec in sc.camera_specs]
     return images[0], images[1], K[1] @ np.linalg.inv(K[0])

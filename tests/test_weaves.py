@@ -11,7 +11,7 @@ import yaml
 
 from hwsim import scenario as scenarios
 from hwsim.camera import Camera
-from hwsim.renderer import Renderer
+from hwsim.renderer_spares import make_renderer
 from hwsim.texture import CHECK_PERIOD_M, TWILL_ANGLE_DEG, TWILL_PERIOD_M, cloth_texture, weave_slopes
 from hwsim.world import World
 
@@ -109,7 +109,7 @@ def _cloth_std(name: str, relief_m: float) -> float:
     data["cloth"] = {"vibration_m_s": 0.0}
     sc = scenarios.parse(data)
     world = World(sc)
-    renderer = Renderer(sc, Camera.from_spec(sc.camera), world.cloth.grid)
+    renderer = make_renderer(sc, Camera.from_spec(sc.camera), world.cloth.grid, world)
     image, _ = renderer.render([world.scene_state()])
     grey = image.mean(axis=2)
     return float(grey[60:90, 80:120].std())
