@@ -18,7 +18,13 @@ from clothd.core.flatness import FlatnessMonitor
 from clothd.core.mesh import QuadMesh
 from clothd.core.messages import ModuleCommands, PairedView
 from clothd.core.modes import FlatnessBasis
-from clothd.core.stereo import epipolar_distance_px, fit_height_field, quad_highest, triangulate
+from clothd.core.stereo import (
+    crest_heights,
+    epipolar_distance_px,
+    fit_height_field,
+    quad_highest,
+    triangulate,
+)
 from clothd.core.tracker import Tracker
 from clothd.core.unfold import outline_rectangle, unfold
 from clothd.formats import read_camera
@@ -85,6 +91,34 @@ def test_a_quads_height_is_its_two_highest_points_and_its_neighbours_where_it_ha
     expected = [[0.003, 0.003, 0.0015], [0.003, 0.0015, 0.002], [0.0015, 0.002, 0.002]]
     np.testing.assert_allclose(heights, expected)
     np.testing.assert_allclose(quad_highest(np.zeros(0, int), np.zeros(0), (2, 2)), 0.0)
+
+
+def _quads_of(xy_m: np.ndarray, nodes_m: np.ndarray) -> np.ndarray:
+    """Flat indices of the quads of a regular, axis-aligned mesh's nodes (ny, nx, 3) holding points (n, 2)."""
+    origin, pitch = nodes_m[0, 0, :2], nodes_m[1, 1, :2] - nodes_m[0, 0, :2]
+    ij = np.clip(
+        np.floor((xy_m - origin) / pitch).astype(int), 0, [nodes_m.shape[1] - 2, nodes_m.shape[0] - 2]
+    )
+    return np.asarray(ij[:, 1] * (nodes_m.shape[1] - 1) + ij[:, 0])
+
+
+def test_a_crest_between_the_points_is_read_from_the_surface_through_them() -> None:
+    rng = np.random.default_rng(3)
+    jj, ii = np.meshgrid(np.linspace(-0.1, 0.1, 12), np.linspace(-0.12, 0.12, 12), indexing="ij")
+    nodes = np.stack([ii, jj, np.zeros_like(ii)], axis=-1)
+    # Points 7 mm apart, none nearer the crest (x = 0) than 3.5 mm: a 12 mm ridge of sigma 8 mm.
+    gx, gy = np.meshgrid(np.arange(-0.1155, 0.12, 0.007), np.arange(-0.098, 0.1, 0.007))
+    xy = np.column_stack([gx.ravel(), gy.ravel()])
+    z = 0.012 * np.exp(-0.5 * (xy[:, 0] / 0.008) ** 2) + rng.normal(0.0, 0.0001, len(xy))
+    points = np.column_stack([xy, z])
+    quads = quad_highest(_quads_of(xy, nodes), z, (11, 11))
+    assert 0.012 - quads.max() > 0.0008  # the two highest points of the crest's quads
+    assert abs(crest_heights(quads, points, nodes).max() - 0.012) < 0.0005
+    # A flat cloth's points, an edge's stray pair among them: no quad risen, nothing fitted.
+    flat = np.column_stack([xy, rng.normal(0.0, 0.0002, len(xy))])
+    flat[np.argsort(xy[:, 0])[-2:], 2] = 0.0016
+    flat_quads = quad_highest(_quads_of(xy, nodes), flat[:, 2], (11, 11))
+    np.testing.assert_array_equal(crest_heights(flat_quads, flat, nodes), flat_quads)
 
 
 def test_measured_heights_make_a_ridge_that_shortening_alone_does_not_show() -> None:

@@ -15,7 +15,14 @@ from clothd.core.camera_model import CameraModel
 from clothd.core.feature_set import FeatureSet
 from clothd.core.mesh import Binding, QuadMesh, blend
 from clothd.core.messages import PairedView
-from clothd.core.stereo import HeightField, fit_height_field, measure_surface, quad_highest, table_warp
+from clothd.core.stereo import (
+    HeightField,
+    crest_heights,
+    fit_height_field,
+    measure_surface,
+    quad_highest,
+    table_warp,
+)
 
 # Tracking begins on a frame a further view pairs (its surface is measured then): this many frames are
 # waited for one before tracking begins on one view.
@@ -86,7 +93,9 @@ class SecondView:
         if points is None:
             return None
         ny, nx = nodes_m.shape[:2]
-        return quad_highest(binding.quad[found], points[:, 2], (ny - 1, nx - 1))
+        return crest_heights(
+            quad_highest(binding.quad[found], points[:, 2], (ny - 1, nx - 1)), points, nodes_m
+        )
 
     def awaits_pair(self, t_s: float, views: Sequence[PairedView | None]) -> bool:
         """No further view pairs the frame taken at t_s closely enough: wait for one, PAIR_WAIT_FRAMES at

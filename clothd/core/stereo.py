@@ -27,6 +27,7 @@ from functools import lru_cache
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from clothd.config import StereoConfig
 from clothd.core.banded import gram_band, solve_band, transpose_times
@@ -51,6 +52,12 @@ CURVATURE_SIGMA_M = 0.004
 ZERO_SIGMA_M = 0.05  # far from any point the field settles to the table
 OUTLIER_SIGMA = 4.0  # the refit drops points this many robust sigmas off the first fit
 MIN_OUTLIER_M = 0.0015  # ... but never tighter than this
+# A quad measured this high holds a crest (`crest_heights`): a flat cloth's quads read 0.8 mm at most.
+CREST_ABOVE_M = 0.002
+CREST_SAMPLES = 5  # along each side of a risen quad, where the surface is read for its highest
+# ... at most this far from a point: points lie about 7 mm apart, and past the last one at an edge the field
+# runs on along its slope (an edge quad of an 11.3 mm ridge read 13.7 mm).
+CREST_SUPPORT_M = 0.0045
 
 
 def epipolar_distance_px(
@@ -324,3 +331,28 @@ def quad_highest(quads: np.ndarray, z_m: np.ndarray, shape: tuple[int, int]) -> 
             np.isnan(grid), np.nanmax(np.where(np.isnan(around), -np.inf, around), axis=0), grid
         )
     return np.asarray(np.where(np.isfinite(filled), filled, 0.0))
+
+
+def crest_heights(quad_height_m: np.ndarray, points_m: np.ndarray, nodes_m: np.ndarray) -> np.ndarray:
+    """Quad heights (ny-1, nx-1) as `quad_highest` gives them, each quad risen past CREST_ABOVE_M raised
+    to the highest of the smooth surface through the points (m, 3) over it, the quad's corners nodes_m
+    (ny, nx, 3). A crest lies between points ~7 mm apart: on 20 laid ridges the two highest points of its
+    quad read 0.6-1.7 mm below it, the surface 0.1-1.1 mm. Only risen quads, and only near a point: on a
+    flat cloth the surface runs on past an edge's last point (one read 1.6 mm), where the points themselves
+    read 0.8 mm at most."""
+    risen = quad_height_m > CREST_ABOVE_M
+    if not risen.any():
+        return quad_height_m
+    rectangle = cv2.boxPoints(cv2.minAreaRect(nodes_m[..., :2].reshape(-1, 2).astype(np.float32)))
+    field = fit_height_field(points_m, QuadMesh.covering(rectangle, 2, 2))
+    j, i = np.nonzero(risen)
+    u, v = (g.ravel() for g in np.meshgrid(*2 * [np.linspace(0.0, 1.0, CREST_SAMPLES)]))
+    corners = [nodes_m[j, i, :2], nodes_m[j, i + 1, :2], nodes_m[j + 1, i, :2], nodes_m[j + 1, i + 1, :2]]
+    weights = [(1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v]  # bilinear over each quad
+    xy = sum(w[None, :, None] * c[:, None, :] for w, c in zip(weights, corners, strict=True))
+    samples = np.reshape(xy, (-1, 2))
+    supported = cKDTree(points_m[:, :2]).query(samples, distance_upper_bound=CREST_SUPPORT_M)[0] < np.inf
+    on_surface = np.where(supported, field.at(samples), -np.inf).reshape(len(j), -1)
+    out = quad_height_m.copy()
+    out[j, i] = np.maximum(out[j, i], on_surface.max(axis=1))
+    return out
