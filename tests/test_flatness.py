@@ -7,7 +7,14 @@ import numpy as np
 import pytest
 
 from clothd.config import FlatnessConfig
-from clothd.core.flatness import FlatnessMonitor, Ridge, edge_apexes, find_ridges, quad_shortening
+from clothd.core.flatness import (
+    FlatnessMonitor,
+    Ridge,
+    edge_apexes,
+    find_ridges,
+    measured_apexes,
+    quad_shortening,
+)
 from hwsim.ridges import lay_ridges
 from hwsim.scenario import Ridge as HwsimRidge
 
@@ -231,3 +238,21 @@ def test_an_edge_rises_as_high_as_its_cloth_can_reach(rise_m: float, table_m: fl
     )
     assert apexes.x_height_m[0, 0] == pytest.approx(points[:, 1].max(), abs=1e-7)
     assert apexes.x_at_m[0, 0] == pytest.approx([table_m / 2, 0.0])
+
+
+def test_measured_heights_part_two_ridges_whose_shortening_runs_together() -> None:
+    # Seven columns of quads equally shorter across (as between two laid ridges 82 mm apart, unfolded),
+    # and a second view's heights: two crests with a valley between.
+    nodes = _mesh(0.0, ridge_cols=(1, 2, 3, 4, 5, 6, 7))
+    shortening = quad_shortening(nodes[..., :2], SPACING_M)
+    heights = np.full((NY - 1, NX - 1), 0.0002)
+    heights[:, 1], heights[:, 7] = 0.008, 0.005
+    compressed = shortening > 0.05
+    centres = (nodes[:-1, :-1, :2] + nodes[1:, 1:, :2]) / 2.0
+    by_shortening = find_ridges(nodes, SPACING_M, shortening, compressed, measured_apexes(nodes, heights))
+    assert len(by_shortening) == 1
+    ridges = find_ridges(nodes, SPACING_M, shortening, compressed, measured_apexes(nodes, heights), heights)
+    assert [r.height_m for r in ridges] == [0.008, 0.005]
+    for ridge, column in zip(ridges, (1, 7), strict=True):
+        assert ridge.position_m[0] == pytest.approx(centres[0, column, 0])
+        assert ridge.direction_rad == pytest.approx(math.pi / 2, abs=0.1)

@@ -9,6 +9,7 @@ import pytest
 
 from clothd.config import CellConfig
 from clothd.core.workspace import Workspace
+from clothd.tools.bench_flatten import laid_ridges_found
 from clothd.tools.flatten_starts import (
     MOVE_OFFSET_M,
     MOVE_TURN_RAD,
@@ -73,3 +74,16 @@ def test_two_ridges_keep_apart() -> None:
             lines.append(p[(np.abs(p) <= half).all(axis=1)])
         gap = np.linalg.norm(lines[0][:, None] - lines[1][None], axis=2).min()
         assert gap >= RIDGES_APART_M - 0.0015
+
+
+def test_a_laid_ridge_is_found_by_a_reported_ridge_near_its_line_in_the_world() -> None:
+    # Laid along the cloth's s axis, 30 mm up t, on a cloth turned 90°: in the world, the line x = 0.07.
+    pose = [0.1, -0.05, math.pi / 2]
+    laid = [
+        {"height_m": 0.008, "at_m": [0.0, 0.03], "direction_rad": 0.0},
+        {"height_m": 0.002, "at_m": [0.0, -0.03], "direction_rad": 0.0},  # too low to count
+    ]
+    near = {"x_m": 0.085, "y_m": 0.04}  # 15 mm off the line, anywhere along it
+    far = {"x_m": 0.095, "y_m": -0.05}  # 25 mm off
+    assert laid_ridges_found(pose, laid, [far, near]) == {"ridges_laid": 1, "ridges_found": 1}
+    assert laid_ridges_found(pose, laid, [far]) == {"ridges_laid": 1, "ridges_found": 0}

@@ -206,7 +206,7 @@ def measured_apexes(nodes_m: np.ndarray, quad_height_m: np.ndarray) -> EdgeApexe
 VALLEY_RATIO = 0.5  # a dip across a component below this share of the peaks on both its sides parts it
 PARALLEL_GAP_M = 0.06  # parallel ridges nearer than this are one: no belt (65 mm) fits between them
 PARALLEL_DEG = 20.0  # bands of a ridge compressed within this of one direction are one ridge's
-MIN_PROFILE_SHORTENING = 1e-4  # a measured-risen quad's weight across a ridge, however little shorter
+MIN_PROFILE_WEIGHT = 1e-4  # a compressed quad's weight across a ridge, however little shorter or risen
 
 
 def find_ridges(
@@ -215,6 +215,7 @@ def find_ridges(
     shortening: np.ndarray,
     compressed: np.ndarray,
     apexes: EdgeApexes,
+    quad_height_m: np.ndarray | None = None,
 ) -> tuple[Ridge, ...]:
     """The ridges of the mesh nodes_m (ny, nx, 3) among its `compressed` quads (bool, (ny-1, nx-1)),
     highest first; `shortening` is quad_shortening's of the same nodes, `apexes` edge_apexes'. A ridge is
@@ -224,8 +225,12 @@ def find_ridges(
     mesh one ridge is two bands of quads with a row between. Bands of connected quads a quad apart or
     less, compressed in the same direction (within PARALLEL_DEG), are taken together; what is taken
     together is then parted where it holds parallel ridges far enough apart for belts between them
-    (`_part_parallel`)."""
+    (`_part_parallel`): across them, by the quads' measured heights (ny-1, nx-1) where a second view gives
+    them, else by their shortening. Two laid ridges 84 mm apart shortened the quads between them too, and
+    read as one; their heights have a valley between them."""
     xy = nodes_m[..., :2]
+    # A quad a second view measured risen may be hardly shorter: it still weighs a little.
+    profile = np.maximum(shortening if quad_height_m is None else quad_height_m, MIN_PROFILE_WEIGHT)
     tensor = _shortening_tensor(xy, rest_spacing_m)
     quad_centres = (xy[:-1, :-1] + xy[:-1, 1:] + xy[1:, 1:] + xy[1:, :-1]) / 4.0
     _, bands = cv2.connectedComponents(compressed.astype(np.uint8), connectivity=8)
@@ -237,8 +242,11 @@ def find_ridges(
         directions = np.array([_across(band, tensor) for band in members])
         parallel = np.abs(directions @ directions.T).min() >= math.cos(math.radians(PARALLEL_DEG))
         for quads in [np.logical_or.reduce(members)] if parallel else members:
-            parts.extend(_part_parallel(quads, tensor, quad_centres, shortening, min(rest_spacing_m)))
-    ridges = [_ridge(quads, apexes, tensor, quad_centres, shortening, rest_spacing_m) for quads in parts]
+            parts.extend(_part_parallel(quads, tensor, quad_centres, profile, min(rest_spacing_m)))
+    ridges = [
+        _ridge(quads, apexes, tensor, quad_centres, shortening, rest_spacing_m, quad_height_m)
+        for quads in parts
+    ]
     return tuple(sorted(ridges, key=lambda r: (-r.height_m, -r.area_m2)))
 
 
@@ -249,21 +257,20 @@ def _across(quads: np.ndarray, tensor: np.ndarray) -> np.ndarray:
 
 
 def _part_parallel(
-    quads: np.ndarray, tensor: np.ndarray, quad_centres: np.ndarray, shortening: np.ndarray, bin_m: float
+    quads: np.ndarray, tensor: np.ndarray, quad_centres: np.ndarray, weight: np.ndarray, bin_m: float
 ) -> list[np.ndarray]:
     """The quads (bool mask) as one ridge or, where they hold parallel ridges, several. Two ridges a
     belt's width apart have compressed quads that touch; read as one, their line runs between them and
     the belts between them push material into both (docs/flattening.md). Across their common direction
-    their shortening, smoothed over half a quad (the quads of a slanted ridge lie on a grid, not on its
-    line), then has two peaks and a dip; the quads are parted at the deepest dip below VALLEY_RATIO of
-    the peaks on both sides, where the sides' centres (weighted by shortening) lie PARALLEL_GAP_M apart
+    their weight (height or shortening), smoothed over half a quad (the quads of a slanted ridge lie on a
+    grid, not on its line), then has two peaks and a dip; the quads are parted at the deepest dip below
+    VALLEY_RATIO of the peaks on both sides, where the sides' centres (weighted so) lie PARALLEL_GAP_M apart
     or more, and each side is looked at again. One ridge's two feet, 2σ apart, stay together."""
     centres = quad_centres[quads]
     offset = centres @ _across(quads, tensor)
     grid = np.arange(offset.min() - bin_m, offset.max() + bin_m, bin_m / 4.0)
     kernel = np.exp(-0.5 * ((grid[:, None] - offset[None, :]) / (bin_m / 2.0)) ** 2)
-    # A quad a second view measured risen may be hardly shorter: it still weighs a little.
-    profile = kernel @ np.maximum(shortening[quads], MIN_PROFILE_SHORTENING)
+    profile = kernel @ weight[quads]
     best, cut_m = VALLEY_RATIO, None
     for i in range(1, len(grid) - 1):
         if not profile[i] <= min(profile[i - 1], profile[i + 1]):
@@ -278,7 +285,7 @@ def _part_parallel(
     near[quads] = offset < cut_m
     far = quads & ~near
     return [
-        part for side in (near, far) for part in _part_parallel(side, tensor, quad_centres, shortening, bin_m)
+        part for side in (near, far) for part in _part_parallel(side, tensor, quad_centres, weight, bin_m)
     ]
 
 
@@ -289,16 +296,22 @@ def _ridge(
     quad_centres: np.ndarray,
     shortening: np.ndarray,
     rest_spacing_m: tuple[float, float],
+    quad_height_m: np.ndarray | None,
 ) -> Ridge:
+    """The ridge over `quads`: as high as the highest edge around them, there; measured, as its highest
+    quad, at its centre (an edge it shares with a ridge beside it took that one's height)."""
     rest_area = rest_spacing_m[0] * rest_spacing_m[1]
-    x_edges = np.zeros(apexes.x_height_m.shape, bool)  # the x and y edges of the quads
-    x_edges[:-1] |= quads
-    x_edges[1:] |= quads
-    y_edges = np.zeros(apexes.y_height_m.shape, bool)
-    y_edges[:, :-1] |= quads
-    y_edges[:, 1:] |= quads
-    heights = np.concatenate([apexes.x_height_m[x_edges], apexes.y_height_m[y_edges]])
-    places = np.concatenate([apexes.x_at_m[x_edges], apexes.y_at_m[y_edges]])
+    if quad_height_m is None:
+        x_edges = np.zeros(apexes.x_height_m.shape, bool)  # the x and y edges of the quads
+        x_edges[:-1] |= quads
+        x_edges[1:] |= quads
+        y_edges = np.zeros(apexes.y_height_m.shape, bool)
+        y_edges[:, :-1] |= quads
+        y_edges[:, 1:] |= quads
+        heights = np.concatenate([apexes.x_height_m[x_edges], apexes.y_height_m[y_edges]])
+        places = np.concatenate([apexes.x_at_m[x_edges], apexes.y_at_m[y_edges]])
+    else:
+        heights, places = quad_height_m[quads], quad_centres[quads]
     top = int(np.argmax(heights))
     across = _across(quads, tensor)
     along = np.array([-across[1], across[0]])  # the line runs perpendicular to `across`
@@ -380,7 +393,7 @@ class FlatnessMonitor:
             apexes = edge_apexes(nodes_m, spacing, c.compressed_strain)
         else:
             apexes = measured_apexes(nodes_m, quad_height_m)
-        ridges = find_ridges(nodes_m, spacing, shortening, compressed, apexes)
+        ridges = find_ridges(nodes_m, spacing, shortening, compressed, apexes, quad_height_m)
         max_height = float(max(nodes_m[..., 2].max(), 0.0, *(r.height_m for r in ridges)))
         if quad_height_m is not None:
             # A quad counts as high as its highest neighbour backs it: a ridge runs over several quads, while

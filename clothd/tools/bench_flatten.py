@@ -7,7 +7,8 @@ watches, as wrinkles arise in handling. Then:
 
 With `--start laid` the ridges (5-20 mm high, on the same lines) are laid into the cloth before tracking
 begins instead: the wrinkles a piece arrives with, which only a second view can see (clothd/core/stereo.py).
-One second after tracking begins, the status's estimated height is read beside the truth's.
+One second after tracking begins, the status's estimated height is read beside the truth's, and its
+ridges beside the laid ones' lines.
 
 1. `flatten` (PUT /setpoint): time to flat is the first time the true cloth is at most 1 mm high and
    covers at least 99.5 % of its rest area; a start succeeds when that comes within `flatten_s`.
@@ -49,6 +50,8 @@ WRINKLED_M = 0.003  # a start counts once the true cloth is this high somewhere
 KEPT_S = 1.5  # ... and keeps 90 % of that height for this long on still belts
 KEPT_RATIO = 0.9
 MAX_DRAWS_PER_START = 4  # draws stop at this many per judged start
+FOUND_WITHIN_M = 0.02  # a laid ridge is found when a reported ridge's highest point lies this near its line
+FOUND_FROM_M = 0.003  # ... of the laid ridges this high
 
 
 def _world_push(pose: list[float], push: dict[str, Any]) -> dict[str, Any]:
@@ -126,6 +129,27 @@ class LiveCell:
         time.sleep(then_s)
 
 
+def laid_ridges_found(
+    pose: list[float], laid: list[dict[str, Any]], seen: list[dict[str, Any]]
+) -> dict[str, int]:
+    """How many laid ridges FOUND_FROM_M high or more a reported ridge's highest point lies within
+    FOUND_WITHIN_M of: their lines (cloth frame) taken to the world by the pose they were laid at."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    found = counted = 0
+    for ridge in laid:
+        if ridge["height_m"] < FOUND_FROM_M:
+            continue
+        counted += 1
+        x, y = ridge["at_m"]
+        at = np.array([pose[0] + c * x - s * y, pose[1] + s * x + c * y])
+        along = ridge["direction_rad"] + pose[2]
+        normal = np.array([-math.sin(along), math.cos(along)])
+        found += any(
+            abs(float(normal @ (np.array([r["x_m"], r["y_m"]]) - at))) <= FOUND_WITHIN_M for r in seen
+        )
+    return {"ridges_laid": counted, "ridges_found": found}
+
+
 def _wrinkle(cell: Cell, start: dict[str, Any]) -> dict[str, Any]:
     """Lay the cloth, push its ridges in, and check that the cloth keeps them while the belts stand still.
     A ridge that slides out by itself is no start to flatten: hwsim's cloth keeps one only with enough
@@ -141,6 +165,7 @@ def _wrinkle(cell: Cell, start: dict[str, Any]) -> dict[str, Any]:
             "basis": flatness["basis"],
             "height_at_start_mm": flatness["max_height_mm"],
             "height_error_at_start_mm": abs(flatness["max_height_mm"] - truth_mm),
+            **laid_ridges_found(start["pose"], laid, flatness.get("ridges", [])),
         }
     for push in start["pushes"] if not laid else []:
         cell.push(_world_push(start["pose"], push), PUSH_S + LET_GO_WAIT_S)
@@ -248,7 +273,8 @@ def _summary(runs: list[dict[str, Any]], flatten_s: float) -> dict[str, Any]:
 
 
 def _seen_at_start(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Laid starts: how far the estimated height was off the truth's 1 s after tracking began."""
+    """Laid starts, 1 s after tracking began: how far the estimated height was off the truth's, and the
+    share of the laid ridges found."""
     errors = [r["height_error_at_start_mm"] for r in rows if "height_error_at_start_mm" in r]
     if not errors:
         return {}
@@ -256,6 +282,9 @@ def _seen_at_start(rows: list[dict[str, Any]]) -> dict[str, Any]:
         "height_error_at_start_mm_p50": float(np.median(errors)),
         "height_error_at_start_mm_max": float(np.max(errors)),
         "measured_pct": 100.0 * float(np.mean([r["basis"] == "measured" for r in rows])),
+        "ridges_found_pct": 100.0
+        * sum(r["ridges_found"] for r in rows)
+        / max(1, sum(r["ridges_laid"] for r in rows)),
     }
 
 
@@ -336,6 +365,12 @@ def format_result(result: dict[str, Any]) -> str:
             f"{s['final_err_deg_max']:4.2f}° {lo:6.1f}-{hi:4.1f} mm"
             + (f"  ({s['not_kept']} of {s['drawn']} drawn kept no ridge)" if s["not_kept"] else "")
         )
+        if "height_error_at_start_mm_max" in s:
+            lines.append(
+                f"{'':10} 1 s after tracking began: height off by {s['height_error_at_start_mm_p50']:.2f} mm "
+                f"(p50), {s['height_error_at_start_mm_max']:.2f} mm (max); laid ridges found "
+                f"{s['ridges_found_pct']:.0f} %"
+            )
     return "\n".join(lines)
 
 
