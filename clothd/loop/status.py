@@ -207,7 +207,9 @@ class Recording(BaseModel):
 
 
 class RidgeState(BaseModel):
-    x_m: float = Field(description="world position of its highest point")
+    x_m: float = Field(
+        description="world position of its highest point (measured: its highest quad's centre)"
+    )
     y_m: float
     direction_rad: float = Field(description="the direction its line runs in, world, [0, π)")
     height_mm: float
