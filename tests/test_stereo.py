@@ -119,6 +119,12 @@ def test_a_crest_between_the_points_is_read_from_the_surface_through_them() -> N
     flat[np.argsort(xy[:, 0])[-2:], 2] = 0.0016
     flat_quads = quad_highest(_quads_of(xy, nodes), flat[:, 2], (11, 11))
     np.testing.assert_array_equal(crest_heights(flat_quads, flat, nodes), flat_quads)
+    # A flank rising towards the +x edge whose points stop 30 mm short of it: the field runs on up the
+    # slope past the last point (0.36 mm higher); the crest is read only near points.
+    rising = np.column_stack([xy, 0.3 * np.clip(xy[:, 0] - 0.07, 0.0, None)])
+    rising = rising[rising[:, 0] < 0.09]
+    rising_quads = quad_highest(_quads_of(rising[:, :2], nodes), rising[:, 2], (11, 11))
+    assert crest_heights(rising_quads, rising, nodes).max() < rising[:, 2].max() + 0.0002
 
 
 def test_measured_heights_make_a_ridge_that_shortening_alone_does_not_show() -> None:
