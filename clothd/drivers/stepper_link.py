@@ -37,6 +37,9 @@ from clothd.errors import HardwareError
 log = logging.getLogger(__name__)
 
 ESTOP_REPEAT_S = 0.02
+# Woken this much later than asked, the link's thread was held up, not the controller silent.
+HELD_UP_S = 0.01
+REREAD_S = 0.002  # then wait this long, through one wait for the port, before judging the silence
 STOP_DRAIN_TIMEOUT_S = 0.2  # on the way out, wait this long for the all-stop to leave the port
 ESTOP_FD_RETRY_S = 0.001  # closing the e-stop's descriptor while the API's thread writes on it: again
 FAULTS_KEPT = 20
@@ -309,21 +312,31 @@ class StepperLink:
         """Watch the controller's answers: each `ack_timeout_s` without one, send the newest unanswered
         command again; after `max_retransmits` of them, the link is lost. Repeat an unacknowledged e-stop."""
         cfg = self.cfg
+        lost_after_s = cfg.ack_timeout_s * (cfg.max_retransmits + 1)
+        min_wait_s = 0.0
         while True:
             # Wake for the next retransmit or the deadline exactly, not on a coarse grid: the deadline is
             # a safety figure.
             wait_s = ESTOP_REPEAT_S
             if self._unanswered_since_s is not None:
                 due_s = self._unanswered_since_s + cfg.ack_timeout_s * (self._retries + 1)
-                wait_s = min(wait_s, max(due_s - self.clock(), 0.0))
+                wait_s = min(wait_s, max(due_s - self.clock(), min_wait_s))
+            wake_s = self.clock() + wait_s
             await asyncio.sleep(wait_s)
+            held_up = self.clock() - wake_s > HELD_UP_S
+            min_wait_s = 0.0
             if self._estop_latched and not self.controller_estopped:
                 self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()), expect_reply=True)
             since = self._unanswered_since_s
             if since is None:
                 continue
             silent_s = self.clock() - since
-            if silent_s >= cfg.ack_timeout_s * (cfg.max_retransmits + 1):
+            if held_up and silent_s < 2 * lost_after_s:
+                # This thread woke late (a loaded PC, the GIL): an answer may be waiting in the port,
+                # unread. One pass of the event loop reads it before the silence is judged.
+                min_wait_s = REREAD_S
+                continue
+            if silent_s >= lost_after_s:
                 self._lose(
                     f"no answer from the controller on {cfg.port} for {silent_s * 1e3:.0f} ms "
                     f"({self._retries} retransmits)"
