@@ -52,6 +52,7 @@ from clothd.core.module_calibration import ModuleCalibration
 from clothd.core.workspace import Workspace
 from clothd.drivers.camera import VideoCaptureSource, redact_source
 from clothd.drivers.link_group import LinkGroup
+from clothd.drivers.priority import claim_realtime, leave_realtime, set_session_nice, set_thread_nice
 from clothd.drivers.stepper_link import StepperLink
 from clothd.errors import ConfigError, HardwareError
 from clothd.formats import read_camera, read_module_calibration
@@ -60,7 +61,6 @@ from clothd.loop.compute_process import ComputeProcess
 from clothd.loop.daemon import Daemon
 from clothd.loop.daemon_settings import DaemonSettings
 from clothd.loop.pairing import FurtherCamera
-from clothd.loop.priority import claim_realtime, leave_realtime, set_thread_nice
 
 SIM_START_TIMEOUT_S = 120.0
 GIL_SWITCH_S = 0.001
@@ -143,13 +143,20 @@ def camera_model_for(cfg: Config) -> CameraModel:
     return CameraModel.ideal(c.width_px, c.height_px, c.f_px, c.distance_m)
 
 
+def capture_priority(cfg: Config) -> int:
+    """The cameras' capture threads: in the real-time class just below the loop's thread (the tick never
+    waits on a decode); in the normal class with the loop's thread (clothd/drivers/priority.py)."""
+    return max(cfg.loop.realtime_priority - 1, 0)
+
+
 def further_cameras(cfg: Config) -> tuple[FurtherCamera, ...]:
     """The cameras after the first, each with its calibrated model (the configuration requires one)."""
     out = []
     for cam in cfg.all_cameras[1:]:
         assert cam.source.calibration is not None  # config/camera.py check_cameras
         model = read_camera(cam.source.calibration)
-        out.append(FurtherCamera(model, functools.partial(VideoCaptureSource, cam.source)))
+        source = functools.partial(VideoCaptureSource, cam.source, capture_priority(cfg))
+        out.append(FurtherCamera(model, source))
     return tuple(out)
 
 
@@ -184,7 +191,7 @@ def build(cfg: Config) -> Parts:
         workspace=workspace,
         taichi_arch=cfg.taichi.arch,
         max_record_bytes=cfg.recording.max_bytes,
-        frame_source=functools.partial(VideoCaptureSource, cfg.all_cameras[0].source),
+        frame_source=functools.partial(VideoCaptureSource, cfg.all_cameras[0].source, capture_priority(cfg)),
         other_cameras=further_cameras(cfg),
         recording_format=cfg.recording.format,
         foxglove=cfg.foxglove,
@@ -277,7 +284,7 @@ class ApiThread(threading.Thread):
         self.error: BaseException | None = None
 
     def run(self) -> None:
-        leave_realtime()  # requests, however many, must not take a core from the loop (loop/priority.py)
+        leave_realtime()  # requests, however many, must not take a core from the loop (drivers/priority.py)
         try:
             asyncio.run(self._serve())
         except BaseException as err:  # handed to the main thread, which stops the daemon first
@@ -402,9 +409,10 @@ def run(
         listener.close()
         raise
     # This thread runs the tick and the stepper link; the threads and the compute process started from it
-    # inherit its priority (clothd/loop/priority.py). hwsim inherits the nice value, not the real-time class:
-    # it runs its firmware, the stand-in for a microcontroller, in that class itself.
+    # inherit its priority (clothd/drivers/priority.py). hwsim inherits the nice value, not the real-time
+    # class: it runs its firmware, the stand-in for a microcontroller, in that class itself.
     set_thread_nice(cfg.loop.nice, "the loop")
+    set_session_nice(cfg.loop.nice)
     sim = start_sim(sim_scenario, sim_controllers) if sim_scenario is not None else None
     try:
         claim_realtime(cfg.loop.realtime_priority, "the loop")

@@ -3,6 +3,8 @@ retried with backoff."""
 
 from __future__ import annotations
 
+import os
+import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -38,6 +40,21 @@ def test_an_image_directory_plays_as_a_camera(tmp_path: Path) -> None:
         later = cam.latest()
         assert later is not None and later.t_mono_s > first.t_mono_s
         assert cam.state == "streaming" and cam.healthy
+    finally:
+        cam.stop()
+
+
+def test_the_capture_thread_takes_the_realtime_priority_it_is_given(tmp_path: Path) -> None:
+    """A frame's stamp is its arrival: the capture thread must not wait behind other programs."""
+    cv2.imwrite(str(tmp_path / "img_1.png"), np.zeros((48, 64, 3), np.uint8))
+    cam = VideoCaptureSource(CameraSourceConfig(source=str(tmp_path)), realtime_priority=4)
+    cam.start()
+    try:
+        _wait(lambda: cam.latest() is not None)
+        tid = cam._thread.native_id
+        assert tid is not None and tid != threading.get_native_id()
+        assert (os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority) == (os.SCHED_FIFO, 4)
+        assert os.sched_getscheduler(0) == os.SCHED_OTHER  # the caller's own class is untouched
     finally:
         cam.stop()
 

@@ -6,6 +6,8 @@ from pathlib import Path
 
 import pytest
 
+from clothd.config import LoopConfig
+
 pytestmark = pytest.mark.clock_free
 
 UNIT = Path(__file__).resolve().parent.parent / "deploy" / "clothd.service"
@@ -37,3 +39,11 @@ def test_unit_is_hardened_but_reaches_serial_and_video() -> None:
     assert {"char-ttyACM", "char-ttyUSB", "char-video4linux"} <= allowed
     assert s["DevicePolicy"] == ["closed"] and s["NoNewPrivileges"] == ["yes"]
     assert s["ProtectSystem"] == ["strict"]
+
+
+def test_unit_permits_the_priorities_the_daemon_takes() -> None:
+    """The loop's thread, its session and the capture threads get what loop.* asks without root."""
+    s, loop = _settings(), LoopConfig()
+    assert int(s["Nice"][0]) == loop.nice
+    assert 20 - int(s["LimitNICE"][0]) <= loop.nice  # a raw RLIMIT_NICE of n permits nice 20 - n
+    assert int(s["LimitRTPRIO"][0]) >= loop.realtime_priority

@@ -1,16 +1,18 @@
 """Nice values and scheduling classes are per thread (Linux): the API's thread lowers itself without
 touching the loop's, a thread started by the real-time loop can leave its class, and a priority that is
-not permitted is reported, not fatal."""
+not permitted is reported, not fatal. The session's nice value is the daemon's where it leads one."""
 
 from __future__ import annotations
 
 import logging
 import os
+import subprocess
+import sys
 import threading
 
 import pytest
 
-from clothd.loop.priority import claim_realtime, leave_realtime, set_thread_nice
+from clothd.drivers.priority import AUTOGROUP, claim_realtime, leave_realtime, set_thread_nice
 
 
 def test_a_thread_lowers_only_its_own_priority() -> None:
@@ -80,3 +82,25 @@ def test_the_realtime_class_not_permitted_is_reported_and_priority_0_turns_it_of
     with caplog.at_level(logging.WARNING):
         assert not claim_realtime(20, "the loop")
     assert "the loop stays in the normal class" in caplog.text and "CPUSchedulingPolicy" in caplog.text
+
+
+SESSION_NICE = """
+import os, sys
+from clothd.drivers.priority import AUTOGROUP, set_session_nice
+print(set_session_nice(int(sys.argv[1])), AUTOGROUP.read_text().split()[-1])
+"""
+
+
+def _session_nice(nice: int, own_session: bool) -> list[str]:
+    """What set_session_nice(nice) answers in a fresh process, and its autogroup's nice after."""
+    cmd = [sys.executable, "-c", SESSION_NICE, str(nice)]
+    done = subprocess.run(cmd, capture_output=True, text=True, check=True, start_new_session=own_session)
+    return done.stdout.split()
+
+
+def test_the_daemon_weighs_its_own_session_against_other_programs_but_not_a_terminals() -> None:
+    """Autogroups: the scheduler shares the CPU between sessions first, so a busy program in another
+    session weighed as much as the whole daemon whatever its threads' nice values."""
+    assert _session_nice(-7, own_session=True) == ["True", "-7"]
+    ours = AUTOGROUP.read_text().split()[-1]
+    assert _session_nice(-7, own_session=False) == ["False", ours]  # the test's session stays as it was

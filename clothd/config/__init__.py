@@ -100,7 +100,7 @@ class LoopConfig(Strict):
     # cut the frame-to-command latency p99 from 16 to 12-13 ms and missed no tick (docs/benchmarks.md).
     compute_threads: int = Field(2, ge=1, le=16, description="OpenCV threads in the compute process")
     # A loaded PC: the loop and the compute before other programs, the API after the loop
-    # (clothd/loop/priority.py, docs/deploy.md "A loaded cell PC").
+    # (clothd/drivers/priority.py, docs/deploy.md "A loaded cell PC").
     nice: int = Field(-10, ge=-20, le=0, description="the loop's thread and the compute, where permitted")
     realtime_priority: int = Field(
         20, ge=0, le=98, description="SCHED_FIFO priority of the loop's thread; 0: normal class"

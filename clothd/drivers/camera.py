@@ -23,6 +23,7 @@ import numpy as np
 from clothd.config import CameraSourceConfig
 from clothd.drivers.footage import DEFAULT_FPS, IMAGE_SUFFIXES, natural_key
 from clothd.drivers.ports import RATE_WINDOW_S, CameraFrame, FrameSourceHealth
+from clothd.drivers.priority import claim_realtime
 
 log = logging.getLogger(__name__)
 
@@ -39,8 +40,12 @@ def redact_source(source: str) -> str:
 class VideoCaptureSource:
     """The FrameSource of a live camera; `latest()` never blocks, the capture runs on its own thread."""
 
-    def __init__(self, cfg: CameraSourceConfig) -> None:
+    def __init__(self, cfg: CameraSourceConfig, realtime_priority: int = 0) -> None:
+        """realtime_priority: the capture thread's SCHED_FIFO priority (0: the normal class). A frame is
+        stamped as it arrives, and the tracker takes the stamp for the time the camera saw it: a capture
+        thread that a busy PC held up stamped a backlog of frames a millisecond apart."""
         self.cfg = cfg
+        self.realtime_priority = realtime_priority
         self.state = "connecting"  # connecting | streaming | lost
         self.last_error: str | None = None
         self.reconnects = 0
@@ -92,6 +97,7 @@ class VideoCaptureSource:
     # -- capture ----------------------------------------------------------------------------------
 
     def _run(self) -> None:
+        claim_realtime(self.realtime_priority, "the camera's capture")
         delay = self.cfg.reconnect_initial_s
         while not self._stop.is_set():
             try:

@@ -36,11 +36,11 @@ from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.modes import LoopState, Mode
 from clothd.core.tracker import Tracker
 from clothd.drivers.ports import CameraFrame, FrameSource
+from clothd.drivers.priority import leave_realtime
 from clothd.errors import ClothdError
 from clothd.logs import configure_logging
 from clothd.loop.compute_messages import ComputeSpec, InForce, TickReply, TickRequest
 from clothd.loop.pairing import FramePairing
-from clothd.loop.priority import leave_realtime
 from clothd.outputs.foxglove_live import LiveFoxglove
 from clothd.outputs.recorder import FrameSink, Recorder, RecordingStatus
 from clothd.outputs.view import ViewRenderer
@@ -410,7 +410,7 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
     # (a terminal's Ctrl-C or systemd's stop reach the whole process group).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    leave_realtime()  # before its threads start: they inherit the class (clothd/loop/priority.py)
+    leave_realtime()  # before its threads start: they inherit the class (clothd/drivers/priority.py)
     configure_logging()
     start_taichi(spec.taichi_arch)
     cv2.setNumThreads(spec.opencv_threads)

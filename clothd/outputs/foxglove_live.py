@@ -37,8 +37,8 @@ from foxglove.mcap import MCAPWriteOptions, MCAPWriter
 
 from clothd.config import FoxgloveConfig, RecordingFormat
 from clothd.core.messages import Estimate, ModuleCommands
+from clothd.drivers.priority import leave_realtime
 from clothd.errors import ConfigError
-from clothd.loop.priority import leave_realtime
 from clothd.outputs.foxglove_channels import CellChannels, encode_jpeg, residual_mean_px
 from clothd.outputs.recorder import RecordingStatus
 

@@ -15,6 +15,16 @@ what clothd takes (docs/deploy.md, "A loaded cell PC", has the figures):
 - nice values (Linux's setpriority, per thread): `loop.nice` (-10), ten times the CPU share of a
   program at 0, for the loop's threads, the compute and the API's thread: the API shares the GIL with
   the tick, and a thread preempted while it holds the GIL holds the tick too.
+- The session's nice value (Linux's autogroup, /proc/self/autogroup): where no cgroup CPU controller
+  places the daemon (a PC whose systemd does not enable it, a container, a terminal), the scheduler first
+  shares the CPU between sessions, each weighted by that value, and only within a session by the threads'
+  nice values. At 0 a busy program started from a terminal weighed as much as the whole daemon, whatever
+  its threads' nice. The daemon sets it to `loop.nice` when it leads its session (a systemd service does;
+  `clothd run` from a terminal shares the terminal's, which is its user's to set). Under a cgroup CPU
+  controller the unit's `CPUWeight=` does this instead.
+- The cameras' capture threads in the real-time class, just below the loop's thread: a frame is stamped
+  as it arrives, and a capture thread held up by a busy PC stamped a backlog of frames 1 ms apart that
+  the camera took 67 ms apart. Their work is bounded by the frame rate (a read and a decode a frame).
 Raising a priority or entering the real-time class needs root, CAP_SYS_NICE or the systemd unit's
 `Nice=`/`CPUSchedulingPolicy=`; lowering one never does.
 Not `mlockall`: it locks every mapped page, and Taichi maps a 1 GB arena, so the daemon's locked
@@ -28,8 +38,11 @@ from __future__ import annotations
 import logging
 import os
 import threading
+from pathlib import Path
 
 log = logging.getLogger(__name__)
+
+AUTOGROUP = Path("/proc/self/autogroup")
 
 
 def set_thread_nice(nice: int, what: str) -> bool:
@@ -45,6 +58,22 @@ def set_thread_nice(nice: int, what: str) -> bool:
             now,
             nice,
         )
+        return False
+    return True
+
+
+def set_session_nice(nice: int) -> bool:
+    """Give the daemon's session (its autogroup) this nice value when the daemon leads it; False, and a
+    log line where that is not done."""
+    if not AUTOGROUP.exists():  # a kernel without autogroups: cgroups or the threads' nice values decide
+        return False
+    if os.getsid(0) != os.getpid():
+        log.info("the daemon shares its session's CPU share: run as a service, or under setsid, for its own")
+        return False
+    try:
+        AUTOGROUP.write_text(str(nice))
+    except PermissionError:
+        log.warning("the daemon's session stays at its nice value: nice %d needs root or CAP_SYS_NICE", nice)
         return False
     return True
 
