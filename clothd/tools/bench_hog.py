@@ -20,6 +20,7 @@ thread of hwsim in the normal class at nice 0, beside the hogs.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import shutil
 import subprocess
@@ -131,22 +132,35 @@ def wait_ready(d: DaemonProcess, timeout_s: float) -> None:
 
 
 def run_move(d: DaemonProcess, target: tuple[float, float, float]) -> str:
-    """'arrived', 'cancelled: <why>' (a refusal included) or 'timed out', for one move."""
+    """'arrived', 'cancelled: <why>' (a refusal included) or 'timed out: <where truth and estimate stood>'."""
     wait_ready(d, MOVE_TIMEOUT_S)
     body = {"mode": "move", "x_m": target[0], "y_m": target[1], "theta_rad": target[2]}
     answer = httpx.put(f"{d.base}/api/v1/setpoint", json=body, timeout=10)
     if answer.status_code != 200:
         return f"cancelled: refused ({answer.status_code}): {answer.json().get('detail')}"
     deadline = time.monotonic() + MOVE_TIMEOUT_S
-    while time.monotonic() < deadline:
+    while True:
         s = _status(d)
         if s["mode"] != "move":
             return f"cancelled: {s['halt_reason']}"
         dist, ang = pose_error(httpx.get(d.truth_url, timeout=10).json()["pose"], target)
         if dist < POS_TOL_M and ang < ANGLE_TOL_RAD:
             return "arrived"
+        if time.monotonic() >= deadline:
+            estimate = _estimate_off_by(s, target)
+            return f"timed out: {_off_by(dist, ang)} by the truth, {estimate} by the estimate"
         time.sleep(0.1)
-    return "timed out"
+
+
+def _off_by(dist_m: float, angle_rad: float) -> str:
+    return f"{dist_m * 1e3:.1f} mm, {math.degrees(angle_rad):.2f} deg off"
+
+
+def _estimate_off_by(status: dict[str, Any], target: tuple[float, float, float]) -> str:
+    pose = status.get("pose") or {}
+    if pose.get("x_m") is None:
+        return "none"
+    return _off_by(*pose_error([pose["x_m"], pose["y_m"], pose["theta_rad"]], target))
 
 
 def measure_phase(d: DaemonProcess, n_hogs: int, hwsim_as: HwsimAs = "started") -> dict[str, Any]:
@@ -190,8 +204,9 @@ def measure_phase(d: DaemonProcess, n_hogs: int, hwsim_as: HwsimAs = "started") 
         "moves": len(outcomes),
         "moves_arrived": outcomes.count("arrived"),
         "moves_cancelled": sum(o.startswith("cancelled") for o in outcomes),
-        "moves_timed_out": outcomes.count("timed out"),
+        "moves_timed_out": sum(o.startswith("timed out") for o in outcomes),
         "halt_reasons": sorted({o.split(": ", 1)[1] for o in outcomes if o.startswith("cancelled")}),
+        "timeouts": [o.split(": ", 1)[1] for o in outcomes if o.startswith("timed out")],
         "links_lost": after["link"]["counters"]["losses"] - before["link"]["counters"]["losses"],
         "missed_tick_pct": 100.0 * missed / max(ticks + missed, 1),
     }
@@ -223,6 +238,7 @@ def format_result(r: dict[str, Any]) -> str:
             f"links lost {p['links_lost']}; missed ticks {p['missed_tick_pct']:.3f} %",
             f"    {p['hogs']} hogs at nice 0, the browser started {p['browser_starts']} times",
             f"    halts: {reasons}",
+            *(f"    timed out: {t}" for t in p["timeouts"]),
         ]
 
     bars = "bars: 0 links lost, 0 moves cancelled, missed ticks <= 0.5 %"
