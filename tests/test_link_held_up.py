@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from firmware_links import until
 
 from clothd.config import StepperConfig
 from clothd.core.messages import ModuleCommands
@@ -21,7 +22,6 @@ from clothd.tools.pty_relay import PtyRelay
 from hwsim.firmware import Firmware, TableDrives
 from hwsim.scenario import TableSpec
 from hwsim.table import Table
-from tests.firmware_links import until
 
 N = 48
 ANSWER_DELAY_S = 0.02  # each way: the answer comes 40 ms after the command, inside the 50 ms ack timeout
