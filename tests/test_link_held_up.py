@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import selectors
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -29,17 +30,18 @@ HELD_UP_S = 0.2  # past the 150 ms the link allows an answer, inside the control
 
 
 class HeldUpSelector(selectors.DefaultSelector):
-    """Once armed, the next wait that returns no event keeps the thread this long before it goes on."""
+    """Once armed, the next wait that returns no event keeps the thread this long before it goes on;
+    `on_hold()` is called as the hold begins."""
 
-    def __init__(self) -> None:
+    def __init__(self, on_hold: Callable[[], None]) -> None:
         super().__init__()
         self.hold_s = 0.0
-        self.held_at_s: float | None = None
+        self.on_hold = on_hold
 
     def select(self, timeout: float | None = None) -> list[tuple[selectors.SelectorKey, int]]:
         events = super().select(timeout)
         if self.hold_s and not events:
-            self.held_at_s = time.monotonic()
+            self.on_hold()
             time.sleep(self.hold_s)
             self.hold_s = 0.0
         return list(events)
@@ -52,10 +54,13 @@ def test_an_answer_that_came_while_the_link_was_held_up_is_read_before_the_link_
     fw = Firmware(TableDrives(table), tmp_path / "ttyCELL")
     fw.start()
     relay = PtyRelay(fw.link_path, tmp_path / "ttyRELAY")
-    selector = HeldUpSelector()
+    acked_at_hold: list[int] = []
+    link: StepperLink | None = None
+    selector = HeldUpSelector(lambda: acked_at_hold.append(link.counters.acked if link else -1))
     forward = ModuleCommands(np.full(N, 0.03), np.zeros(N))
 
     async def body() -> None:
+        nonlocal link
         cfg = StepperConfig(port=str(relay.link_path), reconnect_initial_s=0.05, reconnect_max_s=0.2)
         link = StepperLink(cfg, N)
         task = asyncio.create_task(link.run())
@@ -65,15 +70,12 @@ def test_an_answer_that_came_while_the_link_was_held_up_is_read_before_the_link_
             for _ in range(5):
                 assert link.send_commands(forward)
                 await asyncio.sleep(1 / 30)
-            acked = link.counters.acked
             selector.hold_s = HELD_UP_S
-            sent_at_s = time.monotonic()
             assert link.send_commands(forward)
             await asyncio.sleep(HELD_UP_S + 0.2)
-            # The hold came while the command was unanswered, and lasted past the link's 150 ms.
-            assert selector.held_at_s is not None and selector.held_at_s - sent_at_s < 2 * ANSWER_DELAY_S
-            assert link.counters.losses == 0 and link.connected, link.last_error
-            assert link.counters.acked > acked
+            assert link.counters.losses == 0 and link.connected, link.counters
+            # The hold (past the link's 150 ms) came while the command's answer was still to be read.
+            assert len(acked_at_hold) == 1 and link.counters.acked > acked_at_hold[0]
         finally:
             await link.stop()
             task.cancel()
