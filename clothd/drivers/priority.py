@@ -7,11 +7,12 @@ what clothd takes (docs/deploy.md, "A loaded cell PC", has the figures):
   stepper link's reads, writes and retransmits, and the thread that takes the compute's replies. No
   program in the normal class can delay them, however busy; they wait most of each tick, and the
   kernel's real-time throttle (95 % of each second) still bounds a fault that spins.
-- Not for the compute process, nor threads that serve people (the API and OPC UA, the Foxglove writer):
-  they leave the class as they start. The compute keeps a core busy for much of each tick, and the
-  serial port's bytes pass through a kernel worker in the normal class (a pty's and a USB port's
-  alike): a compute above that worker starved it, and the link timed out with no other program busy.
-  A flood of requests must not take a core from the loop either. They all keep the loop's nice value.
+- Not for the compute process (but for its cameras' capture threads, below), nor threads that serve
+  people (the API and OPC UA, the Foxglove writer): they leave the class as they start. The compute
+  keeps a core busy for much of each tick, and the serial port's bytes pass through a kernel worker in
+  the normal class (a pty's and a USB port's alike): a compute above that worker starved it, and the
+  link timed out with no other program busy. A flood of requests must not take a core from the loop
+  either. They all keep the loop's nice value.
 - nice values (Linux's setpriority, per thread): `loop.nice` (-10), ten times the CPU share of a
   program at 0, for the loop's threads, the compute and the API's thread: the API shares the GIL with
   the tick, and a thread preempted while it holds the GIL holds the tick too.
