@@ -191,7 +191,7 @@ class FlattenConfig(Strict):
         0.01, ge=0, le=0.5, description="a module pulls once its centre is this far off a ridge's line"
     )
     finish_s: float = Field(
-        0.3, ge=0, le=10, description="a ridge the estimate stops seeing is pulled on this long, at max speed"
+        0.6, ge=0, le=10, description="a ridge the estimate stops seeing is pulled on this long, at max speed"
     )
 
     @model_validator(mode="after")
