@@ -32,6 +32,7 @@ from fastapi import FastAPI
 
 from clothd.api.app import create_app
 from clothd.api.bridge import DaemonBridge
+from clothd.api.cell import LocalCell
 from clothd.api.commands import Commands
 from clothd.api.connections import BoundedH11Protocol, BoundedWebSocketProtocol
 from clothd.api.opcua_server import OpcUaServer
@@ -344,11 +345,12 @@ async def serve(
     if record_dir is not None:  # the operator's own choice, anywhere
         daemon.start_recording(record_dir)
     bridge = DaemonBridge()
-    app = create_app(daemon, parts.hub, parts.camera_model, cfg.api, sim_truth_url, bridge)
+    cell = LocalCell(daemon, bridge)
+    app = create_app(cell, parts.hub, parts.camera_model, cfg.api, sim_truth_url)
     server = _Server(api_server_config(app, cfg.api))
     opcua = None
     if cfg.opcua.enabled:
-        opcua = OpcUaServer(cfg.opcua, cfg.api.token, parts.hub, Commands(daemon, bridge))
+        opcua = OpcUaServer(cfg.opcua, cfg.api.token, parts.hub, Commands(cell))
     loop = asyncio.get_running_loop()
     bridge.loop = loop
 

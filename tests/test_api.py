@@ -17,9 +17,9 @@ import pytest
 import schemathesis
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
+from local_api import local_app
 from starlette.websockets import WebSocketDisconnect
 
-from clothd.api.app import create_app
 from clothd.api.stream import Subscriber
 from clothd.config import ApiConfig, CameraSourceConfig, Config, RecordingConfig, TrackerConfig, parse_config
 from clothd.core.camera_model import CameraModel
@@ -45,7 +45,7 @@ def _app(
     to a directory of their own."""
     parts = build(Config(recording=RecordingConfig(dir=Path(tempfile.mkdtemp(prefix="clothd-api-")))))
     api = ApiConfig(token=token, allowed_hosts=allowed_hosts, max_body_bytes=max_body_bytes)
-    return create_app(parts.daemon, parts.hub, parts.camera_model, api)
+    return local_app(parts, api)
 
 
 # schemathesis's ASGI client calls itself "testserver": a name this daemon is told it has. Its invalid
@@ -89,7 +89,7 @@ def test_setpoint_validation_gives_reasons(client: TestClient) -> None:
 
 def test_flatten_with_a_rigid_tracker_is_a_conflict_that_says_why() -> None:
     parts = build(Config(tracker=TrackerConfig(model="rigid")))
-    c = TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
+    c = TestClient(local_app(parts), base_url=BASE)
     r = c.put("/api/v1/setpoint", json={"mode": "flatten"})
     assert r.status_code == 409 and "mesh tracker" in r.json()["detail"]
     assert c.get("/api/v1/status").json()["mode"] == "idle"
@@ -245,7 +245,7 @@ def test_with_a_token_nothing_is_read_before_it_is_checked() -> None:
 
 def _client_recording_into(recording_dir: Path, format: str = "directory") -> TestClient:
     parts = build(Config(recording=RecordingConfig(dir=recording_dir, format=format)))
-    return TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
+    return TestClient(local_app(parts), base_url=BASE)
 
 
 def test_recordings_stay_inside_the_recording_directory(tmp_path: Path) -> None:
@@ -287,7 +287,7 @@ def test_camera_credentials_stay_out_of_the_status() -> None:
     assert redact_source("rtsp://admin:s3cret@10.0.0.9:554/stream") == "rtsp://***@10.0.0.9:554/stream"
     assert redact_source("/dev/video0") == "/dev/video0"
     parts = build(Config(camera=CameraSourceConfig(source="rtsp://admin:s3cret@cam/stream")))
-    c = TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
+    c = TestClient(local_app(parts), base_url=BASE)
     status = c.get("/api/v1/status")
     assert "s3cret" not in status.text and status.json()["camera"]["source"] == "rtsp://***@cam/stream"
 
@@ -302,7 +302,7 @@ def test_every_camera_is_in_the_status_metrics_and_health_and_only_the_first_is_
         {"name": "side", "source": "rtsp://u:s3cret@side/s", "calibration": str(side_json)},
     ]
     parts = build(parse_config({"cameras": cameras}))
-    c = TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
+    c = TestClient(local_app(parts), base_url=BASE)
     status = c.get("/api/v1/status")
     assert "s3cret" not in status.text
     first, side = status.json()["cameras"]
@@ -366,7 +366,7 @@ def test_a_taken_port_ends_the_start_at_once_and_clearly() -> None:
 def test_cors_only_for_configured_origins() -> None:
     hmi = "http://hmi.plant.example"
     parts = build(Config())
-    app = create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig(allowed_origins=(hmi,)))
+    app = local_app(parts, ApiConfig(allowed_origins=(hmi,)))
     c = TestClient(app, base_url=BASE)
     preflight = {"Access-Control-Request-Method": "POST", "Access-Control-Request-Headers": "content-type"}
     r = c.options("/api/v1/estop", headers={"Origin": hmi, **preflight})

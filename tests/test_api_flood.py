@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import httpx
 import pytest
 import uvicorn
+from local_api import local_app
 
-from clothd.api.app import create_app
 from clothd.api.connections import BoundedWebSocketProtocol
 from clothd.api.stream import StreamHub
 from clothd.config import ApiConfig, Config
@@ -54,7 +54,7 @@ def server() -> Iterator[Served]:
     )
     parts = build(Config(api=api))
     listener = bind_api(api)
-    app = create_app(parts.daemon, parts.hub, parts.camera_model, api)
+    app = local_app(parts, api)
     srv = uvicorn.Server(api_server_config(app, api))
     thread = threading.Thread(target=srv.run, kwargs={"sockets": [listener]}, daemon=True)
     thread.start()

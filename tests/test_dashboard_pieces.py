@@ -14,9 +14,10 @@ import pytest
 import uvicorn
 from flow_statuses import FLAP, piece, publish
 from live_cell import wait
+from local_api import local_app
 from playwright.sync_api import Page, sync_playwright
 
-from clothd.api.app import STATIC_DIR, create_app
+from clothd.api.app import STATIC_DIR
 from clothd.api.stream import StreamHub
 from clothd.config import ApiConfig, Config
 from clothd.core.modes import Mode, PieceState
@@ -36,7 +37,7 @@ DRAWN = """() => { const c = document.getElementById('pieces-view');
 def served() -> Iterator[tuple[str, StreamHub]]:
     port = free_port()
     parts = build(Config())
-    app = create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig(port=port))
+    app = local_app(parts, ApiConfig(port=port))
     server = uvicorn.Server(
         uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning", timeout_graceful_shutdown=1)
     )

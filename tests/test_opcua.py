@@ -26,14 +26,14 @@ from asyncua.ua.uaerrors import BadUserAccessDenied
 from cryptography.x509.oid import ExtendedKeyUsageOID
 from fastapi.testclient import TestClient
 from live_cell import wait
+from local_api import local_app
 
-from clothd.api.app import create_app
-from clothd.api.bridge import DaemonBridge
+from clothd.api.cell import LocalCell
 from clothd.api.commands import Commands
 from clothd.api.opcua_nodes import NAMESPACE_URI, VARIABLES
 from clothd.api.opcua_security import CERT_FILE, KEY_FILE
 from clothd.api.opcua_server import OpcUaServer
-from clothd.config import ApiConfig, Config, OpcUaConfig
+from clothd.config import Config, OpcUaConfig
 from clothd.run import build
 from clothd.tools.bench_loop import ANGLE_TOL_RAD, POS_TOL_M, DaemonProcess, free_port, pose_error
 
@@ -76,11 +76,9 @@ async def _server(
 ) -> AsyncIterator[str]:
     """The server's URL; `rest` receives the REST API over the same daemon."""
     parts = build(Config())
-    server = OpcUaServer(cfg, token, parts.hub, Commands(parts.daemon, DaemonBridge()))
+    server = OpcUaServer(cfg, token, parts.hub, Commands(LocalCell(parts.daemon)))
     if rest is not None:
-        rest.append(
-            TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
-        )
+        rest.append(TestClient(local_app(parts), base_url=BASE))
     await server.start()
     try:
         yield cfg.endpoint

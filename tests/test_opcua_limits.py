@@ -17,7 +17,7 @@ from asyncua import Client
 from asyncua.ua.uaerrors import BadTooManySessions
 from test_opcua import TOKEN, _call, _user
 
-from clothd.api.bridge import DaemonBridge
+from clothd.api.cell import LocalCell
 from clothd.api.commands import Commands
 from clothd.api.opcua_limits import CHUNK_BYTES, declared_size, transport_limits
 from clothd.api.opcua_server import OpcUaServer
@@ -30,7 +30,7 @@ from clothd.tools.bench_loop import free_port
 async def _server(**limits: Any) -> AsyncIterator[OpcUaServer]:
     cfg = OpcUaConfig(endpoint=f"opc.tcp://127.0.0.1:{free_port()}/clothd/", **limits)
     parts = build(Config())
-    server = OpcUaServer(cfg, TOKEN, parts.hub, Commands(parts.daemon, DaemonBridge()))
+    server = OpcUaServer(cfg, TOKEN, parts.hub, Commands(LocalCell(parts.daemon)))
     await server.start()
     try:
         yield server

@@ -13,15 +13,15 @@ from typing import Any
 from asyncua import Client, Node, ua
 from fastapi.testclient import TestClient
 from flow_statuses import FLAP, piece, publish
+from local_api import local_app
 
-from clothd.api.app import create_app
-from clothd.api.bridge import DaemonBridge
+from clothd.api.cell import LocalCell
 from clothd.api.commands import Commands
 from clothd.api.opcua_nodes import NAMESPACE_URI
 from clothd.api.opcua_pieces import EVENT_TYPE, SLOT_VARS, SLOTS
 from clothd.api.opcua_server import OpcUaServer
 from clothd.api.stream import StreamHub
-from clothd.config import ApiConfig, Config, OpcUaConfig
+from clothd.config import Config, OpcUaConfig
 from clothd.core.modes import PieceState
 from clothd.run import build
 from clothd.tools.bench_loop import free_port
@@ -63,8 +63,8 @@ class Seen:
 async def _served() -> AsyncIterator[tuple[Client, Node, int, StreamHub, TestClient]]:
     parts = build(Config())
     cfg = OpcUaConfig(endpoint=f"opc.tcp://127.0.0.1:{free_port()}/clothd/")
-    server = OpcUaServer(cfg, None, parts.hub, Commands(parts.daemon, DaemonBridge()))
-    rest = TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
+    server = OpcUaServer(cfg, None, parts.hub, Commands(LocalCell(parts.daemon)))
+    rest = TestClient(local_app(parts), base_url=BASE)
     await server.start()
     try:
         async with Client(cfg.endpoint) as client:

@@ -13,9 +13,9 @@ from typing import Any, ClassVar
 import pytest
 from fastapi.testclient import TestClient
 from flow_statuses import FLAP, piece, publish
+from local_api import local_app
 from prometheus_client.parser import text_string_to_metric_families
 
-from clothd.api.app import create_app
 from clothd.api.stream import StreamHub
 from clothd.config import ApiConfig, Config
 from clothd.core.modes import Mode, PieceState
@@ -30,7 +30,7 @@ GONE_KEPT = 50  # the status keeps the last 50 pieces gone (clothd/core/pieces.p
 
 def _client(sim_truth_url: str | None = None) -> tuple[TestClient, StreamHub]:
     parts = build(Config())
-    app = create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig(), sim_truth_url)
+    app = local_app(parts, ApiConfig(), sim_truth_url)
     return TestClient(app, base_url=BASE), parts.hub
 
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from fastapi.testclient import TestClient
+from local_api import local_app
 
-from clothd.api.app import create_app
-from clothd.config import ApiConfig, Config, RecordingConfig
+from clothd.config import Config, RecordingConfig
 from clothd.run import build
 
 BASE = "http://127.0.0.1:8080"
@@ -16,7 +16,7 @@ BASE = "http://127.0.0.1:8080"
 
 def test_a_second_start_before_the_first_is_answered_is_refused_and_makes_nothing(tmp_path: Path) -> None:
     parts = build(Config(recording=RecordingConfig(dir=tmp_path)))
-    c = TestClient(create_app(parts.daemon, parts.hub, parts.camera_model, ApiConfig()), base_url=BASE)
+    c = TestClient(local_app(parts), base_url=BASE)
     first = c.post("/api/v1/record/start", json={"dir": "first"})
     assert first.status_code == 200
     second = c.post("/api/v1/record/start", json={"dir": "second"})

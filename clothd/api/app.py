@@ -22,7 +22,7 @@ from fastapi.staticfiles import StaticFiles
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from starlette.websockets import WebSocketDisconnect
 
-from clothd.api.bridge import DaemonBridge
+from clothd.api.cell import Cell
 from clothd.api.commands import Commands, describe_invalid
 from clothd.api.connections import StreamSlots
 from clothd.api.guard import GuardPolicy, RequestGuard
@@ -33,7 +33,6 @@ from clothd.config import ApiConfig
 from clothd.core.camera_model import CameraModel
 from clothd.core.modes import LoopState
 from clothd.errors import ClothdError, HardwareError, InvalidRequestError, RequestError, StorageError
-from clothd.loop.daemon import Daemon
 from clothd.loop.status import PieceStatus, Status
 from clothd.outputs.recorder import recording_path
 
@@ -75,18 +74,16 @@ def _detail_response(status_code: int) -> Callable[[Request, Exception], Awaitab
 
 
 def create_app(
-    daemon: Daemon,
+    cell: Cell,
     hub: StreamHub,
     camera_model: CameraModel,
     api_cfg: ApiConfig,
     sim_truth_url: str | None = None,
-    bridge: DaemonBridge | None = None,
 ) -> FastAPI:
-    """The app over a daemon whose statuses `hub` receives, behind the request guard (guard.py).
-    sim_truth_url: hwsim's ground truth, relayed for the dashboard when running against hwsim; its outfeed
-    (GET /outfeed) is beside it."""
-    bridge = bridge or DaemonBridge()
-    commands = Commands(daemon, bridge)
+    """The app over a cell (cell.py) whose daemon's statuses `hub` receives, behind the request guard
+    (guard.py). sim_truth_url: hwsim's ground truth, relayed for the dashboard when running against hwsim;
+    its outfeed (GET /outfeed) is beside it."""
+    commands = Commands(cell)
     registry = registry_for(hub)
     streams = StreamSlots(api_cfg.max_streams)
     app = FastAPI(title="clothd", version="1", description="Real-time cloth tracking and control")
@@ -110,17 +107,15 @@ def create_app(
         app.add_exception_handler(error, _detail_response(status_code))
 
     api = APIRouter(prefix="/api/v1")
-    _add_control_routes(api, daemon, hub, commands, bridge)
-    _add_view_routes(api, daemon, hub, streams, camera_model, sim_truth_url)
+    _add_control_routes(api, cell, hub, commands)
+    _add_view_routes(api, cell, hub, streams, camera_model, sim_truth_url)
     app.include_router(api)
     app.mount("/static", StaticFiles(directory=STATIC_DIR), name="static")
     _add_page_routes(app, hub, registry)
     return app
 
 
-def _add_control_routes(
-    api: APIRouter, daemon: Daemon, hub: StreamHub, commands: Commands, bridge: DaemonBridge
-) -> None:
+def _add_control_routes(api: APIRouter, cell: Cell, hub: StreamHub, commands: Commands) -> None:
     """The status, and what changes the cell: setpoints, the e-stop, a reset, recordings."""
 
     @api.get("/status", responses=STATUS_DOC, response_model=None)
@@ -158,20 +153,20 @@ def _add_control_routes(
     async def record_start(body: RecordStart | None = None) -> Ok:
         """Record the session (frames, commands, estimates) in the format `clothd replay` reads, or with
         recording.format mcap as one .mcap file (NAME.mcap) for Foxglove."""
-        suffix = daemon.settings.recording_format.suffix
-        where = recording_path(daemon.settings.recording_dir, body.dir if body else None, suffix)
-        path = await bridge.call(daemon.start_recording, where)
+        suffix = cell.settings.recording_format.suffix
+        where = recording_path(cell.settings.recording_dir, body.dir if body else None, suffix)
+        path = await cell.start_recording(where)
         return Ok(detail=f"recording into {path}")
 
     @api.post("/record/stop", responses=ERROR_DOC)
     async def record_stop() -> Ok:
-        await bridge.call(daemon.stop_recording)
-        return Ok(detail=f"recording stops; {daemon.settings.recording_format.finished_by} is written")
+        await cell.stop_recording()
+        return Ok(detail=f"recording stops; {cell.settings.recording_format.finished_by} is written")
 
 
 def _add_view_routes(
     api: APIRouter,
-    daemon: Daemon,
+    cell: Cell,
     hub: StreamHub,
     streams: StreamSlots,
     camera_model: CameraModel,
@@ -204,7 +199,7 @@ def _add_view_routes(
         streams are open."""
         if not streams.take():
             return _streams_full(streams)
-        frames = _mjpeg(daemon, streams)
+        frames = _mjpeg(cell, streams)
         return StreamingResponse(frames, media_type="multipart/x-mixed-replace; boundary=frame")
 
     @api.websocket("/stream")
@@ -287,16 +282,16 @@ async def _serve_stream(ws: WebSocket, hub: StreamHub, hz: float | None) -> None
         hub.unsubscribe(sub)
 
 
-async def _mjpeg(daemon: Daemon, streams: StreamSlots) -> AsyncIterator[bytes]:
+async def _mjpeg(cell: Cell, streams: StreamSlots) -> AsyncIterator[bytes]:
     """Frames as the compute process draws them; it draws only while someone watches. The stream's slot
     was taken by the handler and is given back here, however the stream ends."""
     last = 0
     try:
-        with daemon.view.watching():
+        with cell.watching():
             while True:
-                jpeg, index = daemon.view.latest()
+                jpeg, index = cell.latest_view()
                 if jpeg is None or index == last:
-                    await asyncio.sleep(daemon.settings.view_period_s / 2)
+                    await asyncio.sleep(cell.settings.view_period_s / 2)
                     continue
                 last = index
                 head = f"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n\r\n"

@@ -1,9 +1,9 @@
 """The daemon's commands as every API gives them: the REST handlers (app.py) and the OPC UA methods
 (opcua_server.py) call these, so both answer and refuse alike.
 
-Each runs on the daemon's loop (DaemonBridge) and returns the answer in words, or raises the daemon's
-ClothdError: RequestError (not possible in the present state: HTTP 409), InvalidRequestError (never
-possible as given: 422). Each API maps those to its own codes.
+Each runs on the daemon's loop (the Cell, cell.py) and returns the answer in words, or raises the
+daemon's ClothdError: RequestError (not possible in the present state: HTTP 409), InvalidRequestError
+(never possible as given: 422). Each API maps those to its own codes.
 """
 
 from __future__ import annotations
@@ -15,10 +15,9 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from clothd.api.bridge import DaemonBridge
+from clothd.api.cell import Cell
 from clothd.api.schemas import DriveSetpoint, MoveSetpoint, SetpointRequest
 from clothd.errors import InvalidRequestError
-from clothd.loop.daemon import Daemon
 
 
 def describe_invalid(errors: Sequence[Any]) -> str:
@@ -38,9 +37,8 @@ def _message(error: Any) -> str:
 
 
 class Commands:
-    def __init__(self, daemon: Daemon, bridge: DaemonBridge) -> None:
-        self.daemon = daemon
-        self.bridge = bridge
+    def __init__(self, cell: Cell) -> None:
+        self.cell = cell
 
     async def setpoint(self, body: SetpointRequest) -> str:
         pose = (
@@ -49,7 +47,7 @@ class Commands:
             else None
         )
         script = body.script if isinstance(body, DriveSetpoint) else None
-        await self.bridge.call(self.daemon.set_setpoint, body.mode, pose, script)
+        await self.cell.set_setpoint(body.mode, pose, script)
         return f"mode {body.mode}"
 
     async def move(self, x_m: float, y_m: float, theta_rad: float) -> str:
@@ -62,16 +60,13 @@ class Commands:
         return await self.setpoint(body)
 
     async def estop(self) -> str:
-        # The ESTOP on the wire from this thread first: the hand-over to the daemon's loop waits for its
-        # thread to be scheduled and to take the GIL, tens of ms on a loaded PC (docs/benchmarks.md).
-        self.daemon.link.estop_at_once()
-        await self.bridge.call(self.daemon.estop)
+        await self.cell.estop()
         return "emergency stop latched"
 
     async def estop_clear(self) -> str:
-        await self.bridge.call(self.daemon.estop_clear)
+        await self.cell.estop_clear()
         return "emergency stop cleared; mode is idle"
 
     async def reset(self) -> str:
-        await self.bridge.call(self.daemon.reset)
+        await self.cell.reset()
         return "tracking re-initialises on the next frame"

@@ -1,0 +1,102 @@
+"""What the APIs need of the cell: its commands, the few settings the routes read, and the annotated view.
+The HTTP app (app.py), the commands (commands.py) and through them the OPC UA server depend on this port,
+not on the daemon. `LocalCell` serves it over a daemon in the same process (the API tests' app over a
+daemon never started).
+
+Every command runs on the daemon's loop and returns once it has; a refusal is raised as the daemon
+raised it (a ClothdError), which each API maps to its own codes.
+"""
+
+from __future__ import annotations
+
+from contextlib import AbstractContextManager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from clothd.api.bridge import DaemonBridge
+from clothd.config import RecordingFormat
+from clothd.core.drive_script import DriveScript
+from clothd.core.modes import Mode
+from clothd.loop.daemon import Daemon
+from clothd.loop.daemon_settings import DaemonSettings
+
+
+@dataclass(frozen=True)
+class CellSettings:
+    """The daemon's settings that the routes read."""
+
+    recording_format: RecordingFormat
+    recording_dir: Path  # where POST /record/start puts recordings
+    view_period_s: float  # the annotated view's frame interval
+
+    @classmethod
+    def of(cls, settings: DaemonSettings) -> CellSettings:
+        return cls(settings.recording_format, settings.recording_dir, settings.view_period_s)
+
+
+class Cell(Protocol):
+    @property
+    def settings(self) -> CellSettings: ...
+
+    async def set_setpoint(self, mode: Mode, pose: np.ndarray | None, script: DriveScript | None) -> None:
+        """Daemon.set_setpoint."""
+
+    async def estop(self) -> None: ...
+
+    async def estop_clear(self) -> None: ...
+
+    async def reset(self) -> None: ...
+
+    async def start_recording(self, out: Path) -> Path:
+        """Daemon.start_recording: where it records."""
+
+    async def stop_recording(self) -> None: ...
+
+    def watching(self) -> AbstractContextManager[None]:
+        """Someone watches the annotated view while this is entered: the daemon draws it only then."""
+
+    def latest_view(self) -> tuple[bytes | None, int]:
+        """The newest annotated view (JPEG) and its number (0 before the first)."""
+
+
+class LocalCell:
+    """The cell served by a daemon in this process: each command runs on the daemon's loop (bridge.py)."""
+
+    def __init__(self, daemon: Daemon, bridge: DaemonBridge | None = None) -> None:
+        self.daemon = daemon
+        self.bridge = bridge or DaemonBridge()
+        self._settings = CellSettings.of(daemon.settings)
+
+    @property
+    def settings(self) -> CellSettings:
+        return self._settings
+
+    async def set_setpoint(self, mode: Mode, pose: np.ndarray | None, script: DriveScript | None) -> None:
+        await self.bridge.call(self.daemon.set_setpoint, mode, pose, script)
+
+    async def estop(self) -> None:
+        # The ESTOP on the wire from this thread first: the hand-over to the daemon's loop waits for its
+        # thread to be scheduled and to take the GIL, tens of ms on a loaded PC (docs/benchmarks.md).
+        self.daemon.link.estop_at_once()
+        await self.bridge.call(self.daemon.estop)
+
+    async def estop_clear(self) -> None:
+        await self.bridge.call(self.daemon.estop_clear)
+
+    async def reset(self) -> None:
+        await self.bridge.call(self.daemon.reset)
+
+    async def start_recording(self, out: Path) -> Path:
+        return await self.bridge.call(self.daemon.start_recording, out)
+
+    async def stop_recording(self) -> None:
+        await self.bridge.call(self.daemon.stop_recording)
+
+    def watching(self) -> AbstractContextManager[None]:
+        return self.daemon.view.watching()
+
+    def latest_view(self) -> tuple[bytes | None, int]:
+        return self.daemon.view.latest()
