@@ -4,7 +4,7 @@ only what it needs: the daemon its settings, the stepper link (a ModuleLink) and
 the compute process its spec, with the camera (a FrameSource) as a factory it opens itself.
 
 Order on the way out, whatever the cause (signal, error, end): the modules stop first (the daemon's
-shutdown), then the API servers (HTTP and OPC UA), then the hwsim child.
+shutdown), then the API process (HTTP and OPC UA, api/process.py), then the hwsim child.
 """
 
 from __future__ import annotations
@@ -14,28 +14,21 @@ import contextlib
 import functools
 import gc
 import json
+import logging
 import select
 import signal
 import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
-from collections.abc import Generator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import uvicorn
-from fastapi import FastAPI
-
-from clothd.api.app import create_app
-from clothd.api.bridge import DaemonBridge
-from clothd.api.cell import LocalCell
-from clothd.api.commands import Commands
-from clothd.api.connections import BoundedH11Protocol, BoundedWebSocketProtocol
-from clothd.api.opcua_server import OpcUaServer
+from clothd.api.cell import CellSettings
+from clothd.api.process import ApiProcess
+from clothd.api.serve_api import ApiSpec
 from clothd.api.stream import StreamHub
 from clothd.config import (
     ApiConfig,
@@ -53,7 +46,7 @@ from clothd.core.module_calibration import ModuleCalibration
 from clothd.core.workspace import Workspace
 from clothd.drivers.camera import VideoCaptureSource, redact_source
 from clothd.drivers.link_group import LinkGroup
-from clothd.drivers.priority import claim_realtime, leave_realtime, set_session_nice, set_thread_nice
+from clothd.drivers.priority import claim_realtime, set_session_nice, set_thread_nice
 from clothd.drivers.stepper_link import StepperLink
 from clothd.errors import ConfigError, HardwareError
 from clothd.formats import read_camera, read_module_calibration
@@ -63,9 +56,10 @@ from clothd.loop.daemon import Daemon
 from clothd.loop.daemon_settings import DaemonSettings
 from clothd.loop.pairing import FurtherCamera
 
+log = logging.getLogger(__name__)
+
 SIM_START_TIMEOUT_S = 120.0
 GIL_SWITCH_S = 0.001
-POLL_S = 0.05  # how often start-up checks whether the API server listens
 SIM_READ_POLL_S = 0.5
 
 
@@ -275,32 +269,6 @@ def check_opcua_port(opcua: OpcUaConfig) -> None:
                 ) from None
 
 
-class ApiThread(threading.Thread):
-    """The HTTP API and the OPC UA server on a thread and event loop of their own (api/bridge.py); an
-    error that ends them is kept for the main thread to raise."""
-
-    def __init__(self, server: uvicorn.Server, listener: socket.socket, opcua: OpcUaServer | None) -> None:
-        super().__init__(name="api")
-        self.server, self.listener, self.opcua = server, listener, opcua
-        self.error: BaseException | None = None
-
-    def run(self) -> None:
-        leave_realtime()  # requests, however many, must not take a core from the loop (drivers/priority.py)
-        try:
-            asyncio.run(self._serve())
-        except BaseException as err:  # handed to the main thread, which stops the daemon first
-            self.error = err
-
-    async def _serve(self) -> None:
-        if self.opcua is not None:
-            await self.opcua.start()
-        try:
-            await self.server.serve(sockets=[self.listener])
-        finally:
-            if self.opcua is not None:
-                await self.opcua.stop()
-
-
 def check_foxglove_port(fox: FoxgloveConfig) -> None:
     """The Foxglove server's port must be free: taken, the start ends here with one clear line, before
     hwsim or the compute process (which serves it) start. Bound and let go at once, not listened on."""
@@ -317,22 +285,6 @@ def check_foxglove_port(fox: FoxgloveConfig) -> None:
             ) from None
 
 
-def api_server_config(app: FastAPI, api: ApiConfig) -> uvicorn.Config:
-    """uvicorn's configuration for the API, with connections bounded in number, time and reading
-    (api/connections.py)."""
-    http = BoundedH11Protocol.bounded(api.max_connections, api.request_timeout_s, api.stall_timeout_s)
-    ws = BoundedWebSocketProtocol.bounded(api.stall_timeout_s)
-    return uvicorn.Config(app, host=api.host, port=api.port, log_level="warning", http=http, ws=ws)
-
-
-class _Server(uvicorn.Server):
-    """uvicorn without its own signal handling: clothd's handler stops the modules first."""
-
-    @contextlib.contextmanager
-    def capture_signals(self) -> Generator[None, None, None]:
-        yield
-
-
 async def serve(
     cfg: Config,
     listener: socket.socket,
@@ -340,55 +292,44 @@ async def serve(
     sim_truth_url: str | None = None,
     record_dir: Path | None = None,
 ) -> None:
+    """The daemon on this event loop, once its API process (api/process.py) serves on `listener`; until
+    a signal, an error, or the API process's end, which stops the modules and raises HardwareError."""
     parts = build(cfg)
     daemon = parts.daemon
     if record_dir is not None:  # the operator's own choice, anywhere
         daemon.start_recording(record_dir)
-    bridge = DaemonBridge()
-    cell = LocalCell(daemon, bridge)
-    app = create_app(cell, parts.hub, parts.camera_model, cfg.api, sim_truth_url)
-    server = _Server(api_server_config(app, cfg.api))
-    opcua = None
-    if cfg.opcua.enabled:
-        opcua = OpcUaServer(cfg.opcua, cfg.api.token, parts.hub, Commands(cell))
+    assert daemon.status is not None  # published once as it was built
+    settings = CellSettings.of(daemon.settings)
+    status_json = daemon.status.model_dump_json().encode()
+    spec = ApiSpec(cfg.api, cfg.opcua, parts.camera_model, settings, status_json, sim_truth_url)
+    api = ApiProcess(spec, daemon)
+    daemon.on_status = api.publish  # the statuses go to the API process, which fans them out
     loop = asyncio.get_running_loop()
-    bridge.loop = loop
-
-    def _stop() -> None:
-        daemon.stop()
-        server.should_exit = True  # the API's thread polls it
-
     for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, _stop)
-    # The APIs on a thread and event loop of their own: their work never delays a tick (api/bridge.py).
-    api = ApiThread(server, listener, opcua)
-    api.start()
-    api_done = loop.run_in_executor(None, api.join)
-    while not server.started and api.is_alive():
-        await asyncio.sleep(POLL_S)
-    if not server.started:  # the API's thread ended before it served (a stop, or its error): no loop
-        await api_done
-        if api.error is not None:
-            raise api.error
-        return
-    # Everything built so far lives as long as the daemon, the OPC UA address space (~10^5 objects)
-    # included: out of the collector's sight, a full collection (which holds the GIL, so the tick too)
-    # walks only what the running daemon makes. Frozen before the API's servers were up, each full
-    # collection under a connection flood took 100-146 ms, three or four ticks (docs/benchmarks.md).
-    gc.collect()
-    gc.freeze()
-    daemon.stats.watch_full_collections()
-    loop_task = asyncio.create_task(daemon.run())
-    if on_ready:
-        print(on_ready, flush=True)
-    await asyncio.wait({loop_task, api_done}, return_when=asyncio.FIRST_COMPLETED)
-    daemon.stop()
-    server.should_exit = True
-    await asyncio.gather(loop_task, api_done, return_exceptions=True)
+        loop.add_signal_handler(sig, daemon.stop)
+    try:
+        await api.start(listener)
+        # Everything built so far lives as long as the daemon: out of the collector's sight, a full
+        # collection (which holds the GIL, so the tick too) walks only what the running daemon makes.
+        gc.collect()
+        gc.freeze()
+        daemon.stats.watch_full_collections()
+        loop_task = asyncio.create_task(daemon.run())
+        if on_ready:
+            print(on_ready, flush=True)
+        assert api.ended is not None
+        either: set[asyncio.Future[Any]] = {loop_task, api.ended}
+        await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
+        if api.ended.done():  # no API, no e-stop from it: the modules stop (fail safe)
+            log.error("the API process ended (%s): stopping the modules", api.ended.result())
+            daemon.stop()
+        await asyncio.gather(loop_task, return_exceptions=True)
+    finally:
+        await api.stop()  # after the modules stopped
     if loop_task.exception() is not None:
         raise loop_task.exception()  # type: ignore[misc]
-    if api.error is not None:
-        raise api.error
+    if api.ended.done():
+        raise HardwareError(f"the API process ended ({api.ended.result()}); modules stopped")
 
 
 def run(
@@ -401,7 +342,7 @@ def run(
     """Run the daemon with `cfg` (loaded and validated by the caller), against hwsim when sim_scenario
     names a scenario (its modules split among `sim_controllers` controllers); with only the first
     `cameras` cameras when given (1: one view)."""
-    # The tick's thread waits at most this long for the GIL while the API's thread computes (default 5 ms).
+    # The tick's thread waits at most this long for the GIL while another of its threads runs (default 5 ms).
     sys.setswitchinterval(GIL_SWITCH_S)
     listener = bind_api(cfg.api)
     try:

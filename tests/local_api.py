@@ -6,7 +6,7 @@ from __future__ import annotations
 from fastapi import FastAPI
 
 from clothd.api.app import create_app
-from clothd.api.cell import LocalCell
+from clothd.api.local_cell import LocalCell
 from clothd.config import ApiConfig
 from clothd.run import Parts
 

@@ -18,9 +18,10 @@ import uvicorn
 from local_api import local_app
 
 from clothd.api.connections import BoundedWebSocketProtocol
+from clothd.api.serve_api import api_server_config
 from clothd.api.stream import StreamHub
 from clothd.config import ApiConfig, Config
-from clothd.run import api_server_config, bind_api, build
+from clothd.run import bind_api, build
 
 MAX_CONNECTIONS = 16
 REQUEST_TIMEOUT_S = 1.0

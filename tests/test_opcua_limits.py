@@ -17,8 +17,8 @@ from asyncua import Client
 from asyncua.ua.uaerrors import BadTooManySessions
 from test_opcua import TOKEN, _call, _user
 
-from clothd.api.cell import LocalCell
 from clothd.api.commands import Commands
+from clothd.api.local_cell import LocalCell
 from clothd.api.opcua_limits import CHUNK_BYTES, declared_size, transport_limits
 from clothd.api.opcua_server import OpcUaServer
 from clothd.config import Config, OpcUaConfig

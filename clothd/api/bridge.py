@@ -1,9 +1,7 @@
-"""The API serves on a thread and event loop of its own (clothd/run.py), so that no amount of HTTP work
-(a connection flood, a slow client, a burst of requests) delays the daemon's tick. What crosses over:
-
-- requests into the daemon (`DaemonBridge.call`) run on the daemon's loop, and their answers (or their
-  errors) come back to the API's;
-- the daemon's status crosses the other way as immutable bytes (StreamHub.publish).
+"""An API in the daemon's own process (local_cell.py), served on a thread and event loop of its own:
+requests into the daemon (`DaemonBridge.call`) run on the daemon's loop, and their answers (or their
+errors) come back to the API's; the daemon's status crosses the other way as immutable bytes
+(StreamHub.publish). `clothd run` serves its API from a process of its own instead (process.py).
 
 Before the daemon's loop runs (the app built but not started, as in the API tests), calls run at once.
 """

@@ -1,7 +1,7 @@
 """What the APIs need of the cell: its commands, the few settings the routes read, and the annotated view.
 The HTTP app (app.py), the commands (commands.py) and through them the OPC UA server depend on this port,
-not on the daemon. `LocalCell` serves it over a daemon in the same process (the API tests' app over a
-daemon never started).
+not on the daemon. The API process serves it over its channel to the daemon (remote_cell.py);
+`LocalCell` (local_cell.py) over a daemon in the same process (the API tests' app).
 
 Every command runs on the daemon's loop and returns once it has; a refusal is raised as the daemon
 raised it (a ClothdError), which each API maps to its own codes.
@@ -12,16 +12,16 @@ from __future__ import annotations
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from clothd.api.bridge import DaemonBridge
 from clothd.config import RecordingFormat
 from clothd.core.drive_script import DriveScript
 from clothd.core.modes import Mode
-from clothd.loop.daemon import Daemon
-from clothd.loop.daemon_settings import DaemonSettings
+
+if TYPE_CHECKING:  # not imported in the API process, which has no daemon (nor its compute's Taichi)
+    from clothd.loop.daemon_settings import DaemonSettings
 
 
 @dataclass(frozen=True)
@@ -60,43 +60,3 @@ class Cell(Protocol):
 
     def latest_view(self) -> tuple[bytes | None, int]:
         """The newest annotated view (JPEG) and its number (0 before the first)."""
-
-
-class LocalCell:
-    """The cell served by a daemon in this process: each command runs on the daemon's loop (bridge.py)."""
-
-    def __init__(self, daemon: Daemon, bridge: DaemonBridge | None = None) -> None:
-        self.daemon = daemon
-        self.bridge = bridge or DaemonBridge()
-        self._settings = CellSettings.of(daemon.settings)
-
-    @property
-    def settings(self) -> CellSettings:
-        return self._settings
-
-    async def set_setpoint(self, mode: Mode, pose: np.ndarray | None, script: DriveScript | None) -> None:
-        await self.bridge.call(self.daemon.set_setpoint, mode, pose, script)
-
-    async def estop(self) -> None:
-        # The ESTOP on the wire from this thread first: the hand-over to the daemon's loop waits for its
-        # thread to be scheduled and to take the GIL, tens of ms on a loaded PC (docs/benchmarks.md).
-        self.daemon.link.estop_at_once()
-        await self.bridge.call(self.daemon.estop)
-
-    async def estop_clear(self) -> None:
-        await self.bridge.call(self.daemon.estop_clear)
-
-    async def reset(self) -> None:
-        await self.bridge.call(self.daemon.reset)
-
-    async def start_recording(self, out: Path) -> Path:
-        return await self.bridge.call(self.daemon.start_recording, out)
-
-    async def stop_recording(self) -> None:
-        await self.bridge.call(self.daemon.stop_recording)
-
-    def watching(self) -> AbstractContextManager[None]:
-        return self.daemon.view.watching()
-
-    def latest_view(self) -> tuple[bytes | None, int]:
-        return self.daemon.view.latest()

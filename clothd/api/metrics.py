@@ -1,5 +1,5 @@
 """Prometheus metrics (GET /metrics), read at scrape time from the status the last tick published: the
-snapshot is immutable, so the API's thread never reads the daemon's live state, and nothing is paid
+snapshot is immutable, so the API never reads the daemon's live state, and nothing is paid
 per tick. The pieces of mode flow are counted at each scrape from the pieces it sees (piece_counts.py):
 the status keeps the last 50 gone, far more than pass between two scrapes."""
 

@@ -1,9 +1,9 @@
 """The OPC UA server (asyncua): the cell for line controllers, MES and HMIs; docs/opcua.md.
 
-It runs on the API's thread and event loop (clothd/run.py), beside the REST API and for the same reason:
-no client, however slow or busy, can delay the tick. Its variables follow the status snapshots the
-daemon publishes for the WebSocket (StreamHub.status), at most opcua.publish_hz times a second, only
-what changed. Its methods are the REST API's commands (commands.py): the same answers and refusals.
+It runs in the API process, on its event loop (serve_api.py), beside the REST API and for the same
+reason: no client, however slow or busy, can delay the tick. Its variables follow the status snapshots
+the daemon publishes for the WebSocket (StreamHub.status), at most opcua.publish_hz times a second,
+only what changed. Its methods are the REST API's commands (commands.py): the same answers and refusals.
 
 A method answers one output argument, `Detail`: the answer in words, or why it was refused. A refusal
 is a Bad status code (ERROR_STATUS) with that reason beside it: asyncua's own high-level `call_method`

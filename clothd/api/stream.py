@@ -1,8 +1,8 @@
 """Fan-out of the per-tick status to GET /status and the WebSocket clients.
 
-The status is serialised once per tick, here, on the daemon's thread; every reader gets the same bytes.
-The subscribers live on the API's event loop (another thread): the bytes are handed to it, never waited
-on.
+The status is serialised once per tick, on the daemon's thread; every reader gets the same bytes. In the
+API process they arrive serialised (`receive`). The subscribers live on the API's event loop: bytes
+published from another thread are handed to it, never waited on.
 
 Each client has a latest-value slot: publishing overwrites it (counting a drop if the client had not
 taken the previous value) and never waits. Each client's sender takes the slot when it is ready, so a
@@ -56,7 +56,14 @@ class StreamHub:
 
     def publish(self, status: Status) -> None:
         """Serialise the status (non-finite numbers as null) and offer it to every subscriber."""
-        data = status.model_dump_json().encode()
+        self._take(status, status.model_dump_json().encode())
+
+    def receive(self, data: bytes) -> None:
+        """A status as the daemon serialised it (in the API process): parsed for the readers that need
+        the object (/healthz, /metrics, OPC UA), the same bytes to every subscriber."""
+        self._take(Status.model_validate_json(data), data)
+
+    def _take(self, status: Status, data: bytes) -> None:
         self.status, self.status_json = status, data  # readers on other threads see one or the other
         loop = self._api_loop
         if loop is None or loop.is_closed():

@@ -7,15 +7,15 @@ what clothd takes (docs/deploy.md, "A loaded cell PC", has the figures):
   stepper link's reads, writes and retransmits, and the thread that takes the compute's replies. No
   program in the normal class can delay them, however busy; they wait most of each tick, and the
   kernel's real-time throttle (95 % of each second) still bounds a fault that spins.
-- Not for the compute process (but for its cameras' capture threads, below), nor threads that serve
-  people (the API and OPC UA, the Foxglove writer): they leave the class as they start. The compute
+- Not for the compute process (but for its cameras' capture threads, below), nor what serves people
+  (the API process, HTTP and OPC UA; the Foxglove writer): they leave the class as they start. The compute
   keeps a core busy for much of each tick, and the serial port's bytes pass through a kernel worker in
   the normal class (a pty's and a USB port's alike): a compute above that worker starved it, and the
   link timed out with no other program busy. A flood of requests must not take a core from the loop
   either. They all keep the loop's nice value.
 - nice values (Linux's setpriority, per thread): `loop.nice` (-10), ten times the CPU share of a
-  program at 0, for the loop's threads, the compute and the API's thread: the API shares the GIL with
-  the tick, and a thread preempted while it holds the GIL holds the tick too.
+  program at 0, for the loop's threads, the compute and the API process: an operator's e-stop request
+  finds a core on a busy PC.
 - The session's nice value (Linux's autogroup, /proc/self/autogroup): where no cgroup CPU controller
   places the daemon (a PC whose systemd does not enable it, a container, a terminal), the scheduler first
   shares the CPU between sessions, each weighted by that value, and only within a session by the threads'
