@@ -252,9 +252,10 @@ def test_clothd_run_drives_the_qemu_firmware_and_its_estop_latches(
         assert firmware.read_u8("drivers_enabled") == 0 and not any(_rates(firmware))
         held = _positions(firmware)
         time.sleep(0.3)  # held: the daemon PINGs, sends no COMMAND, and no step is issued
-        # The first ESTOP is written on the API's thread, the last by the daemon's loop once latched: a
-        # COMMAND between them (already on its way) is refused by the latched firmware; no speed after
-        # (an all-stop may: a loaded machine can lose the link, which writes one on its way out).
+        # The daemon's loop writes the ESTOP as the API process's call arrives and repeats it until the
+        # firmware latches: a COMMAND between them (already on its way) is refused by the latched firmware;
+        # no speed after the last (an all-stop may: a loaded machine can lose the link, which writes one on
+        # its way out).
         sent = [f for f in tap.since(t_post) if f.to_firmware]
         last_estop = max(k for k, f in enumerate(sent) if f.msg.type == T.ESTOP)
         assert not [f for f in sent[last_estop:] if _moving_command(f)]

@@ -10,7 +10,6 @@ import asyncio
 import contextlib
 import os
 import struct
-import threading
 import tty
 from collections.abc import AsyncIterator, Callable
 
@@ -148,85 +147,6 @@ def test_the_estop_discards_the_commands_not_yet_gone_and_goes_next_intact() -> 
                 # ~20 kB written was discarded, and the ESTOP decoded whole after its delimiter.
                 assert at < 2 * PTY_READ_BUFFER < written
                 assert not [m for a, m in ctrl.frames if a > at and (m is None or m.type == T.COMMAND)]
-        finally:
-            ctrl.close()
-
-    asyncio.run(body())
-
-
-def _estops_waiting(ctrl: RawController) -> list[wire.Message]:
-    """The ESTOPs the controller can read now, without the event loop's help."""
-    ctrl._drain()
-    return [m for _, m in ctrl.of_type(T.ESTOP)]
-
-
-def test_estop_at_once_reaches_the_line_while_the_links_loop_is_held() -> None:
-    """From the API's thread, while the link's event loop is held (as a loaded PC holds it from the GIL
-    or the CPU): the ESTOP is on the line before the loop runs again, and the latch holds the loop's
-    next COMMAND back (a PING instead) before the loop's own estop() runs."""
-
-    async def body() -> None:
-        ctrl = RawController()
-        try:
-            async with _connected(ctrl) as link:
-                await ctrl.read_until(lambda: True)  # the HELLO read: nothing else waits
-                seen: list[list[wire.Message]] = []
-
-                def api_thread() -> None:
-                    link.estop_at_once()
-                    seen.append(_estops_waiting(ctrl))
-
-                thread = threading.Thread(target=api_thread)
-                thread.start()
-                thread.join()  # the loop's thread blocked here: nothing of the link's ran meanwhile
-                assert len(seen[0]) == 1 and link.estopped  # latched: the next tick holds its COMMAND
-                assert not link.send_commands(_speed(5))  # held back: a PING goes instead
-                link.estop()
-                await ctrl.read_until(lambda: len(ctrl.of_type(T.ESTOP)) == 2)
-                # No COMMAND reached the line. The PING may not have either: estop() discards what is
-                # still unsent (under load a fresh clone's make test saw it discarded).
-                assert not ctrl.of_type(T.COMMAND)
-        finally:
-            ctrl.close()
-
-    asyncio.run(body())
-
-
-def test_estop_at_once_writes_nothing_on_a_link_that_is_not_up() -> None:
-    async def body() -> None:
-        ctrl = RawController()
-        try:
-            async with _connected(ctrl) as link:
-                pass
-            link.estop_at_once()  # the port closed: its descriptor closed with it, nothing raised
-            assert not _estops_waiting(ctrl)
-        finally:
-            ctrl.close()
-
-    asyncio.run(body())
-
-
-def test_the_link_closing_never_waits_for_an_estop_being_written() -> None:
-    """The session ends while the API's thread holds the e-stop's descriptor (writing, or waiting for a
-    core): the loop goes on at once, and the descriptor is closed once it is let go, not before."""
-
-    async def body() -> None:
-        ctrl = RawController()
-        try:
-            async with _connected(ctrl) as link:
-                fd = link._estop_fd
-                assert fd is not None
-                link._estop_fd_lock.acquire()  # as the API's thread does around its write
-                await link.stop()  # returns: nothing waited for the lock
-                os.fstat(fd)  # still open while held
-                link._estop_fd_lock.release()
-                async with asyncio.timeout(10):
-                    while True:
-                        try:
-                            os.fstat(fd)
-                        except OSError:
-                            break
-                        await asyncio.sleep(0.001)
         finally:
             ctrl.close()
 

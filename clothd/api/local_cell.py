@@ -31,9 +31,6 @@ class LocalCell:
         await self.bridge.call(self.daemon.set_setpoint, mode, pose, script)
 
     async def estop(self) -> None:
-        # The ESTOP on the wire from this thread first: the hand-over to the daemon's loop waits for its
-        # thread to be scheduled and to take the GIL, tens of ms on a loaded PC (docs/benchmarks.md).
-        self.daemon.link.estop_at_once()
         await self.bridge.call(self.daemon.estop)
 
     async def estop_clear(self) -> None:

@@ -139,11 +139,6 @@ class LinkGroup:
         for c in self.controllers:
             c.link.estop()
 
-    def estop_at_once(self) -> None:
-        """From any thread: every controller's ESTOP written now, ahead of estop() (StepperLink's)."""
-        for c in self.controllers:
-            c.link.estop_at_once()
-
     def estop_clear(self) -> None:
         for c in self.controllers:
             c.link.estop_clear()

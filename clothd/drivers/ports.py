@@ -131,9 +131,6 @@ class ModuleLink(Protocol):
 
     def estop(self) -> None: ...
 
-    def estop_at_once(self) -> None:
-        """From any thread, never blocking: the ESTOP on the wire now, before estop() runs on the loop."""
-
     def estop_clear(self) -> None: ...
 
     async def run(self) -> None: ...

@@ -8,8 +8,7 @@ than the ticks) would hold this one behind them, stale before it left, so it is 
 sends a fresh one. The emergency stop discards whatever has not left yet (the transport's buffer and the
 port driver's output queue: stale commands), writes a delimiter that ends any frame the discard cut
 midway, and the ESTOP right after it; it is repeated until the controller acknowledges it with its
-e-stop flag set. `estop_at_once()` writes an ESTOP from whichever thread calls it (the API's), before
-the request reaches the loop's thread: on a loaded PC that hand-over alone took 60 ms.
+e-stop flag set.
 """
 
 from __future__ import annotations
@@ -18,8 +17,6 @@ import asyncio
 import contextlib
 import itertools
 import logging
-import os
-import threading
 import time
 from collections import deque
 from collections.abc import Callable
@@ -41,7 +38,6 @@ ESTOP_REPEAT_S = 0.02
 HELD_UP_S = 0.01
 REREAD_S = 0.002  # then wait this long, through one wait for the port, before judging the silence
 STOP_DRAIN_TIMEOUT_S = 0.2  # on the way out, wait this long for the all-stop to leave the port
-ESTOP_FD_RETRY_S = 0.001  # closing the e-stop's descriptor while the API's thread writes on it: again
 FAULTS_KEPT = 20
 
 
@@ -76,12 +72,7 @@ class StepperLink:
         self._estop_latched = False
         self._clear_on_connect = False  # an e-stop cleared while the link was down: the controller is told
         self._writer: asyncio.StreamWriter | None = None
-        self._seqs = itertools.count(1)  # next() is atomic: estop_at_once takes one on the API's thread
-        # A duplicate of the port's descriptor for estop_at_once, opened and closed with the session. It is
-        # read and written on under the lock and closed only while the lock is free, never waited for: the
-        # API's write never lands on a number the system gave to something else, and the loop never waits.
-        self._estop_fd: int | None = None
-        self._estop_fd_lock = threading.Lock()
+        self._seqs = itertools.count(1)
         self._pending: _Pending | None = None  # the newest unacknowledged COMMAND
         # Liveness: when the oldest message still waiting for a reply was sent (None: every one answered),
         # and how often the newest command has been sent again since. A fresh command every tick replaces
@@ -138,21 +129,6 @@ class StepperLink:
             self._discard_unsent()
         self._write(wire.DELIMITER + wire.encode(wire.MsgType.ESTOP, self._next_seq()))
 
-    def estop_at_once(self) -> None:
-        """From any thread: the e-stop latched (the loop's next tick sends a PING, not a COMMAND) and an
-        ESTOP written on the port now, ahead of the loop's estop(), which discards and repeats. Never
-        blocks; writes nothing when the port is not up or has no room (estop() follows). A frame it cuts
-        is ended by its delimiter; a COMMAND that still follows it is refused by the latched controller."""
-        self._estop_latched = True
-        if not self.connected:
-            return
-        packet = wire.DELIMITER + wire.encode(wire.MsgType.ESTOP, self._next_seq())
-        with self._estop_fd_lock:
-            fd = self._estop_fd  # once: the loop may set it to None meanwhile, closing it only later
-            if fd is not None:
-                with contextlib.suppress(OSError):  # full (BlockingIOError) or gone: estop() follows
-                    os.write(fd, packet)
-
     def estop_clear(self) -> None:
         """Release the e-stop; while the link is down, as soon as it is up again (the controller keeps its
         latch across a lost link, and would otherwise refuse every command)."""
@@ -198,7 +174,6 @@ class StepperLink:
             serial_asyncio_fast.open_serial_connection(url=self.cfg.port, baudrate=self.cfg.baud), 2.0
         )
         self._writer = writer
-        self._open_estop_fd(writer)
         self._lost.clear()
         reading = asyncio.create_task(self._read(reader))
         try:
@@ -385,23 +360,6 @@ class StepperLink:
     def _next_seq(self) -> int:
         return next(self._seqs) & 0xFFFF
 
-    def _open_estop_fd(self, writer: asyncio.StreamWriter) -> None:
-        port = writer.transport.get_extra_info("serial")
-        with contextlib.suppress(Exception):
-            self._estop_fd = os.dup(port.fileno())
-
-    def _close_estop_fd(self, fd: int) -> None:
-        """Close it once estop_at_once is not writing on it: now, or a moment later, never waiting (the
-        API's thread may hold the lock while it waits for a core)."""
-        if not self._estop_fd_lock.acquire(blocking=False):
-            asyncio.get_running_loop().call_later(ESTOP_FD_RETRY_S, self._close_estop_fd, fd)
-            return
-        try:
-            with contextlib.suppress(OSError):
-                os.close(fd)
-        finally:
-            self._estop_fd_lock.release()
-
     def _lose(self, reason: str) -> None:
         """Declare the link lost: all-stop written on the way out (a controller that hears but cannot
         answer stops at once; one that hears nothing stops on its watchdog), then reconnect."""
@@ -436,9 +394,6 @@ class StepperLink:
         self._unanswered_since_s = None
         self._retries = 0
         self.controller_flags = 0
-        fd, self._estop_fd = self._estop_fd, None  # estop_at_once reads it under the lock: None from now on
-        if fd is not None:
-            self._close_estop_fd(fd)
         if self._writer is not None:
             with contextlib.suppress(Exception):
                 self._writer.close()
