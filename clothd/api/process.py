@@ -54,6 +54,7 @@ class ApiProcess:
         self._replies: deque[tuple[Any, ...]] = deque()
         self._watching: AbstractContextManager[None] | None = None
         self._view_sent = 0
+        self._reading = True  # the last status went: the API process reads
         self._stopping = False
 
     async def start(self, listener: socket.socket) -> None:
@@ -77,8 +78,14 @@ class ApiProcess:
     def publish(self, status: Status) -> None:
         """The daemon's on_status: the status to the API process, and the newest view while watched."""
         self._send_replies()
-        if not self.channel.send(("status", status.model_dump_json().encode())):
+        if self.channel.send(("status", status.model_dump_json().encode())):
+            self._reading = True
+        else:
             self.dropped_statuses += 1
+            if self._reading:  # said once each time it stops reading
+                dropped = self.dropped_statuses
+                log.warning("the API process is not reading: statuses dropped (%d so far)", dropped)
+            self._reading = False
         if self._watching is not None:
             jpeg, index = self.daemon.view.latest()
             if jpeg is not None and index != self._view_sent:
@@ -93,6 +100,8 @@ class ApiProcess:
             asyncio.get_running_loop().remove_reader(self.channel.sock)
         self._unwatch()
         self.channel.close()
+        if self._their_end is not None:  # never started
+            self._their_end.close()
         if self._process is None:
             return
         await asyncio.get_running_loop().run_in_executor(None, self._process.join, JOIN_TIMEOUT_S)
