@@ -3,8 +3,8 @@
 Every tick has an absolute deadline (next += period). A tick that starts a whole period late counts the
 ticks it missed and skips ahead; there are no catch-up ticks. The compute stages (camera capture,
 tracker, control, the annotated view) run in the compute process (clothd/loop/compute.py), one request and
-one reply per tick; this process's event loop only schedules, talks to the serial port and serves the
-API, and shares its GIL with nothing heavy.
+one reply per tick; this process's event loop only schedules, talks to the serial port and answers the
+API process's calls (clothd/api/process.py), and shares its GIL with nothing heavy.
 
 Safety: whatever goes wrong in a tick (camera lost, cloth lost, an exception in the compute, a stepper
 link lost, a controller's FAULT), the modules, on every controller, are commanded to stop before anything
@@ -388,7 +388,7 @@ class Daemon:
     # -- publishing ------------------------------------------------------------------------------------
 
     def publish(self) -> None:
-        """Build the status once and hand it on (the API serialises it once for every reader)."""
+        """Build the status once and hand it on (serialised once for every reader of the API's)."""
         s = self.settings
         self.status = build_status(
             state=self.state,
