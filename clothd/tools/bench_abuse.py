@@ -1,7 +1,7 @@
 """`clothd bench abuse`: floods from a local process with no credentials against `clothd run --sim`
-(with api.token set, or without it: `token`; the daemon held to 1,024 file descriptors as under
-systemd), measured from
-outside. Each flood lasts `flood_s` seconds, all on loopback, everything closed at the end:
+(with api.token set, or without it: `token`; the daemon and its API process each held to 1,024 file
+descriptors as under systemd), measured from outside. Each flood lasts `flood_s` seconds, all on
+loopback, everything closed at the end:
 - slow-header: `connections` sockets send a request line and a header, then nothing;
 - slow-body: `connections` sockets send whole headers announcing a 1,000-byte body, then a byte a second;
 - websocket-idle: WEBSOCKETS WebSocket handshakes, and then nothing is ever read;
@@ -12,9 +12,9 @@ outside. Each flood lasts `flood_s` seconds, all on loopback, everything closed 
 The held sockets are re-opened as the daemon drops them (at most REOPEN_PER_S a second).
 Meanwhile POST /api/v1/estop is sent every 100 ms, twice, from a process of its own: on a fresh
 connection each time (the first click after a pause), and on one kept alive (a dashboard or HMI that
-stays connected): the round trips. Before and after: the daemon's missed ticks, its link losses, its
-open file descriptors and resident memory (from /proc), and the flatness it reports on the flat cloth,
-sampled through the flood and after it.
+stays connected): the round trips. Before and after: the daemon's missed ticks and link losses, the
+API process's open file descriptors and resident memory (from /proc: it holds the connections), and the
+flatness the daemon reports on the flat cloth, sampled through the flood and after it.
 """
 
 from __future__ import annotations
@@ -42,9 +42,10 @@ import yaml
 from asyncua import Client
 from tqdm import tqdm
 
+from clothd.api.serve_api import PROCESS_NAME as API_PROCESS_NAME
 from clothd.tools.bench_loop import DaemonProcess, free_port
 from clothd.tools.opcua_load import NAMESPACE_URI
-from clothd.tools.procfs import open_fds, rss_mb
+from clothd.tools.procfs import open_fds, rss_mb, spawned_children
 
 REOPEN_PER_S = 500.0
 ESTOP_EVERY_S = 0.1
@@ -302,8 +303,16 @@ def _link_losses(d: DaemonProcess) -> int:
     return int(httpx.get(f"{d.base}/api/v1/status", timeout=10).json()["link"]["counters"]["losses"])
 
 
+def api_process_pid(d: DaemonProcess) -> int:
+    """The process that holds the floods' connections: the daemon's API process."""
+    for pid, name in spawned_children(d.proc.pid).items():
+        if name == API_PROCESS_NAME:
+            return pid
+    raise RuntimeError("no API process found under the daemon")
+
+
 def _measure(d: DaemonProcess, port: int, kind: str, n: int, flood_s: float, token: bool) -> dict[str, Any]:
-    pid = d.proc.pid
+    pid = api_process_pid(d)
     fds0, rss0 = open_fds(pid), rss_mb(pid)
     before = httpx.get(f"{d.base}/api/v1/status", timeout=5).json()["timing"]
     losses0 = _link_losses(d)
@@ -372,7 +381,8 @@ def run_bench(
         d = DaemonProcess(_config(Path(tmp), token), port)
         try:
             d.wait_ready()
-            resource.prlimit(d.proc.pid, resource.RLIMIT_NOFILE, (DAEMON_FDS, DAEMON_FDS))
+            for pid in (d.proc.pid, api_process_pid(d)):
+                resource.prlimit(pid, resource.RLIMIT_NOFILE, (DAEMON_FDS, DAEMON_FDS))
             _wait(lambda: httpx.get(f"{d.base}/api/v1/status", timeout=5).json()["state"] == "tracking", 120)
             time.sleep(2.0)
             shown = tqdm(floods, "floods", leave=False)
@@ -424,7 +434,7 @@ def format_rows(rows: list[dict[str, Any]]) -> str:
             u = r["user_estop"]
             said = f"latched in {_ms(u['ms'])}" if u["latched"] else f"FAILED: {u.get('error')}"
             out.append(f"  {'':<{w}} OPC UA user clothd's EStop while they are held: {said}")
-        fds = f"fds {r['fds_before']} -> {r['fds_during']} -> {r['fds_after']}"
+        fds = f"API process fds {r['fds_before']} -> {r['fds_during']} -> {r['fds_after']}"
         grew = 100.0 * (r["rss_after_mb"] / r["rss_before_mb"] - 1.0)
         rss = f"RSS {r['rss_before_mb']:.1f} -> {r['rss_after_mb']:.1f} MB ({grew:+.1f} %)"
         failed = f" ({', '.join(r['estop_failures'])})" if r["estop_failed"] else ""

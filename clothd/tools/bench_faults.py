@@ -24,11 +24,10 @@ import httpx
 import yaml
 from tqdm import tqdm
 
+from clothd.api.serve_api import PROCESS_NAME as API_PROCESS_NAME
 from clothd.tools.bench_loop import free_port
-from clothd.tools.procfs import rss_mb
+from clothd.tools.procfs import rss_mb, spawned_children
 from clothd.tools.pty_relay import PtyRelay
-
-API_PROCESS_NAME = "clothd-api"  # the daemon's other spawned child (clothd/api/serve_api.py names it)
 
 POLL_S = 0.005
 STILL_M_S = 1e-3  # a module slower than this stands still
@@ -111,19 +110,10 @@ class Cell:
         return s["state"] == "tracking" and s["link"]["state"] == "connected" and not s["estop"]
 
     def compute_pid(self) -> int:
-        """The compute process: the daemon's child that runs clothd.loop.compute (multiprocessing spawn),
-        not the API process (named clothd-api)."""
-        for entry in Path("/proc").iterdir():
-            if entry.name.isdigit():
-                try:
-                    stat = (entry / "stat").read_text()
-                    cmdline = (entry / "cmdline").read_bytes()
-                    name = (entry / "comm").read_text().strip()
-                except OSError:
-                    continue
-                spawned = b"spawn_main" in cmdline and name != API_PROCESS_NAME
-                if int(stat.rsplit(")", 1)[1].split()[1]) == self.daemon.pid and spawned:
-                    return int(entry.name)
+        """The compute process: the daemon's spawned child that is not the API process."""
+        for pid, name in spawned_children(self.daemon.pid).items():
+            if name != API_PROCESS_NAME:
+                return pid
         raise RuntimeError("no compute process found under the daemon")
 
 

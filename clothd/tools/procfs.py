@@ -24,6 +24,23 @@ def stop_group(proc: subprocess.Popen[bytes] | subprocess.Popen[str]) -> None:
         proc.wait()
 
 
+def spawned_children(pid: int) -> dict[int, str]:
+    """The children of process `pid` that multiprocessing's spawn started, by pid: their names (comm)."""
+    children: dict[int, str] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            parent = int((entry / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            spawned = b"spawn_main" in (entry / "cmdline").read_bytes()
+            name = (entry / "comm").read_text().strip()
+        except OSError:  # gone meanwhile
+            continue
+        if parent == pid and spawned:
+            children[int(entry.name)] = name
+    return children
+
+
 def rss_mb(pid: int | str = "self") -> float:
     """Resident memory of the process, MB."""
     pages = int(Path(f"/proc/{pid}/statm").read_text().split()[1])
