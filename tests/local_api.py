@@ -1,12 +1,12 @@
-"""The HTTP app over a daemon built as `clothd run` builds it, in this process (api/cell.py's LocalCell):
+"""The HTTP app over a daemon built as `clothd run` builds it, in this process (local_cell.py):
 never started unless a test starts it."""
 
 from __future__ import annotations
 
 from fastapi import FastAPI
+from local_cell import LocalCell
 
 from clothd.api.app import create_app
-from clothd.api.local_cell import LocalCell
 from clothd.config import ApiConfig
 from clothd.run import Parts
 

@@ -27,9 +27,9 @@ from cryptography.x509.oid import ExtendedKeyUsageOID
 from fastapi.testclient import TestClient
 from live_cell import wait
 from local_api import local_app
+from local_cell import LocalCell
 
 from clothd.api.commands import Commands
-from clothd.api.local_cell import LocalCell
 from clothd.api.opcua_nodes import NAMESPACE_URI, VARIABLES
 from clothd.api.opcua_security import CERT_FILE, KEY_FILE
 from clothd.api.opcua_server import OpcUaServer

@@ -15,10 +15,10 @@ from urllib.parse import urlsplit
 import pytest
 from asyncua import Client
 from asyncua.ua.uaerrors import BadTooManySessions
+from local_cell import LocalCell
 from test_opcua import TOKEN, _call, _user
 
 from clothd.api.commands import Commands
-from clothd.api.local_cell import LocalCell
 from clothd.api.opcua_limits import CHUNK_BYTES, declared_size, transport_limits
 from clothd.api.opcua_server import OpcUaServer
 from clothd.config import Config, OpcUaConfig

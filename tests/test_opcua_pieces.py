@@ -14,9 +14,9 @@ from asyncua import Client, Node, ua
 from fastapi.testclient import TestClient
 from flow_statuses import FLAP, piece, publish
 from local_api import local_app
+from local_cell import LocalCell
 
 from clothd.api.commands import Commands
-from clothd.api.local_cell import LocalCell
 from clothd.api.opcua_nodes import NAMESPACE_URI
 from clothd.api.opcua_pieces import EVENT_TYPE, SLOT_VARS, SLOTS
 from clothd.api.opcua_server import OpcUaServer

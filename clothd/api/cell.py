@@ -1,7 +1,7 @@
 """What the APIs need of the cell: its commands, the few settings the routes read, and the annotated view.
 The HTTP app (app.py), the commands (commands.py) and through them the OPC UA server depend on this port,
 not on the daemon. The API process serves it over its channel to the daemon (remote_cell.py);
-`LocalCell` (local_cell.py) over a daemon in the same process (the API tests' app).
+the API tests serve it over a daemon in their own process (tests/local_cell.py).
 
 Every command runs on the daemon's loop and returns once it has; a refusal is raised as the daemon
 raised it (a ClothdError), which each API maps to its own codes.

@@ -35,8 +35,8 @@ from clothd.core.camera_model import CameraModel
 from clothd.drivers.priority import leave_realtime
 from clothd.errors import ClothdError
 from clothd.logs import configure_logging
+from clothd.loop.process_names import API_PROCESS_NAME
 
-PROCESS_NAME = "clothd-api"
 EXIT_TIMEOUT_S = 5.0  # open streams get this long to close once the daemon has gone
 LAST_WORDS_TIMEOUT_S = 1.0
 
@@ -75,7 +75,7 @@ def serve_api(sock: socket.socket, listener: socket.socket, spec: ApiSpec) -> No
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
     with contextlib.suppress(OSError):  # its name in ps and top, apart from the compute process's
-        Path("/proc/self/comm").write_text(PROCESS_NAME)
+        Path("/proc/self/comm").write_text(API_PROCESS_NAME)
     leave_realtime()  # at the loop's nice value, in the normal class (clothd/drivers/priority.py)
     configure_logging()
     channel = Channel(sock)

@@ -42,7 +42,7 @@ import yaml
 from asyncua import Client
 from tqdm import tqdm
 
-from clothd.api.serve_api import PROCESS_NAME as API_PROCESS_NAME
+from clothd.loop.process_names import API_PROCESS_NAME
 from clothd.tools.bench_loop import DaemonProcess, free_port
 from clothd.tools.opcua_load import NAMESPACE_URI
 from clothd.tools.procfs import open_fds, rss_mb, spawned_children

@@ -24,7 +24,7 @@ import httpx
 import yaml
 from tqdm import tqdm
 
-from clothd.api.serve_api import PROCESS_NAME as API_PROCESS_NAME
+from clothd.loop.process_names import API_PROCESS_NAME
 from clothd.tools.bench_loop import free_port
 from clothd.tools.procfs import rss_mb, spawned_children
 from clothd.tools.pty_relay import PtyRelay

@@ -1,5 +1,7 @@
-"""The cell served by a daemon in this process (api/cell.py's port): the API tests' app over a daemon
-that is built and, in most of them, never started."""
+"""The cell served by a daemon in the test's own process (clothd/api/cell.py's port): the API tests' app
+and OPC UA server over a daemon that is built and, in most of them, never started. Each command runs at
+once, on the test's loop; `clothd run` serves the port from its API process instead
+(clothd/api/remote_cell.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 
-from clothd.api.bridge import DaemonBridge
 from clothd.api.cell import CellSettings
 from clothd.core.drive_script import DriveScript
 from clothd.core.modes import Mode
@@ -16,11 +17,8 @@ from clothd.loop.daemon import Daemon
 
 
 class LocalCell:
-    """The cell served by a daemon in this process: each command runs on the daemon's loop (bridge.py)."""
-
-    def __init__(self, daemon: Daemon, bridge: DaemonBridge | None = None) -> None:
+    def __init__(self, daemon: Daemon) -> None:
         self.daemon = daemon
-        self.bridge = bridge or DaemonBridge()
         self._settings = CellSettings.of(daemon.settings)
 
     @property
@@ -28,22 +26,22 @@ class LocalCell:
         return self._settings
 
     async def set_setpoint(self, mode: Mode, pose: np.ndarray | None, script: DriveScript | None) -> None:
-        await self.bridge.call(self.daemon.set_setpoint, mode, pose, script)
+        self.daemon.set_setpoint(mode, pose, script)
 
     async def estop(self) -> None:
-        await self.bridge.call(self.daemon.estop)
+        self.daemon.estop()
 
     async def estop_clear(self) -> None:
-        await self.bridge.call(self.daemon.estop_clear)
+        self.daemon.estop_clear()
 
     async def reset(self) -> None:
-        await self.bridge.call(self.daemon.reset)
+        self.daemon.reset()
 
     async def start_recording(self, out: Path) -> Path:
-        return await self.bridge.call(self.daemon.start_recording, out)
+        return self.daemon.start_recording(out)
 
     async def stop_recording(self) -> None:
-        await self.bridge.call(self.daemon.stop_recording)
+        self.daemon.stop_recording()
 
     def watching(self) -> AbstractContextManager[None]:
         return self.daemon.view.watching()
