@@ -10,6 +10,8 @@ import logging
 import os
 import signal
 import socket
+import subprocess
+import sys
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import replace
@@ -284,3 +286,10 @@ def test_an_opcua_port_taken_ends_the_start_with_its_one_line() -> None:
                 listener.close()
 
         asyncio.run(body())
+
+
+def test_the_api_process_does_not_import_taichi() -> None:
+    """It runs none of the tracking: importing its main leaves Taichi (and its memory, ~80 MB) out."""
+    probe = "import sys, clothd.api.serve_api; print('taichi' in sys.modules)"
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert done.stdout.split() == ["False"]

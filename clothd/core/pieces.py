@@ -22,6 +22,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
@@ -32,8 +33,10 @@ from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands, PairedView
 from clothd.core.modes import PieceState
 from clothd.core.segmentation import ClothRegion, find_cloths, full_frame_region
-from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
+
+if TYPE_CHECKING:  # the status (and so the API process) reads pieces' reports without Taichi's import
+    from clothd.core.tracker import Tracker
 
 # A frame as `track` took it: (image, t_s, commands in force, further views).
 _Frame = tuple[np.ndarray, float, ModuleCommands | None, Sequence[PairedView | None]]
