@@ -1,6 +1,6 @@
-"""Nice values and scheduling classes are per thread (Linux): the API's thread lowers itself without
-touching the loop's, a thread started by the real-time loop can leave its class, and a priority that is
-not permitted is reported, not fatal. The session's nice value is the daemon's where it leads one."""
+"""Nice values and scheduling classes are per thread (Linux): the Foxglove writer's thread lowers itself
+without touching the loop's, a thread started by the real-time loop can leave its class, and a priority
+that is not permitted is reported, not fatal. The session's nice value is the daemon's where it leads one."""
 
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ def test_a_priority_not_permitted_is_reported_and_the_thread_runs_on(
 def test_the_loop_claims_the_realtime_class_and_a_thread_it_starts_leaves_it_at_its_nice() -> None:
     seen: dict[str, object] = {}
 
-    def served() -> None:  # as the API's thread does
+    def served() -> None:  # as the Foxglove writer's thread does
         seen["inherited"] = os.sched_getscheduler(0)
         leave_realtime()
         seen["left"] = os.sched_getscheduler(0)

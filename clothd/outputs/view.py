@@ -156,9 +156,9 @@ class ViewRenderer:
 
 class ViewBoard:
     """The annotated view between the loop's thread, which asks the compute to draw it only while someone
-    watches and posts each one, and what streams it: the API process's end of its channel
-    (api/process.py), or in one process the API's own thread. Three values behind a lock, never held for
-    more than a copy."""
+    watches and posts each one, and the daemon's end of the API process's channel (api/process.py), which
+    sends each new one while the API process says someone watches. Three values behind a lock, never held
+    for more than a copy."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
