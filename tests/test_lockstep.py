@@ -44,19 +44,23 @@ def test_flatten_takes_out_a_ridge_pushed_in_after_tracking_began(cell: Lockstep
     assert cell.status()["state"] == "tracking" and cell.status()["halt_reason"] is None
 
 
-def test_a_move_ends_where_the_truth_says_and_the_same_run_gives_the_same_numbers() -> None:
-    """Two cells, the same requests: the same estimate, bit for bit (no clock, no threads' timing)."""
-    poses = []
-    for _ in range(2):
-        twin = LockstepCell(load_config(None))
+def test_a_move_ends_where_the_truth_says_and_a_restarted_cell_gives_the_same_numbers() -> None:
+    """The same requests on a cell, then on the same cell restarted after them: the same estimate and
+    truth, bit for bit (no clock, no threads' timing, nothing carried over from the first run)."""
+    twin = LockstepCell(load_config(None))
+    runs = []
+    for restarted in (False, True):
+        if restarted:
+            twin.restart()
         twin.lay([0.0, 0.0, 0.0])
         twin.setpoint_request({"mode": "move", "x_m": 0.03, "y_m": -0.02, "theta_rad": 0.1})
         twin.sleep(3.0)
-        status = twin.status()
-        poses.append([status["pose"][k] for k in ("x_m", "y_m", "theta_rad")])
-        truth = twin.truth()["pose"]
-        assert np.hypot(truth[0] - 0.03, truth[1] + 0.02) < 0.005 and abs(truth[2] - 0.1) < np.radians(1.0)
-    assert poses[0] == poses[1]
+        status, truth = twin.status(), twin.truth()
+        runs.append(([status["pose"][k] for k in ("x_m", "y_m", "theta_rad")], truth["pose"], twin.now()))
+        pose = truth["pose"]
+        assert np.hypot(pose[0] - 0.03, pose[1] + 0.02) < 0.005 and abs(pose[2] - 0.1) < np.radians(1.0)
+    assert runs[0] == runs[1]
+    assert twin.simulated_s == pytest.approx(2 * runs[0][2])
 
 
 def test_a_folded_corner_is_reported_as_a_flap_and_not_pulled(cell: LockstepCell) -> None:

@@ -100,15 +100,21 @@ class Tracker:
         self.engine = self._engine_default
         self.anchors = AnchorFrames(cfg.features)
         self.estimator = make_estimator(cfg, camera_model)
-        # The modules keep moving whatever the tracker believes, so their model survives a reset.
-        limits = cfg.modules
+        self.features: FeatureSet | None = None
+        self.restart()
+
+    def restart(self) -> None:
+        """Track a cell as it is built: its modules stopped and straight, its clock from zero, no feature
+        numbered yet. Otherwise `reset`: the modules keep moving whatever the tracker believes, so their
+        model survives a reset."""
+        limits = self.cfg.modules
         self.modules = (
             None
-            if layout is None
-            else ModuleModel(layout.n_modules, limits.accel_limit_m_s2, limits.steer_rate_limit_rad_s)
+            if self.layout is None
+            else ModuleModel(self.layout.n_modules, limits.accel_limit_m_s2, limits.steer_rate_limit_rad_s)
         )
         self._modules_t_s: float | None = None
-        self.features: FeatureSet | None = None
+        self.features = None
         self._next_feature_id = 0
         self.reset()
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import math
 import multiprocessing
+import os
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -301,10 +302,9 @@ def _run_starts(
     mode: str,
     flatten_s: float,
     move_s: float,
-    position: int = 0,
 ) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
-    with tqdm(total=starts, desc=f"flatten bench ({variant})", unit="start", position=position) as bar:
+    with tqdm(total=starts, desc=f"flatten bench ({variant})", unit="start") as bar:
         for start in plan:
             rows.append(_run_start(cell, start, mode, flatten_s, move_s))
             bar.update(int(rows[-1]["wrinkled"]))
@@ -324,27 +324,19 @@ def run_bench(
     cameras: int | None = None,
 ) -> dict[str, Any]:
     """Each controller runs the same seeded sequence of starts until `starts` of them were wrinkled (or
-    MAX_DRAWS_PER_START x starts were drawn). In lockstep, `realtime_factor` is the simulated seconds
-    per wall second over both controllers. start: "pushed" or "laid"; cameras: the cell's first this
-    many (None: all)."""
+    MAX_DRAWS_PER_START x starts were drawn). In lockstep every start runs on a cell built afresh, and
+    `realtime_factor` is the simulated seconds per wall second over both controllers. start: "pushed" or
+    "laid"; cameras: the cell's first this many (None: all)."""
     plan = [draw_start(np.random.default_rng([seed, k])) for k in range(MAX_DRAWS_PER_START * starts)]
     if start == "laid":  # the same lines, laid: the pushed plan's draws stay as they are
         for k, drawn in enumerate(plan):
             drawn["laid"] = laid_ridges(drawn, np.random.default_rng([seed, k, 1]))
     result: dict[str, Any] = {"starts": plan}
     if lockstep:
-        # The controllers' runs share nothing: one process each, side by side on the cores.
         t_wall = time.perf_counter()
-        ctx = multiprocessing.get_context("spawn")  # a fresh interpreter each: its own Taichi
-        with ProcessPoolExecutor(max_workers=len(VARIANTS), mp_context=ctx) as pool:
-            runs = [
-                pool.submit(_lockstep_variant, k, plan, starts, flatten_s, move_s, cameras)
-                for k in range(len(VARIANTS))
-            ]
-            done = [run.result() for run in runs]
-        for (variant, _, _), (rows, _) in zip(VARIANTS, done, strict=True):
-            result[variant] = {"summary": _summary(rows, flatten_s), "runs": rows}
-        simulated_s = sum(simulated for _, simulated in done)
+        per_variant, simulated_s = _lockstep_rows(plan, starts, flatten_s, move_s, cameras)
+        for (variant, _, _), variant_rows in zip(VARIANTS, per_variant, strict=True):
+            result[variant] = {"summary": _summary(variant_rows, flatten_s), "runs": variant_rows}
         result["realtime_factor"] = simulated_s / (time.perf_counter() - t_wall)
         return result
     for variant, mode, flatten in VARIANTS:
@@ -361,15 +353,53 @@ def run_bench(
     return result
 
 
-def _lockstep_variant(
-    k: int, plan: list[dict[str, Any]], starts: int, flatten_s: float, move_s: float, cameras: int | None
-) -> tuple[list[dict[str, Any]], float]:
-    """VARIANTS[k]'s starts in lockstep, in this process: their rows and the simulated seconds."""
-    variant, mode, flatten = VARIANTS[k]
-    cfg = with_overrides(load_config(None), {"control": {"flatten": flatten}})
-    twin = LockstepCell(cfg, cameras=cameras)
-    rows = _run_starts(twin, plan, starts, variant, mode, flatten_s, move_s, position=k)
-    return rows, twin.now()
+def _lockstep_rows(
+    plan: list[dict[str, Any]], starts: int, flatten_s: float, move_s: float, cameras: int | None
+) -> tuple[list[list[dict[str, Any]]], float]:
+    """Each controller's rows over the plan's first draws until `starts` were wrinkled, in lockstep, and
+    the simulated seconds. Every (controller, start) runs on a cell built afresh, so they share nothing
+    and a pool spreads them over the cores, the long ones beside the short."""
+    n = len(VARIANTS)
+    results: list[list[tuple[dict[str, Any], float]]] = []  # per draw, per controller
+
+    def wrinkled() -> int:
+        return sum(bool(per_draw[0][0]["wrinkled"]) for per_draw in results)
+
+    ctx = multiprocessing.get_context("spawn")  # a fresh interpreter each: its own Taichi
+    with (
+        ProcessPoolExecutor(max_workers=os.cpu_count() or 1, mp_context=ctx) as pool,
+        tqdm(total=starts * n, desc="flatten bench (lockstep)", unit="run") as bar,
+    ):
+        while len(results) < len(plan) and wrinkled() < starts:
+            draws = plan[len(results) : len(results) + starts - wrinkled()]
+            jobs = [
+                [pool.submit(_lockstep_start, k, drawn, flatten_s, move_s, cameras) for k in range(n)]
+                for drawn in draws
+            ]
+            for job in (j for per_draw in jobs for j in per_draw):
+                job.add_done_callback(lambda _: bar.update())
+            results += [[job.result() for job in per_draw] for per_draw in jobs]
+    rows = [[per_draw[k][0] for per_draw in results] for k in range(n)]
+    return rows, sum(simulated for per_draw in results for _, simulated in per_draw)
+
+
+_cells: dict[tuple[int, int | None], LockstepCell] = {}  # a pool worker's cells, by controller and cameras
+
+
+def _lockstep_start(
+    k: int, start: dict[str, Any], flatten_s: float, move_s: float, cameras: int | None
+) -> tuple[dict[str, Any], float]:
+    """One start for VARIANTS[k] in lockstep, in this process: its row and the simulated seconds."""
+    _, mode, flatten = VARIANTS[k]
+    twin = _cells.get((k, cameras))
+    if twin is None:
+        cfg = with_overrides(load_config(None), {"control": {"flatten": flatten}})
+        twin = _cells[(k, cameras)] = LockstepCell(cfg, cameras=cameras)
+    else:
+        twin.restart()
+    begun_s = twin.simulated_s
+    row = _run_start(twin, start, mode, flatten_s, move_s)
+    return row, twin.simulated_s - begun_s
 
 
 def format_result(result: dict[str, Any]) -> str:

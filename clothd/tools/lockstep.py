@@ -92,8 +92,9 @@ class LockstepCell:
     def __init__(self, cfg: Config, scenario: str = "cell", cameras: int | None = None) -> None:
         """cameras: the scenario's first this many (None: all of them)."""
         start_taichi(cfg.taichi.arch)
-        sc = scenarios.load(scenario)
+        sc = self.scenario = scenarios.load(scenario)
         self.world = World(sc, log_commands=False)
+        self._earlier_worlds_s = 0.0
         self.period_s = cfg.loop.period_s
         if not math.isclose(self.world.dt_s, self.period_s):
             raise ValueError(f"lockstep needs the world's step ({self.world.dt_s:g} s) to be the tick")
@@ -122,6 +123,26 @@ class LockstepCell:
 
     def now(self) -> float:
         return self.world.t_s
+
+    @property
+    def simulated_s(self) -> float:
+        """The simulated time this cell has run, over all its worlds."""
+        return self._earlier_worlds_s + self.world.t_s
+
+    def restart(self) -> None:
+        """The cell as it was built: a new world (time 0, the belts stopped and straight, the scenario's
+        cloth, whose solver is reused bit for bit: hwsim/cloth_spares.py) and the loop idle and not
+        tracking. What runs after this depends on nothing that ran before it."""
+        self._earlier_worlds_s += self.world.t_s
+        del self.world  # its cloth becomes the spare the new world takes
+        self.world = World(self.scenario, log_commands=False)
+        self.commands = ModuleCommands.all_stop(self.commands.speed_m_s.size)
+        self.setpoint = Setpoint(Mode.IDLE, None)
+        self.state = LoopState.STARTING
+        self.halt_reason = None
+        self.estimate = self.flatness = None
+        self.tracker.restart()
+        self.cell.reset()
 
     def sleep(self, seconds: float) -> None:
         for _ in range(max(1, round(seconds / self.period_s))):
