@@ -76,7 +76,6 @@ class ClothSim(ClothConstraints):
         self.reaction = ti.Vector.field(3, ti.f64, shape=shape)  # impulse the constraints ask of a stuck node
         self.held = ti.field(ti.i32, shape=shape)  # 1: pressed by a hand, moving with it (a push)
         self.hand_v = ti.Vector.field(3, ti.f64, shape=shape)
-        self.kick = ti.field(ti.f64, shape=shape)
         self.floor = ti.field(ti.f64, shape=shape)  # what a node rests on: the table, or a flap's cloth
         self.folded = ti.field(ti.i32, shape=shape)  # 1: folded over by a flap
         # Where the yarns' friction holds each bend (its stick point, a second difference), in the bend's own
@@ -84,8 +83,6 @@ class ClothSim(ClothConstraints):
         self.set_along_s = ti.Vector.field(3, ti.f64, shape=(shape[0], shape[1] - 2))
         self.set_along_t = ti.Vector.field(3, ti.f64, shape=(shape[0] - 2, shape[1]))
         n_mod = table.modules_x * table.modules_y
-        self.mod_speed = ti.field(ti.f64, shape=n_mod)
-        self.mod_direction = ti.Vector.field(2, ti.f64, shape=n_mod)  # cos, sin of heading
         # A flow's infeed conveyor (hwsim/infeed.py): x below its end, |y| within its half width, its speed.
         self.infeed_belt = ti.field(ti.f64, shape=3)
         self.infeed_belt.from_numpy(np.array([-math.inf, 0.0, 0.0]))
@@ -164,10 +161,11 @@ class ClothSim(ClothConstraints):
     ) -> None:
         """Advance by dt_s (a whole number of substeps) with the belts at the given signed speeds and
         headings. The belts' vertical shake is drawn once per call. damping_1_s: instead of the cloth's."""
-        self.mod_speed.from_numpy(np.asarray(module_speed_m_s, dtype=np.float64))
+        # The belts and their shake go in as arguments, not fields: a field's upload is a kernel of its own.
+        speed = np.ascontiguousarray(module_speed_m_s, dtype=np.float64)
         heading = np.asarray(module_heading_rad, dtype=np.float64)
-        self.mod_direction.from_numpy(np.stack([np.cos(heading), np.sin(heading)], axis=1))
-        _put(self.kick, self._rng.standard_normal((self.grid.ny, self.grid.nx)) * self.spec.vibration_m_s)
+        direction = np.ascontiguousarray(np.stack([np.cos(heading), np.sin(heading)], axis=1))
+        kick = self._rng.standard_normal((self.grid.ny, self.grid.nx)) * self.spec.vibration_m_s
         s, t = self.spec, self.table
         substeps = max(1, round(dt_s / self.substep_s))
         friction_k = YARN_FRICTION_STIFFNESS * s.bending_stiffness_n_m if s.bending_hysteresis_n > 0 else 0.0
@@ -180,6 +178,9 @@ class ClothSim(ClothConstraints):
         # kept so, the truth stays bit-for-bit what it was.
         dx, dy, diag = (np.float32(r) for r in (g.dx_m, g.dy_m, (g.dx_m**2 + g.dy_m**2) ** 0.5))
         self._advance(
+            speed,
+            direction,
+            kick,
             g.nx,
             g.ny,
             float(dx),
@@ -212,16 +213,22 @@ class ClothSim(ClothConstraints):
         return self.spec.bending_hysteresis_n * spacing_m**2 / friction_k if friction_k > 0 else math.inf
 
     @ti.func
-    def _belt_velocity(self, p: ti.template(), pitch: ti.f64, half_belt: ti.f64) -> belt_hit:
-        """(vx, vy, on_belt, 0): surface velocity of the belt under world point p; zero over the deck."""
-        hit = belt_at(
-            p[0], p[1], self.mod_direction, pitch, half_belt, self.table.modules_x, self.table.modules_y
-        )
+    def _belt_velocity(
+        self,
+        p: ti.template(),
+        speeds: ti.template(),
+        directions: ti.template(),
+        pitch: ti.f64,
+        half_belt: ti.f64,
+    ) -> belt_hit:
+        """(vx, vy, on_belt, 0): surface velocity of the belt under world point p; zero over the deck.
+        speeds and directions: each module's signed speed and (cos, sin) of heading."""
+        hit = belt_at(p[0], p[1], directions, pitch, half_belt, self.table.modules_x, self.table.modules_y)
         vel = belt_hit(0.0, 0.0, 0.0, 0.0)
         if hit[3] > 0.0:
             m = ti.cast(hit[0], ti.i32)
-            speed = self.mod_speed[m]
-            vel = belt_hit(speed * self.mod_direction[m][0], speed * self.mod_direction[m][1], 1.0, 0.0)
+            speed = speeds[m]
+            vel = belt_hit(speed * directions[m][0], speed * directions[m][1], 1.0, 0.0)
         elif p[0] < self.infeed_belt[0] and ti.abs(p[1]) < self.infeed_belt[1]:
             vel = belt_hit(self.infeed_belt[2], 0.0, 1.0, 0.0)
         return vel
@@ -229,6 +236,9 @@ class ClothSim(ClothConstraints):
     @ti.kernel
     def _advance(
         self,
+        speeds: ti.types.ndarray(dtype=ti.f64, ndim=1),
+        directions: ti.types.ndarray(dtype=vec2d, ndim=1),
+        kick: ti.types.ndarray(dtype=ti.f64, ndim=2),
         nx: ti.i32,
         ny: ti.i32,
         dx: ti.f64,
@@ -259,7 +269,7 @@ class ClothSim(ClothConstraints):
             for j, i in ti.ndrange(ny, nx):
                 self.x_prev[j, i] = self.x[j, i]
                 self.reaction[j, i] = ti.Vector([0.0, 0.0, 0.0])
-                belt = self._belt_velocity(self.x[j, i], pitch, half_belt)
+                belt = self._belt_velocity(self.x[j, i], speeds, directions, pitch, half_belt)
                 if self.held[j, i] == 1:
                     self.stuck[j, i] = 0
                     self.v[j, i] = self.hand_v[j, i]
@@ -271,7 +281,7 @@ class ClothSim(ClothConstraints):
                     self.v[j, i][2] -= GRAVITY_M_S2 * h
                     if step == 0 and self.x[j, i][2] <= self.floor[j, i] + 1e-6:
                         shake = ti.min(1.0, vec2d(belt[0], belt[1]).norm() / VIBRATION_REF_SPEED_M_S)
-                        self.v[j, i][2] += shake * ti.abs(self.kick[j, i])
+                        self.v[j, i][2] += shake * ti.abs(kick[j, i])
                 self.x[j, i] += h * self.v[j, i]
             # Gauss-Seidel sweeps alternate direction: a one-way sweep pushes the cloth sideways.
             for it in range(stretch_iterations):
@@ -335,7 +345,7 @@ class ClothSim(ClothConstraints):
                 elif self.x[j, i][2] < self.floor[j, i]:
                     depth = self.floor[j, i] - self.x[j, i][2]  # the normal correction; impulse m·depth/h
                     self.x[j, i][2] = self.floor[j, i]
-                    belt = self._belt_velocity(self.x[j, i], pitch, half_belt)
+                    belt = self._belt_velocity(self.x[j, i], speeds, directions, pitch, half_belt)
                     if belt[2] > 0.0:
                         # Kinetic friction (Macklin et al. 2014): the substep's slip against the belt shrinks
                         # by μ·depth; where that stops it, the node sticks from the next substep on.

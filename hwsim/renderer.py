@@ -155,6 +155,7 @@ class Renderer:
         Every field a frame does not write is written here, so a Renderer loaded again renders bit for bit
         as a new one."""
         self.camera = camera
+        self._uploaded: dict[str, np.ndarray] = {}  # what `_put` last wrote into each field
         self.hi = camera.scaled(self.ss)
         self.grid = grid  # the lead piece's at the start: the visibility `render` returns is the lead's
         self.table_spec = scenario.table
@@ -200,14 +201,14 @@ class Renderer:
             dims[k], spacing[k] = (nx, ny, cloth.texture), cloth.spacing_m
             for name, values in self._vertex_values(cloth.nodes_m).items():
                 arrays[name][k, :ny, :nx] = values.reshape(ny, nx, -1)
-        self.slot_dims.from_numpy(dims)
-        self.slot_spacing.from_numpy(spacing)
+        self._put("slot_dims", dims)
+        self._put("slot_spacing", spacing)
         for name, _ in _VERTEX_ARRAYS:
             values = arrays[name]
-            getattr(self, name).from_numpy(values[..., 0] if values.shape[-1] == 1 else values)
+            self._put(name, values[..., 0] if values.shape[-1] == 1 else values)
         hi = self.hi
-        self.direction.from_numpy(np.stack([np.cos(state.heading_rad), np.sin(state.heading_rad)], axis=1))
-        self.travel.from_numpy(state.travel_m.astype(np.float32))
+        self._put("direction", np.stack([np.cos(state.heading_rad), np.sin(state.heading_rad)], axis=1))
+        self._put("travel", state.travel_m.astype(np.float32))
         seg = np.zeros((MAX_ARMS, 4), np.float32)
         radius = np.zeros(MAX_ARMS, np.float32)
         if len(state.arms) > MAX_ARMS:
@@ -216,8 +217,16 @@ class Renderer:
             ends = hi.project(np.stack([arm.shoulder_m, arm.hand_m]))
             seg[k] = ends.ravel()
             radius[k] = hi.K[0, 0] * arm.radius_m / hi.to_camera(arm.hand_m[None])[0, 2]
-        self.arm_seg.from_numpy(seg)
-        self.arm_radius.from_numpy(radius)
+        self._put("arm_seg", seg)
+        self._put("arm_radius", radius)
+
+    def _put(self, name: str, values: np.ndarray) -> None:
+        """Write values into the field `name` unless it holds them already: each upload is a kernel launch
+        of its own, and the belts' headings, the slots and the arms rarely change."""
+        last = self._uploaded.get(name)
+        if last is None or not np.array_equal(last, values):
+            getattr(self, name).from_numpy(values)
+            self._uploaded[name] = values.copy()
 
     def _vertex_values(self, nodes_m: np.ndarray) -> dict[str, np.ndarray]:
         """One cloth's per-node data for the render: pixels, depth, normals and (for relief) tangents."""
