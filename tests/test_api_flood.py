@@ -97,6 +97,27 @@ def test_a_slow_header_flood_is_bounded_and_the_estop_still_answers(server: Serv
         assert len(srv.server_state.connections) == 0
 
 
+def test_an_estop_accepted_in_a_burst_is_not_evicted_before_it_is_read(server: Served) -> None:
+    """The event loop accepts a burst of connections before it reads any: the e-stop first in a burst of
+    more than the cap is the oldest waiting connection, its request still unread. It must be answered."""
+    srv, port = server.srv, server.port
+    loop = srv.servers[0].get_loop()
+    held = threading.Event()
+    loop.call_soon_threadsafe(held.wait, 10.0)  # the server's loop busy: connections queue in the backlog
+    with contextlib.ExitStack() as stack:
+        estop = stack.enter_context(socket.create_connection(("127.0.0.1", port), timeout=10))
+        estop.sendall(b"POST /api/v1/estop HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: 0\r\n\r\n")
+        for _ in range(MAX_CONNECTIONS + 8):
+            stack.enter_context(_slow_header(port))
+        held.set()
+        reply = estop.recv(4096)
+        assert reply.startswith(b"HTTP/1.1 200"), reply
+        # Once read, the slow ones are judged: the next newcomer evicts one, and the cap holds again.
+        with httpx.Client(base_url=server.base, timeout=5) as client:
+            assert client.post("/api/v1/estop").status_code == 200
+        assert len(srv.server_state.connections) <= MAX_CONNECTIONS
+
+
 def test_whole_requests_are_not_cut_by_the_timeout(server: Served) -> None:
     base = server.base
     with httpx.Client(base_url=base, timeout=5) as client:  # one kept-alive connection

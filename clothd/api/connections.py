@@ -9,6 +9,11 @@ logged an error storm, the API stopped answering and the tick stalled behind the
   whole request (one that never has first, then an idle kept-alive one), so a flood of idle connections
   cannot lock out the operator's e-stop, nor push out the dashboard's kept-alive connection. Only when
   every open connection is busy with a real request is the newcomer turned away.
+- a connection whose bytes still wait unread in the kernel has not been judged: the server is behind,
+  not the client. The event loop accepts a burst of connections before it reads any of them, so under a
+  flood the oldest waiting connection was often one accepted a moment before, its whole e-stop request
+  unread (1 fresh e-stop in 30 reset). Such connections are never evicted; while some are waiting,
+  newcomers are let in past the cap, up to twice it, rather than evict a kept-alive one.
 Streams are bounded apart (`StreamSlots`): WebSockets and MJPEG views, at most `api.max_streams`
 together. An upgraded WebSocket leaves the HTTP count, so open WebSockets can never fill the slots an
 e-stop request needs. And any client that stops reading is dropped (`DropsStalledReaders`): once its
@@ -21,6 +26,9 @@ descriptors, and nothing here logs per connection.
 from __future__ import annotations
 
 import asyncio
+import fcntl
+import struct
+import termios
 from typing import Any
 
 from uvicorn.protocols.http.h11_impl import H11Protocol
@@ -103,7 +111,7 @@ class BoundedH11Protocol(DropsStalledReaders, H11Protocol):
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
         http = sum(1 for c in self.connections if isinstance(c, H11Protocol))  # upgraded ones have left
-        if http > self.max_connections and not self._evict_a_waiting_one():
+        if not self._admit(http):
             self.transport.abort()
             return
         self._arm_deadline()
@@ -127,13 +135,40 @@ class BoundedH11Protocol(DropsStalledReaders, H11Protocol):
         cycle = self.cycle
         return cycle is None or cycle.response_complete or cycle.more_body
 
-    def _evict_a_waiting_one(self) -> bool:
-        others = [c for c in self.connections if c is not self and isinstance(c, BoundedH11Protocol)]
-        waiting = [c for c in others if c.waiting() and not c.transport.is_closing()]
-        if not waiting:
+    def _admit(self, http: int) -> bool:
+        """Room for this one among `http` open connections. Past the cap, waiting connections the server has
+        read are evicted back down to it: those that never sent a whole request first, and only then idle
+        kept-alive ones, and not even those while some waiting connection is still unread (it may be the
+        e-stop): then the cap may be passed, up to twice it, until the next newcomer finds them read."""
+        excess = http - self.max_connections
+        if excess <= 0:
+            return True
+        waiting = sorted((c for c in self._others() if c.waiting()), key=lambda c: c._opened_s)
+        read = [c for c in waiting if not c.unread()]
+        never_answered = [c for c in read if c._answered == 0]
+        unread = len(read) < len(waiting)
+        victims = never_answered if unread else never_answered + [c for c in read if c._answered > 0]
+        for c in victims[:excess]:
+            c.transport.abort()
+        return bool(victims) or (unread and http <= 2 * self.max_connections)
+
+    def _others(self) -> list[BoundedH11Protocol]:
+        return [
+            c
+            for c in self.connections
+            if c is not self and isinstance(c, BoundedH11Protocol) and not c.transport.is_closing()
+        ]
+
+    def unread(self) -> bool:
+        """Bytes wait in the kernel for this connection (FIONREAD): the server has not read them yet."""
+        sock = self.transport.get_extra_info("socket")
+        if sock is None:
             return False
-        min(waiting, key=lambda c: (c._answered > 0, c._opened_s)).transport.abort()
-        return True
+        try:
+            pending = fcntl.ioctl(sock.fileno(), termios.FIONREAD, b"\0\0\0\0")
+        except OSError:
+            return False
+        return bool(struct.unpack("i", pending)[0])
 
     def _arm_deadline(self) -> None:
         self._disarm_deadline()
