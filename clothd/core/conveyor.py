@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from clothd.config import CellConfig
+from clothd.config import CellConfig, ModuleLimitsConfig
 
 
 @dataclass(frozen=True)
@@ -104,6 +104,11 @@ class ModuleModel:
         self.steer_rate_limit_rad_s = steer_rate_limit_rad_s
         self.speed_m_s = np.zeros(n_modules)
         self.heading_rad = np.zeros(n_modules)
+
+    @classmethod
+    def stopped(cls, n_modules: int, limits: ModuleLimitsConfig) -> ModuleModel:
+        """n_modules stopped and straight, under the configured limits."""
+        return cls(n_modules, limits.accel_limit_m_s2, limits.steer_rate_limit_rad_s)
 
     def _step(self, cmd_speed: np.ndarray, cmd_heading: np.ndarray, dt_s: float) -> None:
         turn_fwd = _wrap(cmd_heading - self.heading_rad)

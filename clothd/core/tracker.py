@@ -87,14 +87,11 @@ class Tracker:
         # A periodic weave's stripes need a wider LK window to hold some texture across them, and its
         # measurements count across the stripes only.
         f = cfg.features
-        self._engine_periodic = FeatureEngine(
-            f.model_copy(
-                update={
-                    "lk_window_px": f.periodic_lk_window_px,
-                    "aperture_max_ratio": max(f.aperture_max_ratio, f.periodic_aperture_max_ratio),
-                }
-            )
-        )
+        periodic = {
+            "lk_window_px": f.periodic_lk_window_px,
+            "aperture_max_ratio": max(f.aperture_max_ratio, f.periodic_aperture_max_ratio),
+        }
+        self._engine_periodic = FeatureEngine(f.model_copy(update=periodic))
         # A repeating pattern's look-alikes blur together on a coarser level.
         self._engine_repetitive = FeatureEngine(f.model_copy(update={"lk_levels": f.repetitive_lk_levels}))
         self.engine = self._engine_default
@@ -104,15 +101,10 @@ class Tracker:
         self.restart()
 
     def restart(self) -> None:
-        """Track a cell as it is built: its modules stopped and straight, its clock from zero, no feature
-        numbered yet. Otherwise `reset`: the modules keep moving whatever the tracker believes, so their
-        model survives a reset."""
-        limits = self.cfg.modules
-        self.modules = (
-            None
-            if self.layout is None
-            else ModuleModel(self.layout.n_modules, limits.accel_limit_m_s2, limits.steer_rate_limit_rad_s)
-        )
+        """Track a cell as built: its modules stopped and straight, its clock from zero. A `reset` keeps
+        the modules' model: they keep moving whatever the tracker believes."""
+        layout = self.layout
+        self.modules = None if layout is None else ModuleModel.stopped(layout.n_modules, self.cfg.modules)
         self._modules_t_s: float | None = None
         self.features = None
         self._next_feature_id = 0

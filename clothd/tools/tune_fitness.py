@@ -85,8 +85,7 @@ def measure(recording: Path, cfg: TrackerConfig) -> Sequence:
     )
     if run.layout is None or run.schedule is None:
         raise InputError(f"{recording}: no table.json and commands.csv: the model has no input to follow")
-    limits = cfg.modules
-    modules = ModuleModel(run.layout.n_modules, limits.accel_limit_m_s2, limits.steer_rate_limit_rad_s)
+    modules = ModuleModel.stopped(run.layout.n_modules, cfg.modules)
     t_s: list[float] = []
     u: list[BeltField | None] = []
     meas: list[np.ndarray] = []
