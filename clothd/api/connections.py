@@ -13,7 +13,8 @@ logged an error storm, the API stopped answering and the tick stalled behind the
   not the client. The event loop accepts a burst of connections before it reads any of them, so under a
   flood the oldest waiting connection was often one accepted a moment before, its whole e-stop request
   unread (1 fresh e-stop in 30 reset). Such connections are never evicted; while some are waiting,
-  newcomers are let in past the cap, up to twice it, rather than evict a kept-alive one.
+  newcomers are let in past the cap, up to twice it, rather than evict a kept-alive one, and the first
+  read past the cap trims the count back to it.
 Streams are bounded apart (`StreamSlots`): WebSockets and MJPEG views, at most `api.max_streams`
 together. An upgraded WebSocket leaves the HTTP count, so open WebSockets can never fill the slots an
 e-stop request needs. And any client that stops reading is dropped (`DropsStalledReaders`): once its
@@ -110,11 +111,15 @@ class BoundedH11Protocol(DropsStalledReaders, H11Protocol):
 
     def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
         super().connection_made(transport)
-        http = sum(1 for c in self.connections if isinstance(c, H11Protocol))  # upgraded ones have left
-        if not self._admit(http):
+        if not self._make_room():
             self.transport.abort()
             return
         self._arm_deadline()
+
+    def data_received(self, data: bytes) -> None:
+        super().data_received(data)
+        if len(self.connections) > self.max_connections:  # a burst let in past the cap, read now: trim it
+            self._make_room()
 
     def connection_lost(self, exc: Exception | None) -> None:
         self._disarm_deadline()
@@ -135,11 +140,12 @@ class BoundedH11Protocol(DropsStalledReaders, H11Protocol):
         cycle = self.cycle
         return cycle is None or cycle.response_complete or cycle.more_body
 
-    def _admit(self, http: int) -> bool:
-        """Room for this one among `http` open connections. Past the cap, waiting connections the server has
-        read are evicted back down to it: those that never sent a whole request first, and only then idle
-        kept-alive ones, and not even those while some waiting connection is still unread (it may be the
-        e-stop): then the cap may be passed, up to twice it, until the next newcomer finds them read."""
+    def _make_room(self) -> bool:
+        """Whether this one may stay open. Past the cap, waiting connections the server has read are evicted
+        back down to it: those that never sent a whole request first, and only then idle kept-alive ones,
+        and not even those while some waiting connection is still unread (it may be the e-stop): then the
+        cap may be passed, up to twice it, until they are read."""
+        http = sum(1 for c in self.connections if isinstance(c, H11Protocol))  # upgraded ones have left
         excess = http - self.max_connections
         if excess <= 0:
             return True
