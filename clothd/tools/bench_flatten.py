@@ -367,7 +367,7 @@ def _lockstep_rows(
 
     ctx = multiprocessing.get_context("spawn")  # a fresh interpreter each: its own Taichi
     with (
-        ProcessPoolExecutor(max_workers=os.cpu_count() or 1, mp_context=ctx) as pool,
+        ProcessPoolExecutor(max_workers=len(os.sched_getaffinity(0)), mp_context=ctx) as pool,
         tqdm(total=starts * n, desc="flatten bench (lockstep)", unit="run") as bar,
     ):
         while len(results) < len(plan) and wrinkled() < starts:
