@@ -155,7 +155,7 @@ class Renderer:
         Every field a frame does not write is written here, so a Renderer loaded again renders bit for bit
         as a new one."""
         self.camera = camera
-        self._uploaded: dict[str, np.ndarray] = {}  # what `_put` last wrote into each field
+        self._uploaded: dict[str, np.ndarray] = {}  # what `_upload_changed` last wrote into each field
         self.hi = camera.scaled(self.ss)
         self.grid = grid  # the lead piece's at the start: the visibility `render` returns is the lead's
         self.table_spec = scenario.table
@@ -201,14 +201,15 @@ class Renderer:
             dims[k], spacing[k] = (nx, ny, cloth.texture), cloth.spacing_m
             for name, values in self._vertex_values(cloth.nodes_m).items():
                 arrays[name][k, :ny, :nx] = values.reshape(ny, nx, -1)
-        self._put("slot_dims", dims)
-        self._put("slot_spacing", spacing)
+        self._upload_changed("slot_dims", dims)
+        self._upload_changed("slot_spacing", spacing)
         for name, _ in _VERTEX_ARRAYS:
             values = arrays[name]
-            self._put(name, values[..., 0] if values.shape[-1] == 1 else values)
+            self._upload_changed(name, values[..., 0] if values.shape[-1] == 1 else values)
         hi = self.hi
-        self._put("direction", np.stack([np.cos(state.heading_rad), np.sin(state.heading_rad)], axis=1))
-        self._put("travel", state.travel_m.astype(np.float32))
+        heading = state.heading_rad
+        self._upload_changed("direction", np.stack([np.cos(heading), np.sin(heading)], axis=1))
+        self._upload_changed("travel", state.travel_m.astype(np.float32))
         seg = np.zeros((MAX_ARMS, 4), np.float32)
         radius = np.zeros(MAX_ARMS, np.float32)
         if len(state.arms) > MAX_ARMS:
@@ -217,10 +218,10 @@ class Renderer:
             ends = hi.project(np.stack([arm.shoulder_m, arm.hand_m]))
             seg[k] = ends.ravel()
             radius[k] = hi.K[0, 0] * arm.radius_m / hi.to_camera(arm.hand_m[None])[0, 2]
-        self._put("arm_seg", seg)
-        self._put("arm_radius", radius)
+        self._upload_changed("arm_seg", seg)
+        self._upload_changed("arm_radius", radius)
 
-    def _put(self, name: str, values: np.ndarray) -> None:
+    def _upload_changed(self, name: str, values: np.ndarray) -> None:
         """Write values into the field `name` unless it holds them already: each upload is a kernel launch
         of its own, and the belts' headings, the slots and the arms rarely change."""
         last = self._uploaded.get(name)

@@ -111,13 +111,18 @@ class LockstepCell:
             cfg.tracker.physics.strain_limit,
             cfg.tracker.estimates_shape,
         )
-        self.commands = ModuleCommands.all_stop(layout.n_modules)
+        self.n_modules = layout.n_modules
+        self._loop_idle()
+        self.ticks = 0
+
+    def _loop_idle(self) -> None:
+        """The loop as it starts: modules told to stop, idle, nothing tracked yet."""
+        self.commands = ModuleCommands.all_stop(self.n_modules)
         self.setpoint = Setpoint(Mode.IDLE, None)
         self.state = LoopState.STARTING
         self.halt_reason: str | None = None
         self.estimate: Estimate | None = None
         self.flatness: Flatness | None = None
-        self.ticks = 0
 
     # -- time ----------------------------------------------------------------------------------------
 
@@ -136,11 +141,7 @@ class LockstepCell:
         self._earlier_worlds_s += self.world.t_s
         del self.world  # its cloth becomes the spare the new world takes
         self.world = World(self.scenario, log_commands=False)
-        self.commands = ModuleCommands.all_stop(self.commands.speed_m_s.size)
-        self.setpoint = Setpoint(Mode.IDLE, None)
-        self.state = LoopState.STARTING
-        self.halt_reason = None
-        self.estimate = self.flatness = None
+        self._loop_idle()
         self.tracker.restart()
         self.cell.reset()
 
