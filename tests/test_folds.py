@@ -80,3 +80,61 @@ def test_one_noisy_row_does_not_fold_but_an_edge_row_follows_its_fold() -> None:
     edge_lost = _with_row_x(x, slice(1, None))  # every row folded but the edge row 0
     z = fold_heights_m(edge_lost, _rest(), 0.1)
     np.testing.assert_allclose(z[:, 4], np.sqrt(L_M**2 - d**2))
+
+
+def _pleat_row_x(foot_m: float) -> list[float]:
+    """A row whose nodes 4 and 5 stand on the flanks of a narrow pleat between nodes 3 and 6: each
+    flank edge lies foot_m on the table, the edge over the crest 2 mm."""
+    x = [0.0, L_M, 2 * L_M, 3 * L_M, 3 * L_M + foot_m, 3 * L_M + foot_m + 0.002, 3 * L_M + 2 * foot_m + 0.002]
+    return x + [x[-1] + L_M * (k + 1) for k in range(NX - len(x))]
+
+
+def _quads_with_crest(height_m: float, columns: list[int]) -> np.ndarray:
+    """Quad heights (NY-1, NX-1): flat but for the given quad columns, measured height_m high."""
+    q = np.full((NY - 1, NX - 1), 0.0003)
+    q[:, columns] = height_m
+    return q
+
+
+def test_a_measured_pleat_stands_on_its_feet_not_on_straight_edges() -> None:
+    foot = 0.005  # a vertical pleat: each flank edge 5 mm on the table, its remaining 15 mm straight up
+    xy = _with_row_x(_pleat_row_x(foot))
+    slack = 3 * L_M - (2 * foot + 0.002)
+    crest = slack / 2  # as tall as half its slack: vertical
+    straight = fold_heights_m(xy, _rest(), 0.1)
+    measured = fold_heights_m(xy, _rest(), 0.1, _quads_with_crest(crest, [3, 4, 5]))
+    np.testing.assert_allclose(straight[:, [4, 5]], np.sqrt(L_M**2 - foot**2))  # 19.4 mm
+    np.testing.assert_allclose(measured[:, [4, 5]], L_M - foot)  # 15 mm, on the flank
+    assert np.all(np.delete(measured, [4, 5], axis=1) == 0.0)
+
+
+def test_a_measured_broad_ridge_rises_as_its_straight_edges() -> None:
+    d = 0.016  # a low peak at node 4: 20 % short, 12 mm high on straight edges
+    x = [0, L_M, 2 * L_M, 3 * L_M, 3 * L_M + d, 3 * L_M + 2 * d]
+    x += [x[-1] + L_M * (k + 1) for k in range(NX - len(x))]
+    xy = _with_row_x(x)
+    straight = fold_heights_m(xy, _rest(), 0.1)
+    measured = fold_heights_m(xy, _rest(), 0.1, _quads_with_crest(straight.max(), [3, 4]))
+    np.testing.assert_allclose(measured, straight)
+
+
+def test_a_measured_rise_folds_edges_shorter_than_the_noise_tolerance() -> None:
+    x = list(np.arange(NX) * L_M)
+    x[5] -= 0.0008  # the edges either side of node 5 are 4 % short each: within the tolerance
+    x[6:] = [v - 0.0016 for v in x[6:]]
+    xy = _with_row_x(x)
+    assert np.all(fold_heights_m(xy, _rest(), 0.1) == 0.0)
+    flat = fold_heights_m(xy, _rest(), 0.1, _quads_with_crest(0.0003, []))
+    assert np.all(flat == 0.0)  # measured flat: the tolerance stands
+    risen = fold_heights_m(xy, _rest(), 0.1, _quads_with_crest(0.004, [4, 5]))
+    np.testing.assert_allclose(risen[:, 5], 0.004)  # a peak at node 5 as high as the crest measured
+    assert np.all(np.delete(risen, 5, axis=1) == 0.0)
+
+
+def test_a_noisy_edge_row_takes_its_neighbours_fold_shape() -> None:
+    foot = 0.005
+    xy = _with_row_x(_pleat_row_x(foot))
+    xy[0, 5:, 0] += 0.004  # the edge row reads its flank 4 mm wider: less slack, a steeper rise per slack
+    crest = (3 * L_M - (2 * foot + 0.002)) / 2
+    z = fold_heights_m(xy, _rest(), 0.1, _quads_with_crest(crest, [3, 4, 5]))
+    np.testing.assert_allclose(z[0, 4], L_M - foot, atol=1e-9)  # as its neighbours' fold says

@@ -14,9 +14,22 @@ A fold is a ridge across many rows, while tracking noise is local; so whether an
 how far it rises, is the median over that edge and the same edge of the two rows on either side. The
 median also lifts the cloth's edge rows, where features are scarce, with the rows inside them. A node's
 height is the higher of its row's and its column's, so a fold in either direction is found.
+
+Where a second view measures the quads' heights, two things are known that lengths alone cannot say:
+- Whether the cloth beside an edge has risen at all. There an edge folds at any shortening past
+  `RAISED_TOLERANCE_STRAIN`, not only past the tolerance that keeps tracking noise on a flat cloth flat.
+- How steep the fold's flanks are. A fold holding slack S (the sum of L - d over its run of folded
+  edges) under a measured crest H is a tent whose flanks rise 2H / S per unit of slack (cot(θ/2) for
+  flank angle θ): an edge rises by (L - d)·2H / S, never more than straight. A broad ridge (H large
+  against S) rises nearly straight; a pleat as tall as half its slack stands vertical, each edge rising
+  by its slack. Straight edges read compress's pleat nodes 3-6 mm above the truth: the cloth lies on the
+  table up to the pleat's foot and climbs its flank, while a straight edge leaves the table at the node.
+  More slack than a vertical pleat of that height holds (S > 2H) has fallen over: 1 per unit of slack.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 
@@ -24,23 +37,56 @@ import numpy as np
 # lifted some rows and not the next (a node 11 mm off on compress's edge row, where the model's springs
 # then pulled the unlifted node in along the fold); two hold the fold's line.
 ACROSS = 2
+# A quad measured this high has risen: a flat cloth's quads read 0.8 mm at most (stereo.CREST_ABOVE_M).
+RISEN_M = 0.002
+# Where the cloth beside an edge has risen, the edge has folded once it is this much shorter than at rest.
+RAISED_TOLERANCE_STRAIN = 0.02
 
 
-def fold_heights_m(nodes_xy_m: np.ndarray, rest_xy_m: np.ndarray, tolerance_strain: float) -> np.ndarray:
+def fold_heights_m(
+    nodes_xy_m: np.ndarray,
+    rest_xy_m: np.ndarray,
+    tolerance_strain: float,
+    quad_height_m: np.ndarray | None = None,
+) -> np.ndarray:
     """Node heights (ny, nx) in metres for node positions on the table (ny, nx, 2) and the rest mesh
     (ny, nx, 2). An edge has folded only when it is shorter than (1 - tolerance_strain) of its rest
-    length."""
-    rows = _chain_heights(nodes_xy_m, rest_xy_m, tolerance_strain)
-    cols = _chain_heights(nodes_xy_m.transpose(1, 0, 2), rest_xy_m.transpose(1, 0, 2), tolerance_strain)
+    length. quad_height_m (ny-1, nx-1): each quad's highest point as a further view measured it, or None
+    with one view."""
+    rows = _chain_heights(nodes_xy_m, rest_xy_m, tolerance_strain, _edge_heights(quad_height_m))
+    q_cols = None if quad_height_m is None else quad_height_m.T
+    cols = _chain_heights(
+        nodes_xy_m.transpose(1, 0, 2), rest_xy_m.transpose(1, 0, 2), tolerance_strain, _edge_heights(q_cols)
+    )
     return np.maximum(rows, cols.T)
 
 
-def _chain_heights(xy: np.ndarray, rest: np.ndarray, tolerance_strain: float) -> np.ndarray:
+def _edge_heights(quad_height_m: np.ndarray | None) -> np.ndarray | None:
+    """(c, k-1): the higher of the two quads beside each edge of c chains along axis 1, from the quads'
+    heights (c-1, k-1)."""
+    if quad_height_m is None:
+        return None
+    padded = np.pad(quad_height_m, ((1, 1), (0, 0)))
+    return np.asarray(np.maximum(padded[:-1], padded[1:]))
+
+
+def _chain_heights(
+    xy: np.ndarray, rest: np.ndarray, tolerance_strain: float, edge_height_m: np.ndarray | None
+) -> np.ndarray:
     """Heights (c, k) of c neighbouring chains of k nodes along axis 1."""
     rest_length = np.linalg.norm(np.diff(rest, axis=1), axis=2)
     length = np.linalg.norm(np.diff(xy, axis=1), axis=2)
-    folded = length < (1.0 - tolerance_strain) * rest_length
+    tolerance = np.full(length.shape, tolerance_strain)
+    if edge_height_m is not None:
+        tolerance[_risen(edge_height_m)] = min(tolerance_strain, RAISED_TOLERANCE_STRAIN)
+    folded = length < (1.0 - tolerance) * rest_length
     rise = np.where(folded, np.sqrt(np.maximum(rest_length**2 - length**2, 0.0)), 0.0)  # (c, k-1)
+    if edge_height_m is not None:
+        slack = np.where(folded, rest_length - length, 0.0)
+        # A fold's slack is the same in the rows it crosses, but not its noise (a node 3 mm off on an
+        # edge row read that row's fold 30 % short): each edge takes the median of its chains' folds.
+        per_slack = np.where(folded, _median_across(_rise_per_slack(folded, slack, edge_height_m)), np.nan)
+        rise = np.where(np.isnan(per_slack), rise, np.minimum(rise, slack * per_slack))
     rise = _median_across(rise)
     flat = np.pad(rise == 0.0, ((0, 0), (1, 1)), constant_values=True)
     on_table = flat[:, :-1] & flat[:, 1:]
@@ -49,13 +95,45 @@ def _chain_heights(xy: np.ndarray, rest: np.ndarray, tolerance_strain: float) ->
     return np.minimum(climb_left, climb_right)
 
 
-def _median_across(rise: np.ndarray) -> np.ndarray:
-    """The median of each edge's rise and the same edge's in the ACROSS chains either side (mirrored at
-    the first and last chains, so that an edge row follows the rows inside it)."""
-    if len(rise) <= ACROSS:
-        return rise
-    padded = np.pad(rise, ((ACROSS, ACROSS), (0, 0)), mode="reflect")
-    return np.asarray(np.median([padded[k : k + len(rise)] for k in range(2 * ACROSS + 1)], axis=0))
+def _risen(edge_height_m: np.ndarray) -> np.ndarray:
+    """(c, k-1): edges beside a quad measured risen, or next to such an edge along the chain (a fold's
+    crest lies between two nodes, and the quads beside its feet may hold no point high on it)."""
+    risen = np.pad(edge_height_m > RISEN_M, ((0, 0), (1, 1)))
+    return np.asarray(risen[:, :-2] | risen[:, 1:-1] | risen[:, 2:])
+
+
+def _rise_per_slack(folded: np.ndarray, slack_m: np.ndarray, edge_height_m: np.ndarray) -> np.ndarray:
+    """(c, k-1): how far each folded edge rises per metre of its slack, for the fold it belongs to (a run
+    of folded edges along a chain): cot(θ/2) = 2H / S for the fold's slack S and measured crest H, at
+    least 1 (θ at most 90°: more slack than a vertical pleat as tall holds has fallen over); NaN (the
+    edge straight) where the fold has not measurably risen."""
+    per_slack = np.full(folded.shape, np.nan)
+    for c, k0, k1 in _runs(folded):
+        crest = float(edge_height_m[max(c - ACROSS, 0) : c + ACROSS + 1, k0:k1].max())
+        if crest > RISEN_M:
+            per_slack[c, k0:k1] = max(2.0 * crest / float(slack_m[c, k0:k1].sum()), 1.0)
+    return per_slack
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int, int]]:
+    """(chain, first, end) of every run of True along axis 1 of (c, k) mask."""
+    edges = np.diff(np.pad(mask.astype(np.int8), ((0, 0), (1, 1))), axis=1)
+    starts, ends = np.nonzero(edges == 1), np.nonzero(edges == -1)
+    return [(int(c), int(a), int(b)) for c, a, b in zip(starts[0], starts[1], ends[1], strict=True)]
+
+
+def _median_across(value: np.ndarray) -> np.ndarray:
+    """The median of each edge's value and the same edge's in the ACROSS chains either side (mirrored at
+    the first and last chains, so that an edge row follows the rows inside it), NaNs left out."""
+    if len(value) <= ACROSS:
+        return value
+    padded = np.pad(value, ((ACROSS, ACROSS), (0, 0)), mode="reflect")
+    window = [padded[k : k + len(value)] for k in range(2 * ACROSS + 1)]
+    if not np.isnan(value).any():
+        return np.asarray(np.median(window, axis=0))
+    with warnings.catch_warnings():  # an edge NaN in every chain of its window stays NaN
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.asarray(np.nanmedian(window, axis=0))
 
 
 def _climb(rise: np.ndarray, on_table: np.ndarray) -> np.ndarray:

@@ -15,6 +15,7 @@ The core is pure: a `clock` is injected only to time the stages.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import replace
 
 import cv2
 import numpy as np
@@ -209,13 +210,12 @@ class Tracker:
                 outline = self.outline
                 edges = lambda nodes_m: outline.measure(image, nodes_m)  # noqa: E731
             shape_sigma_m = self.cfg.ekf.periodic_shape_sigma_m if self.periodic or self.repetitive else 0.0
-            stats, accepted = self.estimator.correct(
-                Measurements(features, measured, keep & ~ambiguous, whiten, edges, shape_sigma_m)
+            first = Measurements(
+                features, measured, keep & ~ambiguous, whiten, edges, shape_sigma_m, self.quad_height_m
             )
+            stats, accepted = self.estimator.correct(first)
             if ambiguous.any():
-                more, also, measured = self._settle_look_alikes(
-                    features, measured, from_rest_px, ambiguous, whiten, shape_sigma_m
-                )
+                more, also, measured = self._settle_look_alikes(first, from_rest_px, ambiguous)
                 stats, accepted = stats + more, accepted & also
             keep = keep & accepted
         t4 = self.clock()
@@ -236,29 +236,23 @@ class Tracker:
         return estimate
 
     def _settle_look_alikes(
-        self,
-        features: FeatureSet,
-        measured: np.ndarray,
-        from_rest_px: np.ndarray,
-        ambiguous: np.ndarray,
-        whiten: np.ndarray | None,
-        shape_sigma_m: float,
+        self, first: Measurements, from_rest_px: np.ndarray, ambiguous: np.ndarray
     ) -> tuple[UpdateStats, np.ndarray, np.ndarray]:
         """A repeating pattern, and the two LK starts of the `ambiguous` features landed on different
         look-alikes: the prediction was off by half a period or more somewhere. Of the two, take the one
         nearer where the unambiguous features (already corrected with) have put the cloth; if even that is
         not near, neither is trusted (the feature is dropped and found afresh). Correct with those too.
-        The statistics, which features stay (n,), and the measurements as chosen (n, 2)."""
-        placed = self.estimator.feature_pixels(features)
+        `first`: the measurements corrected with already. The statistics, which features stay (n,), and
+        the measurements as chosen (n, 2)."""
+        measured = first.px
+        placed = self.estimator.feature_pixels(first.features)
         if placed is None:  # no model to settle it: the prediction's answer stands
             return UpdateStats(0, 0, 0.0), np.ones(len(measured), bool), measured
         to_rest = np.linalg.norm(from_rest_px - placed, axis=1)
         to_predicted = np.linalg.norm(measured - placed, axis=1)
         chosen = np.where((ambiguous & (to_rest < to_predicted))[:, None], from_rest_px, measured)
         near = np.minimum(to_rest, to_predicted) < AMBIGUOUS_NEAR_PX
-        stats, accepted = self.estimator.correct(
-            Measurements(features, chosen, ambiguous & near, whiten, shape_sigma_m=shape_sigma_m)
-        )
+        stats, accepted = self.estimator.correct(replace(first, px=chosen, ok=ambiguous & near, edges=None))
         return stats, accepted & (near | ~ambiguous), chosen
 
     def _advance_modules(self, t_s: float, commands: ModuleCommands | None) -> BeltField | None:

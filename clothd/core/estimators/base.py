@@ -35,6 +35,8 @@ class Measurements:
     # How closely the mesh's edges keep their rest length (NodeBelief.correct), where the features alone
     # cannot hold the shape (a periodic weave); 0: not held.
     shape_sigma_m: float = 0.0
+    # Each mesh quad's highest point (ny-1, nx-1) as a further view last measured it (folds.py), or None.
+    quad_height_m: np.ndarray | None = None
 
 
 @dataclass(frozen=True)

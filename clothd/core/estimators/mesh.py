@@ -50,9 +50,11 @@ class MeshEstimator:
         self._Q = np.tile(Q, (n, 1, 1))
         self.mesh: QuadMesh | None = None
         self.belief: NodeBelief | None = None
+        self._quad_height_m: np.ndarray | None = None  # as a further view last measured them
 
     def start(self, mesh: QuadMesh, pose0: np.ndarray, nodes_m: np.ndarray | None = None) -> None:
         self.mesh = mesh
+        self._quad_height_m = None
         rest = mesh.rest_nodes_m()
         self.sim.set_rest(rest)
         nodes = (
@@ -128,6 +130,7 @@ class MeshEstimator:
         inside = inside[: len(idx)]
         accepted[idx[~inside]] = False
         self._lift_folds()
+        self._quad_height_m = m.quad_height_m
         return stats, accepted
 
     def _seen_positions_m(self) -> np.ndarray:
@@ -140,14 +143,20 @@ class MeshEstimator:
         return np.asarray(belief.positions_m - (0.5 * self.ekf.exposure_s) * belief.x[:, 3:6])
 
     def _lift_folds(self) -> None:
-        """Set the node heights from how much shorter the cloth is on the table than at rest."""
+        """Set the node heights from how much shorter the cloth is on the table than at rest. The model's
+        edges are straight, so each folded edge rises by its whole length: its springs stay at rest."""
+        _, belief = self._started()
+        z = self._fold_heights_m(None)
+        belief.set_heights(z.ravel(), self.ekf.initial_pos_sigma_m, self.ekf.initial_vel_sigma_m_s)
+
+    def _fold_heights_m(self, quad_height_m: np.ndarray | None) -> np.ndarray:
         mesh, belief = self._started()
-        z = fold_heights_m(
+        return fold_heights_m(
             belief.positions_m[:, :2].reshape(mesh.ny, mesh.nx, 2),
             mesh.rest_nodes_m(),
             self.mesh_cfg.fold_tolerance_strain,
+            quad_height_m,
         )
-        belief.set_heights(z.ravel(), self.ekf.initial_pos_sigma_m, self.ekf.initial_vel_sigma_m_s)
 
     def cloth_coordinates(self, px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         mesh, _ = self._started()
@@ -161,6 +170,12 @@ class MeshEstimator:
     def estimate(self) -> StateEstimate:
         mesh, belief = self._started()
         nodes = belief.positions_m
+        if self._quad_height_m is not None:
+            # Where a further view measured the quads, the cloth's own points: a pleat's flank nodes lie
+            # lower than the model's straight edges put them, and a low fold rises before its edges are
+            # short enough for the model (folds.py). The model keeps its edges straight, springs at rest.
+            nodes = nodes.copy()
+            nodes[:, 2] = self._fold_heights_m(self._quad_height_m).ravel()
         return StateEstimate(
             _best_fit_pose(mesh, nodes),
             _best_fit_pose_cov(nodes, belief.P),
