@@ -401,6 +401,43 @@ def test_a_quad_in_a_fold_is_not_taken_for_an_occluder() -> None:
     assert accepted[0.01][middle].mean() > 0.95
 
 
+def test_a_feature_no_neighbours_can_judge_is_judged_against_the_prediction() -> None:
+    """A feature alone in its quad, with no featured quad around (the rest hidden under an arm), is its
+    quad's mean: neither level of the neighbours' gate can see it move off the cloth. The prediction
+    can, while a well-surrounded quad moving with its neighbours (a model error) still passes."""
+    cam = CameraModel.ideal(640, 480, 900.0, 1.0)
+    mesh = QuadMesh.covering(np.array([[-0.07, -0.07], [0.07, -0.07], [0.07, 0.07], [-0.07, 0.07]]), 8, 8)
+    n = mesh.n_nodes
+    pos = np.column_stack([mesh.rest_nodes_m().reshape(-1, 2), np.zeros(n)])
+    rng = np.random.default_rng(7)
+    points = rng.uniform(-0.068, 0.068, (1500, 2))
+    hidden = (points[:, 0] > 0.01) & (points[:, 1] > 0.01)  # 3 x 3 of the 7 x 7 quads under an arm
+    dragged = np.array([[0.06, 0.06]])  # one feature left there, on the arm's edge
+    binding = mesh.bind(np.concatenate([points[~hidden], dragged]))
+    _, J = measurement_jacobian(cam, pos, binding)
+    nu = rng.normal(0.0, 0.1, (len(binding.quad), 2))
+    for shift_px, kept in ((15.0, False), (0.3, True)):
+        nu[-1] = [shift_px, 0.0]
+        belief = NodeBelief(
+            np.column_stack([pos, np.zeros_like(pos)]),
+            np.tile(np.diag([1e-6] * 3 + [1e-5] * 3), (n, 1, 1)),
+            mesh.quad_nodes(),
+            True,
+        )
+        _, accepted = belief.correct(binding.quad, binding.nodes, J, nu, 0.25, gate_chi2=13.8)
+        assert bool(accepted[-1]) is kept
+        assert accepted[:-1].mean() > 0.95
+    everywhere = nu + np.array([3.0, 0.0])  # all 3 px off the prediction alike: corrected, not rejected
+    belief = NodeBelief(
+        np.column_stack([pos, np.zeros_like(pos)]),
+        np.tile(np.diag([1e-6] * 3 + [1e-5] * 3), (n, 1, 1)),
+        mesh.quad_nodes(),
+        True,
+    )
+    _, accepted = belief.correct(binding.quad, binding.nodes, J, everywhere, 0.25, gate_chi2=13.8)
+    assert accepted[:-1].mean() > 0.95
+
+
 def test_rebinding_through_a_moved_mesh() -> None:
     cam = CameraModel.ideal(640, 480, 900.0, 1.0)
     mesh = _mesh()

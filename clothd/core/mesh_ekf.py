@@ -196,12 +196,13 @@ class NodeBelief:
 
     def _odd_quads(
         self, quads: np.ndarray, quad_mean: np.ndarray, S: np.ndarray, gate_chi2: float
-    ) -> np.ndarray:
-        """(k,) bool: the feature's quad moves unlike the quads around it (the median of their mean
-        innovations), as a patch carried by an occluder does, while a model error is smooth. A quad with
-        a node up in a fold is never odd: a fold's sides climb while the cloth around them slides, so its
-        quads move unlike their neighbours by nature (the test threw out the compress fold's whole side
-        in one frame, and its top went unseen)."""
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(k,) bool each: the feature's quad moves unlike the quads around it (the median of their mean
+        innovations), as a patch carried by an occluder does, while a model error is smooth; and whether
+        its quad had featured quads enough around it to be judged so. A quad with a node up in a fold is
+        never odd: a fold's sides climb while the cloth around them slides, so its quads move unlike their
+        neighbours by nature (the test threw out the compress fold's whole side in one frame, and its top
+        went unseen)."""
         n_quads = len(self.quad_neighbours)
         mean = np.full((n_quads + 1, 2), np.nan)  # the last row stands for "no neighbour"
         mean[quads] = quad_mean
@@ -215,7 +216,7 @@ class NodeBelief:
         )
         odd = (d**2).sum(axis=1) > gate_chi2 * np.maximum(s, 1e-12)  # NaN (a quad without features) is False
         odd &= ~np.any(self.x[self.quad_nodes, 2] > 0.0, axis=1)
-        return np.asarray(odd[quads])
+        return np.asarray(odd[quads]), np.asarray(enough[quads])
 
     def _shape_information(self, sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
         """The shape prior in information form: each edge's length |p_a − p_b| a pseudo-measurement of its
@@ -267,13 +268,22 @@ class NodeBelief:
         outlier (an arm, a glint) disagrees with its neighbours, while a model error (the cloth slipping
         on the belts, turning faster than predicted) moves all of them alike and must be corrected, not
         rejected. Gating the raw innovation rejected whole regions in fast moves, and features re-bound
-        through the lagging estimate locked its error in (docs/architecture.md)."""
+        through the lagging estimate locked its error in (docs/architecture.md). Only a quad with too few
+        featured quads around to be judged by them (under an arm, at a bare corner) has its mean
+        innovation gated against the prediction itself."""
         d = self.pattern.d
         J = J[..., :d]
         S = self.innovation_covariances(nodes, J, R_px2)
         quad_mean = _quad_mean(quads, residual_px)
         accepted, d2 = gate(residual_px - quad_mean, S, gate_chi2)
-        accepted &= ~self._odd_quads(quads, quad_mean, S, gate_chi2)
+        odd, judged = self._odd_quads(quads, quad_mean, S, gate_chi2)
+        accepted &= ~odd
+        # A quad with too few featured quads around to judge it by has only the prediction to be judged
+        # against. An arm's edge, hiding the quads around, dragged a feature alone in its quad 36 px off
+        # the cloth, a few pixels a frame, each frame its quad's mean and so never odd.
+        unjudged = ~judged
+        if unjudged.any():
+            accepted[unjudged] &= gate(quad_mean[unjudged], S[unjudged], gate_chi2)[0]
         if not accepted.any():
             return UpdateStats(0, len(accepted), 0.0), accepted
         n, pat, w = len(self.x), self.pattern, 4 * d
