@@ -218,6 +218,22 @@ class NodeBelief:
         odd &= ~np.any(self.x[self.quad_nodes, 2] > 0.0, axis=1)
         return np.asarray(odd[quads]), np.asarray(enough[quads])
 
+    def _gate(
+        self, quads: np.ndarray, residual_px: np.ndarray, S: np.ndarray, gate_chi2: float
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Which features (k,) pass, and their d² against their quad's mean innovation (`correct`)."""
+        quad_mean = _quad_mean(quads, residual_px)
+        accepted, d2 = gate(residual_px - quad_mean, S, gate_chi2)
+        odd, judged = self._odd_quads(quads, quad_mean, S, gate_chi2)
+        accepted &= ~odd
+        # A quad with too few featured quads around to judge it by has only the prediction to be judged
+        # against. An arm's edge, hiding the quads around, dragged a feature alone in its quad 36 px off
+        # the cloth, a few pixels a frame, each frame its quad's mean and so never odd.
+        unjudged = ~judged
+        if unjudged.any():
+            accepted[unjudged] &= gate(quad_mean[unjudged], S[unjudged], gate_chi2)[0]
+        return accepted, d2
+
     def _shape_information(self, sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
         """The shape prior in information form: each edge's length |p_a − p_b| a pseudo-measurement of its
         rest length, linearised at the prior mean, σ sigma_m while stretched and
@@ -274,16 +290,7 @@ class NodeBelief:
         d = self.pattern.d
         J = J[..., :d]
         S = self.innovation_covariances(nodes, J, R_px2)
-        quad_mean = _quad_mean(quads, residual_px)
-        accepted, d2 = gate(residual_px - quad_mean, S, gate_chi2)
-        odd, judged = self._odd_quads(quads, quad_mean, S, gate_chi2)
-        accepted &= ~odd
-        # A quad with too few featured quads around to judge it by has only the prediction to be judged
-        # against. An arm's edge, hiding the quads around, dragged a feature alone in its quad 36 px off
-        # the cloth, a few pixels a frame, each frame its quad's mean and so never odd.
-        unjudged = ~judged
-        if unjudged.any():
-            accepted[unjudged] &= gate(quad_mean[unjudged], S[unjudged], gate_chi2)[0]
+        accepted, d2 = self._gate(quads, residual_px, S, gate_chi2)
         if not accepted.any():
             return UpdateStats(0, len(accepted), 0.0), accepted
         n, pat, w = len(self.x), self.pattern, 4 * d
