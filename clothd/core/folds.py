@@ -29,9 +29,9 @@ Where a second view measures the quads' heights, two things are known that lengt
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
+
+from clothd.core.nanmedian import nanmedian
 
 # Chains either side whose rise an edge's median takes in. With one, a fold dying down at its release
 # lifted some rows and not the next (a node 11 mm off on compress's edge row, where the model's springs
@@ -128,12 +128,10 @@ def _median_across(value: np.ndarray) -> np.ndarray:
     if len(value) <= ACROSS:
         return value
     padded = np.pad(value, ((ACROSS, ACROSS), (0, 0)), mode="reflect")
-    window = [padded[k : k + len(value)] for k in range(2 * ACROSS + 1)]
+    window = np.stack([padded[k : k + len(value)] for k in range(2 * ACROSS + 1)])
     if not np.isnan(value).any():
         return np.asarray(np.median(window, axis=0))
-    with warnings.catch_warnings():  # an edge NaN in every chain of its window stays NaN
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return np.asarray(np.nanmedian(window, axis=0))
+    return nanmedian(window, axis=0)  # an edge NaN in every chain of its window stays NaN
 
 
 def _climb(rise: np.ndarray, on_table: np.ndarray) -> np.ndarray:

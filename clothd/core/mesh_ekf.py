@@ -32,6 +32,7 @@ import scipy.linalg as sla
 import scipy.sparse as sps
 
 from clothd.core.ekf import UpdateStats, gate
+from clothd.core.nanmedian import nanmedian
 
 # A compressed edge is held this many times more loosely than a stretched one: yarns do not stretch, but
 # cloth pushed together buckles into folds (folds.py). Looser lets a prediction that pushes part of the
@@ -91,16 +92,6 @@ def _quad_mean(quads: np.ndarray, residual_px: np.ndarray) -> np.ndarray:
     count = np.maximum(np.bincount(quads), 1)
     mean = np.stack([np.bincount(quads, residual_px[:, i]) / count for i in range(2)], axis=1)
     return np.asarray(mean[quads])
-
-
-def _nanmedian_rows(a: np.ndarray) -> np.ndarray:
-    """np.nanmedian(a, axis=1) for (q, m, d) with at least one number per row and column, by sorting
-    (NaN sorts last): numpy's nanmedian takes the slow masked-array path."""
-    s = np.sort(a, axis=1)
-    count = (~np.isnan(s)).sum(axis=1)  # (q, d)
-    lo = np.take_along_axis(s, ((count - 1) // 2)[:, None, :], axis=1)[:, 0]
-    hi = np.take_along_axis(s, (count // 2)[:, None, :], axis=1)[:, 0]
-    return np.asarray(0.5 * (lo + hi))
 
 
 class NodeBelief:
@@ -209,7 +200,7 @@ class NodeBelief:
         around = mean[self.quad_neighbours]  # (q, 8, 2); index -1 reads the NaN row
         enough = (~np.isnan(around[:, :, 0])).sum(axis=1) >= 3
         d = np.zeros((n_quads, 2))
-        d[enough] = mean[:n_quads][enough] - _nanmedian_rows(around[enough])
+        d[enough] = mean[:n_quads][enough] - nanmedian(around[enough], axis=1)
         # The quad's typical innovation variance: the mean of its features' S diagonals.
         s = np.bincount(quads, S[:, 0, 0] + S[:, 1, 1], minlength=n_quads) / np.maximum(
             2 * np.bincount(quads, minlength=n_quads), 1
