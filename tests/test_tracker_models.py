@@ -416,9 +416,12 @@ def test_a_feature_no_neighbours_can_judge_is_judged_against_the_prediction() ->
     dragged = np.array([[0.06, 0.06]])  # one feature left there, on the arm's edge
     binding = mesh.bind(np.concatenate([points[~hidden], dragged]))
     _, J = measurement_jacobian(cam, pos, binding)
-    nu = rng.normal(0.0, 0.1, (len(binding.quad), 2))
-    for shift_px, kept in ((15.0, False), (0.3, True)):
-        nu[-1] = [shift_px, 0.0]
+    noise = rng.normal(0.0, 0.1, (len(binding.quad), 2))
+    # The lone feature 15 px off, or 0.3 px; then every feature 3 px off the prediction alike (a model
+    # error: corrected, not rejected), the lone one with them.
+    for offset_px, lone_px, kept in ((0.0, 15.0, False), (0.0, 0.3, True), (3.0, 0.0, None)):
+        nu = noise + np.array([offset_px, 0.0])
+        nu[-1] += [lone_px, 0.0]
         belief = NodeBelief(
             np.column_stack([pos, np.zeros_like(pos)]),
             np.tile(np.diag([1e-6] * 3 + [1e-5] * 3), (n, 1, 1)),
@@ -426,17 +429,8 @@ def test_a_feature_no_neighbours_can_judge_is_judged_against_the_prediction() ->
             True,
         )
         _, accepted = belief.correct(binding.quad, binding.nodes, J, nu, 0.25, gate_chi2=13.8)
-        assert bool(accepted[-1]) is kept
+        assert kept is None or bool(accepted[-1]) is kept
         assert accepted[:-1].mean() > 0.95
-    everywhere = nu + np.array([3.0, 0.0])  # all 3 px off the prediction alike: corrected, not rejected
-    belief = NodeBelief(
-        np.column_stack([pos, np.zeros_like(pos)]),
-        np.tile(np.diag([1e-6] * 3 + [1e-5] * 3), (n, 1, 1)),
-        mesh.quad_nodes(),
-        True,
-    )
-    _, accepted = belief.correct(binding.quad, binding.nodes, J, everywhere, 0.25, gate_chi2=13.8)
-    assert accepted[:-1].mean() > 0.95
 
 
 def test_rebinding_through_a_moved_mesh() -> None:
