@@ -32,13 +32,12 @@ from __future__ import annotations
 import numpy as np
 
 from clothd.core.nanmedian import nanmedian
+from clothd.core.stereo import CREST_ABOVE_M  # a quad measured this high has risen
 
 # Chains either side whose rise an edge's median takes in. With one, a fold dying down at its release
 # lifted some rows and not the next (a node 11 mm off on compress's edge row, where the model's springs
 # then pulled the unlifted node in along the fold); two hold the fold's line.
 ACROSS = 2
-# A quad measured this high has risen: a flat cloth's quads read 0.8 mm at most (stereo.CREST_ABOVE_M).
-RISEN_M = 0.002
 # Where the cloth beside an edge has risen, the edge has folded once it is this much shorter than at rest.
 RAISED_TOLERANCE_STRAIN = 0.02
 
@@ -98,7 +97,7 @@ def _chain_heights(
 def _risen(edge_height_m: np.ndarray) -> np.ndarray:
     """(c, k-1): edges beside a quad measured risen, or next to such an edge along the chain (a fold's
     crest lies between two nodes, and the quads beside its feet may hold no point high on it)."""
-    risen = np.pad(edge_height_m > RISEN_M, ((0, 0), (1, 1)))
+    risen = np.pad(edge_height_m > CREST_ABOVE_M, ((0, 0), (1, 1)))
     return np.asarray(risen[:, :-2] | risen[:, 1:-1] | risen[:, 2:])
 
 
@@ -110,7 +109,7 @@ def _rise_per_slack(folded: np.ndarray, slack_m: np.ndarray, edge_height_m: np.n
     per_slack = np.full(folded.shape, np.nan)
     for c, k0, k1 in _runs(folded):
         crest = float(edge_height_m[max(c - ACROSS, 0) : c + ACROSS + 1, k0:k1].max())
-        if crest > RISEN_M:
+        if crest > CREST_ABOVE_M:
             per_slack[c, k0:k1] = max(2.0 * crest / float(slack_m[c, k0:k1].sum()), 1.0)
     return per_slack
 
