@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from clothd.core.folds import fold_heights_m
+from clothd.core.folds import HELD_TOLERANCE_FRACTION, fold_heights_m, fold_reading
 
 pytestmark = pytest.mark.clock_free
 
@@ -40,6 +40,22 @@ def test_a_peaked_fold_keeps_its_edges_at_rest_length() -> None:
     rise = np.sqrt(L_M**2 - d**2)
     np.testing.assert_allclose(z[:, 4], rise)
     assert np.all(np.delete(z, 4, axis=1) == 0.0)
+
+
+def test_a_fold_dying_down_holds_until_its_edges_are_nearly_back_to_length() -> None:
+    def peaked(short: float) -> np.ndarray:  # both edges around node 4 short by this fraction
+        d = L_M * (1.0 - short)
+        x = [0, L_M, 2 * L_M, 3 * L_M, 3 * L_M + d, 3 * L_M + 2 * d]
+        return _with_row_x(x + [x[-1] + L_M * (k + 1) for k in range(NX - len(x))])
+
+    risen, folded = fold_reading(peaked(0.2), _rest(), 0.1)
+    assert np.all(risen[:, 4] > 0.0)
+    dying = peaked(0.06)  # within the tolerance, past the held fraction of it
+    assert np.all(fold_heights_m(dying, _rest(), 0.1) == 0.0)  # a fold never seen is noise
+    held, folded = fold_reading(dying, _rest(), 0.1, held=folded)
+    np.testing.assert_allclose(held[:, 4], L_M * np.sqrt(1.0 - 0.94**2))
+    back = peaked(0.9 * HELD_TOLERANCE_FRACTION * 0.1)
+    assert np.all(fold_reading(back, _rest(), 0.1, held=folded)[0] == 0.0)
 
 
 def test_a_flat_topped_fold_lifts_both_top_nodes() -> None:

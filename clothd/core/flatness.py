@@ -27,6 +27,7 @@ import numpy as np
 
 from clothd.config import FlatnessConfig
 from clothd.core.modes import FlatnessBasis
+from clothd.core.stereo import backed_heights
 
 
 @dataclass(frozen=True)
@@ -396,12 +397,8 @@ class FlatnessMonitor:
         ridges = find_ridges(nodes_m, spacing, shortening, compressed, apexes, quad_height_m)
         max_height = float(max(nodes_m[..., 2].max(), 0.0, *(r.height_m for r in ridges)))
         if quad_height_m is not None:
-            # A quad counts as high as its highest neighbour backs it: a ridge runs over several quads, while
-            # a flat cloth's noise rises in one (it read 1.27 mm).
-            ring = np.ones((3, 3), np.uint8)
-            ring[1, 1] = 0
-            backing = cv2.dilate(quad_height_m.astype(np.float32), ring, borderType=cv2.BORDER_REPLICATE)
-            max_height = float(max(np.minimum(quad_height_m, backing).max(), 0.0))
+            # One quad alone risen is noise (a flat cloth's read 1.27 mm).
+            max_height = float(max(backed_heights(quad_height_m).max(), 0.0))
         flaps = () if quad_seen is None else find_flaps(nodes_m, spacing, quad_seen)
         if self.flat:
             self.flat = max_height <= 2 * c.flat_height_m and starting_pct <= 2 * c.flat_compressed_pct

@@ -29,6 +29,8 @@ Where a second view measures the quads' heights, two things are known that lengt
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from clothd.core.nanmedian import nanmedian
@@ -38,8 +40,21 @@ from clothd.core.stereo import CREST_ABOVE_M  # a quad measured this high has ri
 # lifted some rows and not the next (a node 11 mm off on compress's edge row, where the model's springs
 # then pulled the unlifted node in along the fold); two hold the fold's line.
 ACROSS = 2
+# A folded edge stays folded until it is back within this fraction of the tolerance. At the threshold an
+# edge's rise jumps from nothing to 0.44 of its length, so a fold dying down flickered on and off from
+# row to row, and the model's springs between lifted and unlifted rows pulled the cloth's edge row in
+# along the fold (compress's worst node, two cameras: 6.84 mm; held to 0.3 of it, 6.09; to 0.5, 6.26).
+HELD_TOLERANCE_FRACTION = 0.3
 # Where the cloth beside an edge has risen, the edge has folded once it is this much shorter than at rest.
 RAISED_TOLERANCE_STRAIN = 0.02
+
+
+@dataclass(frozen=True)
+class FoldedEdges:
+    """Which edges had folded: along the rows (ny, nx-1) and along the columns (nx, ny-1)."""
+
+    rows: np.ndarray
+    cols: np.ndarray
 
 
 def fold_heights_m(
@@ -52,12 +67,34 @@ def fold_heights_m(
     (ny, nx, 2). An edge has folded only when it is shorter than (1 - tolerance_strain) of its rest
     length. quad_height_m (ny-1, nx-1): each quad's highest point as a further view measured it, or None
     with one view."""
-    rows = _chain_heights(nodes_xy_m, rest_xy_m, tolerance_strain, _edge_heights(quad_height_m))
+    return fold_reading(nodes_xy_m, rest_xy_m, tolerance_strain, quad_height_m)[0]
+
+
+def fold_reading(
+    nodes_xy_m: np.ndarray,
+    rest_xy_m: np.ndarray,
+    tolerance_strain: float,
+    quad_height_m: np.ndarray | None = None,
+    held: FoldedEdges | None = None,
+) -> tuple[np.ndarray, FoldedEdges]:
+    """`fold_heights_m`, and which edges have folded. held: which had at the last reading of the same
+    cloth (None: none); those stay folded down to HELD_TOLERANCE_FRACTION of the tolerance."""
     q_cols = None if quad_height_m is None else quad_height_m.T
-    cols = _chain_heights(
-        nodes_xy_m.transpose(1, 0, 2), rest_xy_m.transpose(1, 0, 2), tolerance_strain, _edge_heights(q_cols)
+    rows, folded_rows = _chain_heights(
+        nodes_xy_m,
+        rest_xy_m,
+        tolerance_strain,
+        _edge_heights(quad_height_m),
+        None if held is None else held.rows,
     )
-    return np.maximum(rows, cols.T)
+    cols, folded_cols = _chain_heights(
+        nodes_xy_m.transpose(1, 0, 2),
+        rest_xy_m.transpose(1, 0, 2),
+        tolerance_strain,
+        _edge_heights(q_cols),
+        None if held is None else held.cols,
+    )
+    return np.maximum(rows, cols.T), FoldedEdges(folded_rows, folded_cols)
 
 
 def _edge_heights(quad_height_m: np.ndarray | None) -> np.ndarray | None:
@@ -70,14 +107,21 @@ def _edge_heights(quad_height_m: np.ndarray | None) -> np.ndarray | None:
 
 
 def _chain_heights(
-    xy: np.ndarray, rest: np.ndarray, tolerance_strain: float, edge_height_m: np.ndarray | None
-) -> np.ndarray:
-    """Heights (c, k) of c neighbouring chains of k nodes along axis 1."""
+    xy: np.ndarray,
+    rest: np.ndarray,
+    tolerance_strain: float,
+    edge_height_m: np.ndarray | None,
+    held: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Heights (c, k) of c neighbouring chains of k nodes along axis 1, and which of their edges (c, k-1)
+    have folded."""
     rest_length = np.linalg.norm(np.diff(rest, axis=1), axis=2)
     length = np.linalg.norm(np.diff(xy, axis=1), axis=2)
     tolerance = np.full(length.shape, tolerance_strain)
     if edge_height_m is not None:
         tolerance[_risen(edge_height_m)] = min(tolerance_strain, RAISED_TOLERANCE_STRAIN)
+    if held is not None and held.shape == tolerance.shape:
+        tolerance[held] = np.minimum(tolerance[held], HELD_TOLERANCE_FRACTION * tolerance_strain)
     folded = length < (1.0 - tolerance) * rest_length
     rise = np.where(folded, np.sqrt(np.maximum(rest_length**2 - length**2, 0.0)), 0.0)  # (c, k-1)
     if edge_height_m is not None:
@@ -91,7 +135,7 @@ def _chain_heights(
     on_table = flat[:, :-1] & flat[:, 1:]
     climb_left = _climb(rise, on_table)
     climb_right = _climb(rise[:, ::-1], on_table[:, ::-1])[:, ::-1]
-    return np.minimum(climb_left, climb_right)
+    return np.minimum(climb_left, climb_right), folded
 
 
 def _risen(edge_height_m: np.ndarray) -> np.ndarray:

@@ -52,12 +52,20 @@ CURVATURE_SIGMA_M = 0.004
 ZERO_SIGMA_M = 0.05  # far from any point the field settles to the table
 OUTLIER_SIGMA = 4.0  # the refit drops points this many robust sigmas off the first fit
 MIN_OUTLIER_M = 0.0015  # ... but never tighter than this
-# A quad measured this high holds a crest (`crest_heights`): a flat cloth's quads read 0.8 mm at most.
+# A quad measured this high has risen (folds.py): a flat cloth's quads read 0.8 mm at most.
 CREST_ABOVE_M = 0.002
+# A quad measured this high, backed by a neighbour as high, is read from the surface through the points as
+# well (`crest_heights`). Flatness is decided at 1 mm, where the two highest points of a crease's quads
+# read 0.3-0.5 mm for 0.8-0.9 mm (the flatten regulator let go of a 1.15 mm crease it read at 0.85 mm).
+CREST_READ_ABOVE_M = 0.0005
 CREST_SAMPLES = 5  # along each side of a risen quad, where the surface is read for its highest
 # ... at most this far from a point: points lie about 7 mm apart, and past the last one at an edge the field
 # runs on along its slope (an edge quad of an 11.3 mm ridge read 13.7 mm).
 CREST_SUPPORT_M = 0.0045
+# The surface is fitted through the points this far round the risen quads only: a crest is read from the
+# points near it, and a fit over the whole of a 500 x 360 mm panel took 50 ms.
+CREST_FIELD_MARGIN_M = 0.02
+CREST_MIN_POINTS = 8
 
 
 def epipolar_distance_px(
@@ -333,26 +341,50 @@ def quad_highest(quads: np.ndarray, z_m: np.ndarray, shape: tuple[int, int]) -> 
     return np.asarray(np.where(np.isfinite(filled), filled, 0.0))
 
 
+def backed_heights(quad_height_m: np.ndarray) -> np.ndarray:
+    """Each quad's height (ny-1, nx-1) as far as its highest neighbour backs it: a ridge runs over several
+    quads, while a flat cloth's noise rises in one."""
+    ring = np.ones((3, 3), np.uint8)
+    ring[1, 1] = 0
+    backing = cv2.dilate(quad_height_m.astype(np.float32), ring, borderType=cv2.BORDER_REPLICATE)
+    return np.asarray(np.minimum(quad_height_m, backing))
+
+
 def crest_heights(quad_height_m: np.ndarray, points_m: np.ndarray, nodes_m: np.ndarray) -> np.ndarray:
-    """Quad heights (ny-1, nx-1) as `quad_highest` gives them, each quad risen past CREST_ABOVE_M raised
-    to the highest of the smooth surface through the points (m, 3) over it, the quad's corners nodes_m
-    (ny, nx, 3). A crest lies between points ~7 mm apart: on 20 laid ridges the two highest points of its
-    quad read 0.6-1.7 mm below it, the surface 0.1-1.1 mm. Only risen quads, and only near a point: on a
-    flat cloth the surface runs on past an edge's last point (one read 1.6 mm), where the points themselves
-    read 0.8 mm at most."""
-    risen = quad_height_m > CREST_ABOVE_M
+    """Quad heights (ny-1, nx-1) as `quad_highest` gives them, each quad past CREST_ABOVE_M, or backed past
+    CREST_READ_ABOVE_M (`backed_heights`), raised to the highest of the smooth surface through the points
+    (m, 3) over it, the quad's corners nodes_m (ny, nx, 3). A crest lies between points ~7 mm apart: on 20
+    laid ridges the two highest points of its quad read 0.6-1.7 mm below it, the surface 0.1-1.1 mm. Only
+    risen quads, and only near a point: on a flat cloth the surface runs on past an edge's last point (one
+    read 1.6 mm), where the points themselves read 0.8 mm at most."""
+    risen = (quad_height_m > CREST_ABOVE_M) | (backed_heights(quad_height_m) > CREST_READ_ABOVE_M)
     if not risen.any():
         return quad_height_m
-    rectangle = cv2.boxPoints(cv2.minAreaRect(nodes_m[..., :2].reshape(-1, 2).astype(np.float32)))
-    field = fit_height_field(points_m, QuadMesh.covering(rectangle, 2, 2))
     j, i = np.nonzero(risen)
-    u, v = (g.ravel() for g in np.meshgrid(*2 * [np.linspace(0.0, 1.0, CREST_SAMPLES)]))
     corners = [nodes_m[j, i, :2], nodes_m[j, i + 1, :2], nodes_m[j + 1, i, :2], nodes_m[j + 1, i + 1, :2]]
+    near = _points_around(points_m, np.concatenate(corners), CREST_FIELD_MARGIN_M)
+    if near is None:
+        return quad_height_m
+    field = fit_height_field(*near)
+    u, v = (g.ravel() for g in np.meshgrid(*2 * [np.linspace(0.0, 1.0, CREST_SAMPLES)]))
     weights = [(1 - u) * (1 - v), u * (1 - v), (1 - u) * v, u * v]  # bilinear over each quad
     xy = sum(w[None, :, None] * c[:, None, :] for w, c in zip(weights, corners, strict=True))
     samples = np.reshape(xy, (-1, 2))
-    supported = cKDTree(points_m[:, :2]).query(samples, distance_upper_bound=CREST_SUPPORT_M)[0] < np.inf
+    supported = cKDTree(near[0][:, :2]).query(samples, distance_upper_bound=CREST_SUPPORT_M)[0] < np.inf
     on_surface = np.where(supported, field.at(samples), -np.inf).reshape(len(j), -1)
     out = quad_height_m.copy()
     out[j, i] = np.maximum(out[j, i], on_surface.max(axis=1))
     return out
+
+
+def _points_around(
+    points_m: np.ndarray, xy_m: np.ndarray, margin_m: float
+) -> tuple[np.ndarray, QuadMesh] | None:
+    """The points (m, 3) within the smallest rectangle round xy_m (k, 2) grown by margin_m on every side,
+    and that rectangle; None when fewer than CREST_MIN_POINTS lie in it."""
+    centre, size, angle = cv2.minAreaRect(xy_m.astype(np.float32))
+    grown = (size[0] + 2.0 * margin_m, size[1] + 2.0 * margin_m)
+    area = QuadMesh.covering(cv2.boxPoints((centre, grown, angle)), 2, 2)
+    local = (points_m[:, :2] - area.origin_m) @ area.axes.T
+    inside = np.all((local >= 0.0) & (local <= [area.width_m, area.height_m]), axis=1)
+    return (points_m[inside], area) if inside.sum() >= CREST_MIN_POINTS else None

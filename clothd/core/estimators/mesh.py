@@ -19,7 +19,7 @@ from clothd.core.conveyor import BeltField
 from clothd.core.ekf import UpdateStats
 from clothd.core.estimators.base import Measurements, StateEstimate, boundary, uncorrected
 from clothd.core.feature_set import FeatureSet
-from clothd.core.folds import fold_heights_m
+from clothd.core.folds import FoldedEdges, fold_heights_m, fold_reading
 from clothd.core.mesh import QuadMesh, blend, measurement_jacobian
 from clothd.core.mesh_ekf import NodeBelief
 from clothd.core.physics import CONTACT_HEIGHT_M, MassSpring
@@ -51,10 +51,12 @@ class MeshEstimator:
         self.mesh: QuadMesh | None = None
         self.belief: NodeBelief | None = None
         self._quad_height_m: np.ndarray | None = None  # as a further view last measured them
+        self._folded: FoldedEdges | None = None  # the model's, at the last correction
 
     def start(self, mesh: QuadMesh, pose0: np.ndarray, nodes_m: np.ndarray | None = None) -> None:
         self.mesh = mesh
         self._quad_height_m = None
+        self._folded = None
         rest = mesh.rest_nodes_m()
         self.sim.set_rest(rest)
         nodes = (
@@ -144,12 +146,15 @@ class MeshEstimator:
 
     def _lift_folds(self) -> None:
         """Set the node heights from how much shorter the cloth is on the table than at rest. The model's
-        edges are straight, so each folded edge rises by its whole length: its springs stay at rest."""
-        _, belief = self._started()
-        z = self._fold_heights_m(None)
+        edges are straight, so each folded edge rises by its whole length: its springs stay at rest. A fold
+        holds until its edges are nearly back to length (folds.HELD_TOLERANCE_FRACTION)."""
+        mesh, belief = self._started()
+        xy = belief.positions_m[:, :2].reshape(mesh.ny, mesh.nx, 2)
+        tolerance = self.mesh_cfg.fold_tolerance_strain
+        z, self._folded = fold_reading(xy, mesh.rest_nodes_m(), tolerance, None, self._folded)
         belief.set_heights(z.ravel(), self.ekf.initial_pos_sigma_m, self.ekf.initial_vel_sigma_m_s)
 
-    def _fold_heights_m(self, quad_height_m: np.ndarray | None) -> np.ndarray:
+    def _measured_fold_heights_m(self, quad_height_m: np.ndarray) -> np.ndarray:
         mesh, belief = self._started()
         return fold_heights_m(
             belief.positions_m[:, :2].reshape(mesh.ny, mesh.nx, 2),
@@ -175,7 +180,7 @@ class MeshEstimator:
             # lower than the model's straight edges put them, and a low fold rises before its edges are
             # short enough for the model (folds.py). The model keeps its edges straight, springs at rest.
             nodes = nodes.copy()
-            nodes[:, 2] = self._fold_heights_m(self._quad_height_m).ravel()
+            nodes[:, 2] = self._measured_fold_heights_m(self._quad_height_m).ravel()
         return StateEstimate(
             _best_fit_pose(mesh, nodes),
             _best_fit_pose_cov(nodes, belief.P),
