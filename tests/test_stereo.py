@@ -19,6 +19,7 @@ from clothd.core.mesh import QuadMesh
 from clothd.core.messages import ModuleCommands, PairedView
 from clothd.core.modes import FlatnessBasis
 from clothd.core.stereo import (
+    backed_heights,
     crest_heights,
     epipolar_distance_px,
     fit_height_field,
@@ -100,6 +101,14 @@ def _quads_of(xy_m: np.ndarray, nodes_m: np.ndarray) -> np.ndarray:
         np.floor((xy_m - origin) / pitch).astype(int), 0, [nodes_m.shape[1] - 2, nodes_m.shape[0] - 2]
     )
     return np.asarray(ij[:, 1] * (nodes_m.shape[1] - 1) + ij[:, 0])
+
+
+def test_a_quad_counts_as_high_as_a_neighbour_backs_it_and_nothing_past_the_edge_does() -> None:
+    q = np.zeros((4, 5))
+    q[0, 2] = 0.001  # alone, on the cloth's edge row
+    assert backed_heights(q).max() == 0.0
+    q[1, 3] = 0.0008  # a neighbour inside, diagonally
+    assert backed_heights(q)[0, 2] == pytest.approx(0.0008)
 
 
 def test_a_crest_between_the_points_is_read_from_the_surface_through_them() -> None:

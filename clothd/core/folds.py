@@ -120,7 +120,7 @@ def _chain_heights(
     tolerance = np.full(length.shape, tolerance_strain)
     if edge_height_m is not None:
         tolerance[_risen(edge_height_m)] = min(tolerance_strain, RAISED_TOLERANCE_STRAIN)
-    if held is not None and held.shape == tolerance.shape:
+    if held is not None:
         tolerance[held] = np.minimum(tolerance[held], HELD_TOLERANCE_FRACTION * tolerance_strain)
     folded = length < (1.0 - tolerance) * rest_length
     rise = np.where(folded, np.sqrt(np.maximum(rest_length**2 - length**2, 0.0)), 0.0)  # (c, k-1)
