@@ -20,13 +20,12 @@ from pathlib import Path
 import numpy as np
 
 from clothd.config import TrackerConfig
-from clothd.core.binding import cloth_coordinates
 from clothd.core.camera_model import CameraModel
-from clothd.core.mesh import QuadMesh
 from clothd.core.messages import Estimate, feature_detections
 from clothd.formats import read_camera
-from clothd.tools.grading import material_coordinates, true_positions
+from clothd.tools.grading import FeatureTruth, material_coordinates, true_positions
 from clothd.tools.offline import OfflineTracking
+from clothd.tools.oracle import track_with_oracle
 from clothd.tools.recordings import recorded_exposure_s
 from hwsim.truth import Truth
 
@@ -61,12 +60,6 @@ class Graded:
     per_frame_worst_px: np.ndarray  # (F,)
 
 
-def _truth_mesh(truth: Truth) -> QuadMesh:
-    ny, nx = truth.st_m.shape[:2]
-    w, h = truth.size_m
-    return QuadMesh(nx, ny, np.zeros(2), 0.0, w, h)
-
-
 Births = dict[int, tuple[int, np.ndarray]]  # feature id -> (frame, detection pixel (2,))
 
 
@@ -79,39 +72,14 @@ def track_with_births(run: OfflineTracking) -> tuple[list[Estimate], Births]:
     return ests, feature_detections(ests)
 
 
-def _seen_nodes_m(truth: Truth, k: int, exposure_s: float) -> np.ndarray:
-    """The truth's nodes (ny, nx, 3) as frame k shows them. hwsim smears a frame over its exposure up to
-    the frame's time, so a moving cloth is seen where it was exposure_s / 2 earlier (the smear's middle),
-    p − v·exposure_s/2; v from the neighbouring frames (central differences, one-sided at the ends)."""
-    nodes = truth.nodes_m[k].astype(np.float64)
-    if exposure_s <= 0.0 or len(truth.t_s) < 2:
-        return nodes
-    lo, hi = max(k - 1, 0), min(k + 1, len(truth.t_s) - 1)
-    velocity = (truth.nodes_m[hi] - truth.nodes_m[lo]) / (truth.t_s[hi] - truth.t_s[lo])
-    return np.asarray(nodes - 0.5 * exposure_s * velocity)
-
-
 def _feature_truth_pixels(
     truth: Truth, camera: CameraModel, births: Births, exposure_s: float = 0.0
 ) -> dict[int, np.ndarray]:
     """True pixel (F, 2) of every feature id, from the material point under its detection pixel: under it
     as the frame showed the cloth, in the middle of its exposure_s (the recording's camera)."""
-    mesh = _truth_mesh(truth)
-    by_frame: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for fid, (k, px) in births.items():
-        by_frame.setdefault(k, []).append((fid, px))
-    out: dict[int, np.ndarray] = {}
-    for k, items in by_frame.items():
-        nodes_px = camera.project(_seen_nodes_m(truth, k, exposure_s).reshape(-1, 3))
-        st, found = cloth_coordinates(mesh, nodes_px, np.array([px for _, px in items], dtype=np.float64))
-        ids = [fid for fid, _ in items]
-        pix = camera.project(true_positions(truth, np.nan_to_num(st)).reshape(-1, 3)).reshape(
-            len(truth.t_s), -1, 2
-        )
-        for j, fid in enumerate(ids):
-            if found[j]:
-                out[fid] = pix[:, j]
-    return out
+    feature_truth = FeatureTruth(truth, camera, exposure_s)
+    feature_truth.learn_births(births)
+    return feature_truth.pixels
 
 
 def _node_errors_mm(truth: Truth, ests: list[Estimate]) -> np.ndarray | None:
@@ -140,19 +108,26 @@ def grade(
     cfg: TrackerConfig,
     camera_json: Path | None = None,
     cameras: int = 1,
+    oracle: bool = False,
 ) -> Graded:
     """One mode on one recording. camera_json: the camera the tracker is given instead of the
     recording's (a calibrated one); the grading itself always goes through the recording's true camera.
-    cameras: the recording's first this many, to the tracker."""
+    cameras: the recording's first this many, to the tracker. oracle: every feature LK keeps is measured
+    at its true pixel (clothd/tools/oracle.py)."""
     truth = Truth.load(recording)
     run = OfflineTracking(
         recording, cfg, camera_json, read_ahead=False, progress=f"{scenario}: {mode}", cameras=cameras
     )
-    start = time.perf_counter()
-    ests, births = track_with_births(run)
-    wall = time.perf_counter() - start
     camera = read_camera(recording / "camera.json")
-    true_px = _feature_truth_pixels(truth, camera, births, recorded_exposure_s(recording))
+    feature_truth = FeatureTruth(truth, camera, recorded_exposure_s(recording))
+    start = time.perf_counter()
+    if oracle:  # it learns each feature's truth as the feature is detected
+        ests = track_with_oracle(run, feature_truth)
+    else:
+        ests, births = track_with_births(run)
+        feature_truth.learn_births(births)
+    wall = time.perf_counter() - start
+    true_px = feature_truth.pixels
     means, worsts = np.full(len(ests), np.nan), np.full(len(ests), np.nan)
     for k, e in enumerate(ests):
         errs = [
@@ -183,14 +158,14 @@ def format_table(rows: list[AccuracyRow]) -> str:
     for sc in dict.fromkeys(r.scenario for r in rows):
         out.append(f"\n{sc}")
         out.append(
-            f"  {'mode':<17} {'feat mean':>9} {'worst':>7} {'mean+2w':>8} {'node rmse':>9} {'max':>7} "
+            f"  {'mode':<22} {'feat mean':>9} {'worst':>7} {'mean+2w':>8} {'node rmse':>9} {'max':>7} "
             f"{'lost':>5} {'x rt':>5}"
         )
         for r in (r for r in rows if r.scenario == sc):
             rmse = f"{r.node_rmse_mm:6.2f} mm" if r.node_rmse_mm is not None else f"{'-':>9}"
             nmax = f"{r.node_max_mm:7.2f}" if r.node_max_mm is not None else f"{'-':>7}"
             out.append(
-                f"  {r.mode:<17} {r.feat_mean_px:6.3f} px {r.feat_worst_px:7.2f} {r.cost_px:8.2f} {rmse} "
+                f"  {r.mode:<22} {r.feat_mean_px:6.3f} px {r.feat_worst_px:7.2f} {r.cost_px:8.2f} {rmse} "
                 f"{nmax} {r.lost_frames:>5} {r.realtime_factor:5.1f}"
             )
     return "\n".join(out)

@@ -85,6 +85,7 @@ def _cmd_bench_abuse(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
+    import itertools
     import json
 
     from clothd.taichi_runtime import start_taichi
@@ -98,11 +99,13 @@ def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
     for scenario in args.scenarios:
         rec = scenario_recording(args.cache, scenario, args.duration, args.cameras)
         graded = {}
-        for label, model, use_input in MODES:
+        oracles = (False, True) if args.oracle else (False,)
+        for (label, model, use_input), oracle in itertools.product(MODES, oracles):
             if args.modes and label not in args.modes:
                 continue
             mode_cfg = with_overrides(cfg, {"tracker": {"model": model, "use_input": use_input}})
-            graded[label] = grade(rec, scenario, label, mode_cfg.tracker, cameras=args.cameras)
+            label += ", oracle" if oracle else ""
+            graded[label] = grade(rec, scenario, label, mode_cfg.tracker, cameras=args.cameras, oracle=oracle)
             rows.append(graded[label].row)
         plot(scenario, graded, 30.0, args.out / f"{scenario}.png")
     print(format_table(rows))
@@ -266,6 +269,7 @@ def _add_accuracy(bsub: Subparsers) -> None:
         "--cache", type=Path, default=Path("out/bench"), help="where shipped scenarios are recorded"
     )
     ba.add_argument("--out", type=Path, default=Path("out/bench/accuracy"), help="where the plots go")
+    ba.add_argument("--oracle", action="store_true", help="each mode again, features at their true pixels")
     add_cameras(ba, 1, "2: the recordings' second camera too (hwsim's cell's oblique one)")
     ba.add_argument("--config", type=Path)
     ba.add_argument("--json", type=Path)
