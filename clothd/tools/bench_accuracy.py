@@ -121,12 +121,13 @@ def grade(
     camera = read_camera(recording / "camera.json")
     feature_truth = FeatureTruth(truth, camera, recorded_exposure_s(recording))
     start = time.perf_counter()
-    if oracle:  # it learns each feature's truth as the feature is detected
+    if oracle:  # it learns each feature's truth as an estimate reports its detection
         ests = track_with_oracle(run, feature_truth)
+        wall = time.perf_counter() - start
     else:
         ests, births = track_with_births(run)
+        wall = time.perf_counter() - start
         feature_truth.learn_births(births)
-    wall = time.perf_counter() - start
     true_px = feature_truth.pixels
     means, worsts = np.full(len(ests), np.nan), np.full(len(ests), np.nan)
     for k, e in enumerate(ests):
