@@ -328,6 +328,8 @@ def main(argv: list[str] | None = None) -> int:
     except ClothdError as err:
         print(f"clothd: {err}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # a Ctrl-C before the daemon's own handlers are up: what was started is stopped
+        return 130
 
 
 if __name__ == "__main__":

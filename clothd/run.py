@@ -16,6 +16,7 @@ import gc
 import json
 import logging
 import select
+import shutil
 import signal
 import socket
 import subprocess
@@ -66,6 +67,7 @@ SIM_READ_POLL_S = 0.5
 @dataclass
 class SimCell:
     process: subprocess.Popen[bytes]
+    state_dir: Path  # hwsim's files (camera.json, the pty's link): made for this cell, removed with it
     ready: dict[str, object]
 
     def stop(self) -> None:
@@ -76,6 +78,7 @@ class SimCell:
             except subprocess.TimeoutExpired:
                 self.process.kill()
                 self.process.wait()
+        shutil.rmtree(self.state_dir, ignore_errors=True)
 
 
 def start_sim(scenario: str, controllers: int = 1) -> SimCell:
@@ -87,7 +90,17 @@ def start_sim(scenario: str, controllers: int = 1) -> SimCell:
     cmd.append("--exit-with-parent")  # a daemon killed with -9 takes its simulated cell with it
     # Its own session: a Ctrl-C in the terminal must not take the cell away before the daemon has
     # stopped the modules; the daemon stops it last.
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, start_new_session=True)
+    cell = SimCell(subprocess.Popen(cmd, stdout=subprocess.PIPE, start_new_session=True), state_dir, {})
+    try:
+        cell.ready = _ready_line(cell.process)
+    except BaseException:  # not ready, or a Ctrl-C while waiting: nothing of it is left behind
+        cell.stop()
+        raise
+    return cell
+
+
+def _ready_line(proc: subprocess.Popen[bytes]) -> dict[str, object]:
+    """The line in which `hwsim serve` says where its hardware is."""
     assert proc.stdout is not None
     deadline = time.monotonic() + SIM_START_TIMEOUT_S
     while time.monotonic() < deadline:
@@ -99,8 +112,7 @@ def start_sim(scenario: str, controllers: int = 1) -> SimCell:
             with contextlib.suppress(json.JSONDecodeError):
                 info = json.loads(line)
                 if isinstance(info, dict) and "serial" in info:
-                    return SimCell(proc, info)
-    proc.kill()
+                    return info
     raise HardwareError(f"hwsim serve was not ready within {SIM_START_TIMEOUT_S:.0f} s")
 
 

@@ -75,7 +75,7 @@ def test_an_export_decodes_to_the_estimates_and_draws(short_recording: Recorder,
     rec = short_recording("compress")
     replay = tmp_path / "replay"
     assert main(["replay", str(rec), "--out", str(replay), "--model", "mesh"]) == 0
-    out = tmp_path / "rec.mcap"
+    out = tmp_path / "exports" / "rec.mcap"  # a folder yet to be made, as --out's are
     assert main(["export", str(rec), "--mcap", str(out), "--estimates", str(replay / "estimates.npz")]) == 0
     est = np.load(replay / "estimates.npz")
     log = read_cell_mcap(out)
@@ -111,7 +111,7 @@ def test_an_export_decodes_to_the_estimates_and_draws(short_recording: Recorder,
     poses = np.array([p for _, p in log.pose])
     assert np.allclose(poses, est["pose"][: len(poses)], atol=1e-9)
     assert [s["features"] > 0 for _, s in log.status].count(True) == len(log.status)
-    picture = tmp_path / "picture.png"
+    picture = tmp_path / "pictures" / "picture.png"
     assert main(["picture", str(out), "--out", str(picture)]) == 0
     drawn = cv2.imread(str(picture))
     assert drawn is not None and drawn.shape[1] >= 1000

@@ -37,16 +37,20 @@ def live_recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     rec = tmp_path_factory.mktemp("live") / "session"
     opcua = f"opc.tcp://127.0.0.1:{free_port()}/clothd/"
     cmd = ["run", "--sim", "--record", str(rec), "--port", str(free_port()), "--opcua-endpoint", opcua]
+    tmp = tmp_path_factory.mktemp("tmp")  # where the simulated cell keeps its files while it runs
     proc = subprocess.Popen(
         [sys.executable, "-m", "clothd.cli", *cmd],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
         start_new_session=True,
+        env={**os.environ, "TMPDIR": str(tmp)},
     )
     try:
         wait(lambda: len(_frame_times_s(rec)) >= RECORDED_FRAMES, 120, "frames recorded", every_s=0.2)
+        assert list(tmp.glob("clothd-sim-*")), "hwsim's files are where TMPDIR says"
         os.killpg(proc.pid, signal.SIGINT)  # Ctrl-C: the terminal signals the whole process group
         assert proc.wait(timeout=30) == 0
+        assert not list(tmp.glob("clothd-sim-*")), "the simulated cell's files outlived it"
     finally:
         if proc.poll() is None:
             os.killpg(proc.pid, signal.SIGKILL)

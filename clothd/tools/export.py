@@ -42,6 +42,7 @@ def export_mcap(recording: Path, out: Path, estimates_npz: Path | None = None) -
     ctx = foxglove.Context()  # this export's own channels, not the process-wide default
     channels = CellChannels(ctx, annotated=camera_model is not None)
     frames = 0
+    out.parent.mkdir(parents=True, exist_ok=True)
     with foxglove.open_mcap(out, allow_overwrite=True, context=ctx):
         total = footage.frame_count
         for k, (t_s, image) in enumerate(tqdm(footage.frames(), total=total, desc="exporting", disable=None)):

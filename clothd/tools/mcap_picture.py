@@ -178,6 +178,7 @@ def draw_picture(log: CellLog, out: Path, at_ns: int) -> int:
     timeline.axvline((t_cam - t0) / 1e9, color="k", lw=1, ls="--")
     timeline.grid(alpha=0.3)
     fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out)
     plt.close(fig)
     return t_cam
