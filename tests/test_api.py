@@ -83,6 +83,10 @@ def test_setpoint_validation_gives_reasons(client: TestClient) -> None:
     r = client.put("/api/v1/setpoint", json={"mode": "spin"})
     assert r.status_code == 422
     assert "mode 'spin' is none of: idle, hold, move, flatten, drive" in r.json()["detail"]
+    markup = "<script>alert(1)</script>" + "A" * 3000
+    r = client.put("/api/v1/setpoint", json={"mode": markup})
+    assert r.status_code == 422 and "script" not in r.text and len(r.text) < 300
+    assert "the mode given is none of: idle" in r.json()["detail"]
     r = client.put("/api/v1/setpoint", json={"mode": "move", "x_m": 0.1, "y_m": 0, "theta_rad": 9})
     assert r.status_code == 422 and "theta_rad" in r.text
 
@@ -150,6 +154,16 @@ def test_stream_sends_the_status_at_once(client: TestClient) -> None:
     assert first["mode"] == "idle"
     assert first["cameras"] == client.get("/api/v1/status").json()["cameras"]  # the same status
     assert [c["name"] for c in first["cameras"]] == ["cam0"]
+
+
+def test_a_stream_at_a_rate_it_cannot_have_is_closed_with_the_reason(client: TestClient) -> None:
+    for hz in ("0", "-1", "abc", "31", "nan"):
+        with (
+            client.websocket_connect(f"/api/v1/stream?hz={hz}", headers=WS_OWN) as ws,
+            pytest.raises(WebSocketDisconnect) as closed,
+        ):
+            ws.receive_json()
+        assert closed.value.code == 1008 and closed.value.reason == "hz must be a number in (0, 30]", hz
 
 
 def test_slow_subscriber_drops_instead_of_queueing() -> None:

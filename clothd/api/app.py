@@ -8,13 +8,14 @@ Handlers only read the state the loop published or flip a request flag: none of 
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
 import httpx
-from fastapi import APIRouter, FastAPI, Query, Request, WebSocket
+from fastapi import APIRouter, FastAPI, Request, WebSocket
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, Response, StreamingResponse
@@ -48,6 +49,7 @@ ERROR_DOC: dict[int | str, dict[str, Any]] = {
     409: {"model": ErrorResponse, "description": "not possible in the daemon's current state"},
 }
 STATIC_DIR = Path(__file__).resolve().parent / "static"
+MAX_STREAM_HZ = 30.0  # the tick's rate at most: a faster stream would only repeat it
 STATUS_DOC: dict[int | str, dict[str, Any]] = {
     200: {"model": Status, "description": "the state published by the last tick"}
 }
@@ -203,14 +205,21 @@ def _add_view_routes(
         return StreamingResponse(frames, media_type="multipart/x-mixed-replace; boundary=frame")
 
     @api.websocket("/stream")
-    async def stream(ws: WebSocket, hz: Annotated[float | None, Query(gt=0, le=30)] = None) -> None:
-        """The status every tick, or at most `hz` times a second. A slow client misses messages; one that
-        reads nothing is dropped. Refused (close 1013, "try again later") while api.max_streams are open."""
+    async def stream(ws: WebSocket, hz: str | None = None) -> None:
+        """The status every tick, or at most `hz` (0 < hz <= 30) times a second. A slow client misses
+        messages; one that reads nothing is dropped. Refused (close 1013, "try again later") while
+        api.max_streams are open; a bad `hz` is accepted and closed (1008) with the reason, where a check
+        before the handshake could only answer a bare 403."""
+        rate_hz = _stream_hz(hz)
+        if isinstance(rate_hz, str):
+            await ws.accept()
+            await ws.close(code=1008, reason=rate_hz)
+            return
         if not streams.take():
             await ws.close(code=1013, reason=f"{streams.max_streams} streams are open (api.max_streams)")
             return
         try:
-            await _serve_stream(ws, hub, hz)
+            await _serve_stream(ws, hub, rate_hz)
         finally:
             streams.give_back()
 
@@ -262,6 +271,17 @@ async def _relay_sim(truth_url: str | None, what: str, params: dict[str, Any] | 
 def _streams_full(streams: StreamSlots) -> JSONResponse:
     detail = f"{streams.max_streams} streams are open (api.max_streams); try again later"
     return JSONResponse({"detail": detail}, status_code=503, headers={"Retry-After": "5"})
+
+
+def _stream_hz(hz: str | None) -> float | str | None:
+    """The stream's rate from its query (None: every tick), or why it is no rate."""
+    if hz is None:
+        return None
+    try:
+        rate = float(hz)
+    except ValueError:
+        rate = math.nan
+    return rate if 0.0 < rate <= MAX_STREAM_HZ else f"hz must be a number in (0, {MAX_STREAM_HZ:g}]"
 
 
 async def _serve_stream(ws: WebSocket, hub: StreamHub, hz: float | None) -> None:

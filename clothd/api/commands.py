@@ -19,10 +19,13 @@ from clothd.api.cell import Cell
 from clothd.api.schemas import DriveSetpoint, MoveSetpoint, SetpointRequest
 from clothd.errors import InvalidRequestError
 
+# An unknown mode is named in the answer only when it is a plain word: the input may be huge, markup, or
+# not even serialisable (NaN, a lone surrogate).
+_NAMEABLE = re.compile(r"[A-Za-z0-9_-]{1,32}")
+
 
 def describe_invalid(errors: Sequence[Any]) -> str:
-    """pydantic's errors as one line: where and what, never the input (it may be huge, or not even
-    serialisable: NaN, a lone surrogate)."""
+    """pydantic's errors as one line: where and what, never the input but an unknown mode's plain name."""
     where = (".".join(str(part) for part in e["loc"]) for e in errors)
     return "; ".join(f"{w}: {_message(e)} ({e['type']})" for w, e in zip(where, errors, strict=True))
 
@@ -32,7 +35,9 @@ def _message(error: Any) -> str:
         ctx = error["ctx"]
         tags = ", ".join(re.findall(r"'([^']*)'", ctx["expected_tags"]))
         field = ctx["discriminator"].strip("'")
-        return f"{field} {ctx['tag']!r} is none of: {tags}"
+        tag = str(ctx["tag"])
+        named = f"{field} {tag!r}" if _NAMEABLE.fullmatch(tag) else f"the {field} given"
+        return f"{named} is none of: {tags}"
     return str(error["msg"])
 
 
