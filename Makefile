@@ -40,9 +40,9 @@ lock-check: $(STAMP)
 	  { echo "$(LOCK) is out of date with pyproject.toml: run make lock"; exit 1; }
 
 # The main job: the daemon against the simulated cell (hwsim serve as its child), API on loopback;
-# PORT=8081 serves the dashboard and the API on another port.
+# PORT=8081 serves the dashboard and the API on another port; OPCUA_PORT=4841 the OPC UA server.
 run: $(STAMP)
-	$(BIN)/clothd run --sim --config config.yaml $(if $(PORT),--port $(PORT))
+	$(BIN)/clothd run --sim --config config.yaml $(if $(PORT),--port $(PORT)) $(if $(OPCUA_PORT),--opcua-endpoint opc.tcp://127.0.0.1:$(OPCUA_PORT)/clothd/)
 
 lint: $(STAMP)
 	$(BIN)/ruff check clothd hwsim tests

@@ -23,7 +23,14 @@ def test_the_readmes_recordings_stay_out_of_git() -> None:
     assert "/rec/" in (ROOT / ".gitignore").read_text().splitlines()
 
 
-@pytest.mark.parametrize(("make_args", "flags"), [(["PORT=8081"], " --port 8081"), ([], "")])
+@pytest.mark.parametrize(
+    ("make_args", "flags"),
+    [
+        (["PORT=8081"], " --port 8081"),
+        ([], ""),
+        (["PORT=8081", "OPCUA_PORT=4841"], " --port 8081 --opcua-endpoint opc.tcp://127.0.0.1:4841/clothd/"),
+    ],
+)
 def test_make_run_takes_a_port(make_args: list[str], flags: str) -> None:
     # Run from `make test`, a nested make would print its directory and inherit the outer one's flags.
     env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MAKELEVEL", "MFLAGS")}
