@@ -2,16 +2,20 @@
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 import pytest
 from pydantic import ValidationError
 
+from clothd.config import load_config
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.drive_script import DrivePlan, DriveScript, cloth_reach_m, swept_box_m
+from clothd.core.workspace import Workspace
 from clothd.errors import InputError, InvalidRequestError
 from clothd.tools.drive import load_script
+from hwsim import scenario as scenarios
 
 pytestmark = pytest.mark.clock_free
 
@@ -104,3 +108,21 @@ def test_a_script_file_is_refused_naming_the_key(tmp_path: Path) -> None:
         InputError, match=r"shear.yaml: timeline.0.speed_m_s: Field required; timeline.0.speed: Extra inputs"
     ):
         load_script(path)
+
+
+def test_the_example_in_the_api_docs_plays_on_make_runs_cell() -> None:
+    """docs/api.md's example is what a new user sends first: on the default cell, with hwsim's cell cloth
+    at its centre, it must not be refused for the workspace."""
+    text = (Path(__file__).resolve().parents[1] / "docs" / "api.md").read_text()
+    block = text.split("```json\n", 1)[1].split("```", 1)[0]
+    assert '"mode": "drive"' in block
+    cfg = load_config(None)
+    layout = ConveyorLayout.of_cell(cfg.cell)
+    plan = DrivePlan.compile(
+        DriveScript.model_validate(json.loads(block)["script"]), layout, cfg.cell.max_speed_m_s
+    )
+    w, h = scenarios.load("cell").cloth.size_m
+    outline = np.array([[-w, -h], [w, -h], [w, h], [-w, h]]) / 2
+    assert (
+        Workspace.of_cell(cfg.cell).leaves(swept_box_m(outline, cloth_reach_m(plan, outline, layout))) is None
+    )
