@@ -217,6 +217,7 @@ def test_a_rebound_host_name_is_refused(client: TestClient) -> None:
     r = client.get("/api/v1/status", headers={"Host": "evil.example:8080"})
     assert r.status_code == 421
     assert client.get("/api/v1/status", headers={"Host": "localhost:8080"}).status_code == 200
+    assert client.get("/api/v1/status", headers={"Host": "LocalHost:8080"}).status_code == 200
     assert client.get("/api/v1/status", headers={"Host": "127.0.0.1:9999"}).status_code == 421
 
 

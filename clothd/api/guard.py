@@ -44,11 +44,12 @@ class GuardPolicy:
     max_body_bytes: int = 4096
 
     def host_ok(self, host: str) -> bool:
-        name, port = _split_host(host)
-        return name in (*LOOPBACK_NAMES, *self.allowed_hosts) and port in ("", str(self.port))
+        name, port = _split_host(host.lower())  # host names are case-insensitive (RFC 3986 3.2.2)
+        names = (*LOOPBACK_NAMES, *(h.lower() for h in self.allowed_hosts))
+        return name in names and port in ("", str(self.port))
 
     def origin_ok(self, origin: str, host: str) -> bool:
-        return origin == f"http://{host}" or origin in self.allowed_origins
+        return origin.lower() == f"http://{host.lower()}" or origin in self.allowed_origins
 
     def token_ok(self, authorization: str) -> bool:
         if self.token is None:
