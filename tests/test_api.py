@@ -405,3 +405,11 @@ def test_the_dashboard_names_only_the_modes_and_states_the_api_has() -> None:
     assert states and states <= set(LoopState)
     assert modes and modes <= set(Mode)
     assert offered == set(Mode) - {Mode.DRIVE}
+
+
+def test_the_api_docs_page_needs_no_internet(client: TestClient) -> None:
+    """A cell PC may have none: /docs loads Swagger UI from the daemon itself, not from a CDN."""
+    page = client.get("/docs")
+    assert page.status_code == 200 and "cdn." not in page.text
+    scripts = re.findall(r'src="([^"]+\.js)"', page.text)
+    assert scripts and all(client.get(src).status_code == 200 for src in scripts)

@@ -20,6 +20,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import FileResponse, JSONResponse, PlainTextResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 from starlette.websockets import WebSocketDisconnect
 
@@ -88,7 +89,8 @@ def create_app(
     commands = Commands(cell)
     registry = registry_for(hub)
     streams = StreamSlots(api_cfg.max_streams)
-    app = FastAPI(title="clothd", version="1", description="Real-time cloth tracking and control")
+    # /docs and /redoc from the daemon's own files: a cell PC may have no internet for a CDN.
+    app = FastAPIOffline(title="clothd", version="1", description="Real-time cloth tracking and control")
     c = api_cfg
     policy = GuardPolicy(c.port, c.allowed_hosts, c.allowed_origins, c.token, c.max_body_bytes)
     if c.allowed_origins:  # no CORS unless configured: then only for those origins, and only what we use
