@@ -126,3 +126,21 @@ def test_the_example_in_the_api_docs_plays_on_make_runs_cell() -> None:
     assert (
         Workspace.of_cell(cfg.cell).leaves(swept_box_m(outline, cloth_reach_m(plan, outline, layout))) is None
     )
+
+
+@pytest.mark.parametrize(
+    ("modules", "words"),
+    [
+        ({"all": True, "ids": [1]}, "exactly one of all, ids, region_m"),
+        ({}, "exactly one of all, ids, region_m"),
+        ({"ids": [9999]}, "less than or equal to 4095"),
+        ({"region_m": [0, 0, 1]}, "region_m.3"),
+    ],
+)
+def test_a_bad_module_choice_is_refused_with_one_reason(modules: dict[str, object], words: str) -> None:
+    """The key picks the way of choosing, so the answer is that way's reason, not every way's."""
+    entry = {"t_s": 0, "modules": modules, "speed_m_s": 0.1, "heading_rad": 0}
+    with pytest.raises(ValidationError) as refused:
+        _script(timeline=[entry])
+    (error,) = refused.value.errors()
+    assert words in f"{'.'.join(map(str, error['loc']))}: {error['msg']}"

@@ -16,11 +16,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag
 
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import ModuleCommands
@@ -51,9 +51,31 @@ class ModuleRegion(_Strict):
     )
 
 
-# Exactly one way of choosing, as alternatives the JSON schema states (anyOf), so that a client's
-# validator and the daemon's agree on what is well formed.
-ModuleChoice = AllModules | ModuleIds | ModuleRegion
+CHOICE_KEYS = ("all", "ids", "region_m")
+_KEY_OF: dict[type, str] = {AllModules: "all", ModuleIds: "ids", ModuleRegion: "region_m"}
+
+
+def _choice_key(value: Any) -> str | None:
+    """Which way of choosing `value` names: its one key of CHOICE_KEYS (None: none, or several)."""
+    if isinstance(value, dict):
+        keys = [k for k in CHOICE_KEYS if k in value]
+        return keys[0] if len(keys) == 1 else None
+    return _KEY_OF.get(type(value))
+
+
+# Exactly one way of choosing, as alternatives the JSON schema states (oneOf), so that a client's
+# validator and the daemon's agree on what is well formed. The key picks the alternative, so a bad one is
+# refused with that alternative's reason alone, not with every alternative's.
+ModuleChoice = Annotated[
+    Annotated[AllModules, Tag("all")]
+    | Annotated[ModuleIds, Tag("ids")]
+    | Annotated[ModuleRegion, Tag("region_m")],
+    Discriminator(
+        _choice_key,
+        custom_error_type="module_choice",
+        custom_error_message="exactly one of all, ids, region_m chooses the modules",
+    ),
+]
 
 
 class DriveEntry(_Strict):
