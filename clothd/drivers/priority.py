@@ -69,7 +69,10 @@ def set_session_nice(nice: int) -> bool:
     if not AUTOGROUP.exists():  # a kernel without autogroups: cgroups or the threads' nice values decide
         return False
     if os.getsid(0) != os.getpid():
-        log.info("the daemon shares its session's CPU share: run as a service, or under setsid, for its own")
+        log.info(
+            "the daemon shares its session's CPU share with the programs started beside it (a shell, make): "
+            "as a service, or started by setsid itself, it gets its own (docs/deploy.md)"
+        )
         return False
     try:
         AUTOGROUP.write_text(str(nice))
