@@ -31,8 +31,8 @@ class LocalCell:
     async def estop(self) -> None:
         self.daemon.estop()
 
-    async def estop_clear(self) -> None:
-        self.daemon.estop_clear()
+    async def estop_clear(self) -> bool:
+        return self.daemon.estop_clear()
 
     async def reset(self) -> None:
         self.daemon.reset()

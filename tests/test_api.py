@@ -115,8 +115,10 @@ def test_estop_latches_and_refuses_moves_until_cleared(client: TestClient) -> No
     move = {"mode": "move", "x_m": 0.1, "y_m": 0.0, "theta_rad": 0.0}
     r = client.put("/api/v1/setpoint", json=move)
     assert r.status_code == 409 and "emergency stop" in r.json()["detail"]
-    assert client.post("/api/v1/estop/clear").status_code == 200
+    r = client.post("/api/v1/estop/clear")
+    assert r.status_code == 200 and r.json()["detail"] == "emergency stop cleared; mode is idle"
     assert client.get("/api/v1/status").json()["estop"] is False
+    assert client.post("/api/v1/estop/clear").json()["detail"] == "no emergency stop was latched"
     # Cleared, but this daemon never started: no link, no cloth, so still nothing may move.
     r = client.put("/api/v1/setpoint", json=move)
     assert (r.status_code, r.json()["detail"]) == (409, "starting")

@@ -137,6 +137,9 @@ def test_the_estop_latches_on_the_daemons_loop() -> None:
             assert r.json()["estop"] is True  # Daemon.estop published it: it reached the API's readers
             r = await client.post("/api/v1/estop/clear")
             assert r.status_code == 200 and not daemon.link.estopped
+            assert r.json()["detail"] == "emergency stop cleared; mode is idle"  # the answer crossed over
+            r = await client.post("/api/v1/estop/clear")
+            assert r.json()["detail"] == "no emergency stop was latched"
 
     asyncio.run(body())
 

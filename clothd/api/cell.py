@@ -46,7 +46,8 @@ class Cell(Protocol):
 
     async def estop(self) -> None: ...
 
-    async def estop_clear(self) -> None: ...
+    async def estop_clear(self) -> bool:
+        """Daemon.estop_clear: whether an e-stop was latched."""
 
     async def reset(self) -> None: ...
 

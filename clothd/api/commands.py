@@ -69,8 +69,9 @@ class Commands:
         return "emergency stop latched"
 
     async def estop_clear(self) -> str:
-        await self.cell.estop_clear()
-        return "emergency stop cleared; mode is idle"
+        if await self.cell.estop_clear():
+            return "emergency stop cleared; mode is idle"
+        return "no emergency stop was latched"
 
     async def reset(self) -> str:
         await self.cell.reset()

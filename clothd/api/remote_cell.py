@@ -80,8 +80,8 @@ class RemoteCell:
     async def estop(self) -> None:
         await self._call("estop")
 
-    async def estop_clear(self) -> None:
-        await self._call("estop_clear")
+    async def estop_clear(self) -> bool:
+        return bool(await self._call("estop_clear"))
 
     async def reset(self) -> None:
         await self._call("reset")

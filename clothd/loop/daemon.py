@@ -179,9 +179,12 @@ class Daemon:
         log.warning("emergency stop")
         self.publish()
 
-    def estop_clear(self) -> None:
+    def estop_clear(self) -> bool:
+        """Release a latched e-stop; whether one was latched."""
+        latched = self.link.estopped
         self.link.estop_clear()
         self.publish()
+        return latched
 
     def _controller_fault(self, fault: ControllerFault) -> None:
         """A controller's FAULT, as it arrives: every module on every controller told to stop at once, and
