@@ -5,6 +5,7 @@ e-stop is clear, the link up and the cloth tracked inside the workspace."""
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
@@ -27,6 +28,7 @@ from clothd.errors import InvalidRequestError, RequestError, UnreachableTargetEr
 from clothd.loop.compute_messages import InForce, TickReply, TickRequest
 from clothd.loop.daemon import Daemon
 from clothd.loop.daemon_settings import DaemonSettings
+from clothd.outputs.recorder import RecordingStatus
 
 N = 48
 PERIOD_S = 0.01
@@ -101,6 +103,7 @@ class FakeCompute:
         self.silent = False
         self.state = "tracking"
         self.halt_reason: str | None = None
+        self.recording: RecordingStatus | None = None  # as a recorder would say, from the requests
 
     async def start(self) -> None:
         pass
@@ -119,6 +122,10 @@ class FakeCompute:
         return fut
 
     def _answer(self, req: TickRequest) -> TickReply:
+        if req.record_stop and self.recording is not None:  # the stop first, as the compute does
+            self.recording = dataclasses.replace(self.recording, active=False)
+        if req.record_start is not None:
+            self.recording = RecordingStatus(True, str(req.record_start), 0, 0, 10**9, None)
         moving = req.setpoint.mode != "idle" and self.state == "tracking" and self.halt_reason is None
         commands = MOVING if moving else ModuleCommands.all_stop(N)
         est = _estimate() if self.state == "tracking" else None
@@ -131,6 +138,7 @@ class FakeCompute:
             frame_t_mono_s=None,
             camera=camera,
             halt_reason=self.halt_reason,
+            recording=self.recording,
         )
 
 
@@ -405,3 +413,22 @@ def test_a_module_calibration_corrects_what_goes_out_not_what_is_in_force() -> N
         assert sent.heading_rad[3] == pytest.approx(np.pi - np.radians(10.0))
 
     _run(scenario, module_calibration=ModuleCalibration.of([wrong], N))
+
+
+def test_a_recording_may_start_as_soon_as_the_last_one_was_told_to_stop(tmp_path: Path) -> None:
+    """No tick between the stop and the start, so the status still shows the first recording: the start
+    is taken all the same, and reaches the compute with or after the stop."""
+
+    async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
+        daemon.start_recording(tmp_path / "first")
+        await _ticks(daemon, 2)
+        assert compute.recording is not None and compute.recording.active
+        daemon.stop_recording()
+        daemon.start_recording(tmp_path / "second")  # RequestError while the first was shown active
+        await _ticks(daemon, 2)
+        assert compute.recording.active and Path(str(compute.recording.dir)).name == "second"
+        stop_at = next(k for k, r in enumerate(compute.requests) if r.record_stop)
+        start_at = next(k for k, r in enumerate(compute.requests) if r.record_start == tmp_path / "second")
+        assert stop_at <= start_at
+
+    _run(scenario)
