@@ -20,6 +20,7 @@ from typing import IO, Any
 import numpy as np
 import yaml
 
+from clothd.config import yaml_problem
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import Estimate, ModuleCommands, feature_detections
@@ -249,8 +250,10 @@ def read_module_calibration(path: Path, n_modules: int) -> list[ModuleCalibratio
     """A module calibration file; anything unusable is an InputError naming the entry and the key."""
     try:
         data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as err:
-        raise InputError(f"{path}: cannot read a module calibration ({err})") from None
+    except OSError as err:
+        raise InputError(f"{path}: cannot read a module calibration ({err.strerror})") from None
+    except yaml.YAMLError as err:
+        raise InputError(f"{path}: not valid YAML: {yaml_problem(err)}") from None
     rows = data.get("modules") if isinstance(data, dict) else None
     if not isinstance(rows, list):
         raise InputError(f"{path}: a module calibration is a mapping with a list under 'modules'")

@@ -1,5 +1,6 @@
 import json
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -50,7 +51,7 @@ def test_defaults_are_valid() -> None:
         ),
         ("foxglove: {enabled: true, host: 0.0.0.0}\n", ["foxglove.host", "foxglove.allow_remote"]),
         ("- a\n- list\n", ["a mapping"]),
-        ("tracker: [unclosed\n", ["not valid YAML"]),
+        ("tracker: [unclosed\n", ["not valid YAML", "(line 2, column 1)"]),
     ],
 )
 def test_bad_config_names_the_key_and_bound(tmp_path: Path, text: str, names: list[str]) -> None:
@@ -60,6 +61,27 @@ def test_bad_config_names_the_key_and_bound(tmp_path: Path, text: str, names: li
         load_config(path)
     for name in names:
         assert name in str(err.value)
+
+
+def test_an_unreadable_config_is_one_line_naming_why(tmp_path: Path) -> None:
+    broken, binary = tmp_path / "broken.yaml", tmp_path / "binary.yaml"
+    broken.write_text("loop:\n  tick_hz: [1, 2\n")
+    binary.write_bytes(b"\xff\xfeloop: 1\n")
+    for path, words in ((broken, "expected ',' or ']'"), (binary, "not UTF-8 text")):
+        with pytest.raises(ConfigError) as err:
+            load_config(path)
+        assert words in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_path_that_cannot_be_written_is_one_line_naming_it(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], short_recording: Callable[[str], Path]
+) -> None:
+    a_file = tmp_path / "c.yaml"
+    a_file.write_text("tracker: {model: rigid}\n")
+    rec = short_recording("translate")
+    assert main(["export", str(rec), "--mcap", str(a_file / "inside.mcap")]) == 2  # a file is no folder
+    err = capsys.readouterr().err
+    assert err == f"clothd: {a_file}: File exists\n"
 
 
 def test_foxglove_serves_loopback_unless_told_it_may_serve_other_machines() -> None:

@@ -338,6 +338,15 @@ def _merged(base: dict[str, Any], overrides: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def yaml_problem(err: yaml.YAMLError) -> str:
+    """pyyaml's error in one line: what and where (its own text spans several, with a caret)."""
+    mark = getattr(err, "problem_mark", None)
+    problem = getattr(err, "problem", None)
+    if problem is None or mark is None:
+        return " ".join(str(err).split())
+    return f"{problem} (line {mark.line + 1}, column {mark.column + 1})"
+
+
 def load_config(path: Path | None, overrides: dict[str, Any] | None = None) -> Config:
     """The configuration in `path` (every default when None) with `overrides` (a nested mapping, e.g.
     from command-line flags) laid over it, validated once, as a whole."""
@@ -347,8 +356,10 @@ def load_config(path: Path | None, overrides: dict[str, Any] | None = None) -> C
             data = yaml.safe_load(path.read_text())
         except OSError as err:
             raise ConfigError(f"{path}: cannot read: {err.strerror}") from None
+        except UnicodeDecodeError as err:
+            raise ConfigError(f"{path}: not UTF-8 text (byte {err.start})") from None
         except yaml.YAMLError as err:
-            raise ConfigError(f"{path}: not valid YAML: {err}") from None
+            raise ConfigError(f"{path}: not valid YAML: {yaml_problem(err)}") from None
     source = str(path) if path is not None else "<defaults>"
     if overrides and isinstance(data, dict | None):
         data = _merged(data or {}, overrides)

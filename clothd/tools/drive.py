@@ -12,6 +12,7 @@ from pathlib import Path
 import yaml
 from pydantic import ValidationError
 
+from clothd.config import yaml_problem
 from clothd.core.drive_script import DriveScript
 from clothd.errors import InputError
 from clothd.tools.cell_client import CellClient
@@ -20,8 +21,10 @@ from clothd.tools.cell_client import CellClient
 def load_script(path: Path) -> DriveScript:
     try:
         data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as err:
-        raise InputError(f"{path}: cannot read a drive script ({err})") from None
+    except OSError as err:
+        raise InputError(f"{path}: cannot read a drive script ({err.strerror})") from None
+    except yaml.YAMLError as err:
+        raise InputError(f"{path}: not valid YAML: {yaml_problem(err)}") from None
     try:
         return DriveScript.model_validate(data)
     except ValidationError as err:
