@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from live_cell import Cell, Daemon, serve_cell, start_daemon
 
+from clothd.cli import main
 from clothd.tools.cell_client import CellClient, CellError
 from clothd.tools.check_modules import check_modules
 from clothd.tools.commissioning_cli import SIM_FRAME_PERIOD_S
@@ -45,3 +46,10 @@ def test_check_modules_finds_a_miswired_module_and_refuses_one_under_the_cloth(d
     assert wrong.speed_scale == pytest.approx(0.8, rel=0.03)
     assert good.speed_scale == pytest.approx(1.0, rel=0.03)
     assert (recording / "frames.csv").exists()
+
+
+def test_a_simulated_cell_that_cannot_start_says_why(capsys: pytest.CaptureFixture[str]) -> None:
+    """`check-modules --sim` starts `clothd run --sim`: its reason, not only its exit code, is shown."""
+    assert main(["check-modules", "--sim", "no-such-scenario"]) == 2
+    err = capsys.readouterr().err
+    assert "exited with 2: hwsim: no-such-scenario: no such file, and not a shipped scenario" in err

@@ -44,20 +44,26 @@ def sim_daemon(scenario: str, workdir: Path, cameras: int | None = None) -> Iter
     cmd = [sys.executable, "-m", "clothd.cli", "run", "--sim", scenario, "--config", str(config)]
     if cameras is not None:
         cmd += ["--cameras", str(cameras)]
-    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    log = workdir / "clothd-sim.log"  # what it says when it cannot start
+    with log.open("wb") as stderr:
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=stderr, start_new_session=True)
     url = f"http://127.0.0.1:{port}"
     try:
-        _wait_ready(url, proc)
+        _wait_ready(url, proc, log)
         yield url
     finally:
         stop_group(proc)
 
 
-def _wait_ready(url: str, proc: subprocess.Popen[bytes]) -> None:
+def _wait_ready(url: str, proc: subprocess.Popen[bytes], log: Path) -> None:
     deadline = time.monotonic() + READY_TIMEOUT_S
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise HardwareError(f"clothd run --sim exited with {proc.returncode}")
+            # Its own error lines, and hwsim's (the child's stderr is its): one line each, no traceback.
+            lines = log.read_text(errors="replace").splitlines()
+            why = "; ".join(line for line in lines if line.startswith(("clothd: ", "hwsim: ")))
+            said = f": {why}" if why else ""
+            raise HardwareError(f"clothd run --sim exited with {proc.returncode}{said}")
         with contextlib.suppress(httpx.HTTPError, ValueError):
             s = httpx.get(f"{url}/api/v1/status", timeout=2).json()
             if s["state"] == "tracking" and s["link"]["state"] == "connected":
