@@ -329,7 +329,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"clothd: {err}", file=sys.stderr)
         return 2
     except OSError as err:  # a file or folder given that cannot be written or read: its name and why
-        print(f"clothd: {err.filename or ''}: {err.strerror or err}".replace(": : ", ": "), file=sys.stderr)
+        where = f"{err.filename}: " if err.filename else ""
+        print(f"clothd: {where}{err.strerror or err}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:  # a Ctrl-C before the daemon's own handlers are up: what was started is stopped
         return 130

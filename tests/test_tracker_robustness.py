@@ -12,7 +12,8 @@ from clothd.core.camera_model import CameraModel
 from clothd.core.tracker import Tracker
 from clothd.formats import read_camera
 from clothd.taichi_runtime import start_taichi
-from clothd.tools.bench_accuracy import _feature_truth_pixels, grade, track_with_births
+from clothd.tools.bench_accuracy import grade, track_with_births
+from clothd.tools.grading import FeatureTruth
 from clothd.tools.offline import OfflineTracking
 from clothd.tools.recordings import recorded_exposure_s
 from hwsim.paths import frame_path
@@ -97,10 +98,14 @@ def test_a_feature_found_in_a_smeared_frame_is_the_cloth_in_the_middle_of_its_ex
     camera = CameraModel.ideal(640, 480, 900.0, 1.0)
     seen_px = camera.project(np.array([[0.0 + speed_m_s * (t[3] - exposure_s / 2), 0.0, 0.0]]))[0]
     births = {7: (3, seen_px)}  # detected in frame 3 where the smear's middle of the centre point was
-    graded = _feature_truth_pixels(truth, camera, births, exposure_s)[7]
+    feature_truth = FeatureTruth(truth, camera, exposure_s)
+    feature_truth.learn_births(births)
+    graded = feature_truth.pixels[7]
     centre_px = camera.project(nodes[:, 2, 2])
     np.testing.assert_allclose(graded, centre_px, atol=1e-6)
-    instant = _feature_truth_pixels(truth, camera, births, 0.0)[7]  # as if the frame were an instant
+    instant_truth = FeatureTruth(truth, camera)  # as if the frame were an instant
+    instant_truth.learn_births(births)
+    instant = instant_truth.pixels[7]
     shift_px = speed_m_s * exposure_s / 2 * 900.0
     np.testing.assert_allclose(np.abs(instant - centre_px)[:, 0], shift_px, rtol=1e-6)
 

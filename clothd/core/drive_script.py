@@ -51,14 +51,13 @@ class ModuleRegion(_Strict):
     )
 
 
-CHOICE_KEYS = ("all", "ids", "region_m")
 _KEY_OF: dict[type, str] = {AllModules: "all", ModuleIds: "ids", ModuleRegion: "region_m"}
 
 
 def _choice_key(value: Any) -> str | None:
-    """Which way of choosing `value` names: its one key of CHOICE_KEYS (None: none, or several)."""
+    """Which way of choosing `value` names: its one key of all, ids, region_m (None: none, or several)."""
     if isinstance(value, dict):
-        keys = [k for k in CHOICE_KEYS if k in value]
+        keys = [k for k in _KEY_OF.values() if k in value]
         return keys[0] if len(keys) == 1 else None
     return _KEY_OF.get(type(value))
 

@@ -101,9 +101,6 @@ class Daemon:
         self._recording_starting: Path | None = None  # asked for, and no reply has shown the outcome yet
         self._start_in_flight = False  # the request in flight carries a recording's start
         self._record_stop = False
-        # A recording's stop asked for, and no reply has shown it stopped yet: a start may follow at once
-        # (the compute stops the old one before it starts the new).
-        self._recording_stopping = False
         self._stop_in_flight = False  # the request in flight carries a recording's stop
         self._stopping = False
         self._ready_sent = False
@@ -210,7 +207,10 @@ class Daemon:
         .mcap file (the suffix added when missing), made here and now: a place that cannot be written is
         refused at once rather than found out by the compute later. Returns where it records."""
         rec = self.latest.recording if self.latest else None
-        if rec is not None and rec.active and not self._recording_stopping:
+        # A stop asked for, that no reply has shown done yet, goes first: the compute stops the old
+        # recording before it starts the new one.
+        stopping = self._record_stop or self._stop_in_flight
+        if rec is not None and rec.active and not stopping:
             raise RequestError(f"already recording into {rec.dir}: stop it first")
         if self._recording_starting is not None:  # two requests at once: the first one wins
             raise RequestError(f"a recording is starting in {self._recording_starting}: stop it first")
@@ -222,7 +222,7 @@ class Daemon:
         rec = self.latest.recording if self.latest else None
         if rec is None or not rec.active:
             raise RequestError("not recording")
-        self._record_stop = self._recording_stopping = True
+        self._record_stop = True
 
     def reset(self) -> None:
         """Re-initialise tracking on the next frame; the modules stop meanwhile (setpoint idle)."""
@@ -359,8 +359,7 @@ class Daemon:
         self._commands = reply.commands
         if self._start_in_flight:  # the reply's recording status now says how the start went
             self._start_in_flight, self._recording_starting = False, None
-        if self._stop_in_flight:  # ... and that the recording stopped
-            self._stop_in_flight = self._recording_stopping = False
+        self._stop_in_flight = False  # ... and that the recording stopped
         if reply.new_frame and reply.frame_t_mono_s is not None:
             self._unsent_frame = (reply.frame_t_mono_s, self._asked_s, reply.compute_mono_s)
             if self.phase is not None:

@@ -20,7 +20,6 @@ from pathlib import Path
 import numpy as np
 
 from clothd.config import TrackerConfig
-from clothd.core.camera_model import CameraModel
 from clothd.core.messages import Estimate, feature_detections
 from clothd.formats import read_camera
 from clothd.tools.grading import FeatureTruth, material_coordinates, true_positions
@@ -70,16 +69,6 @@ def track_with_births(run: OfflineTracking) -> tuple[list[Estimate], Births]:
     weave's stripes, by whole pixels), so it is not its birth."""
     ests = [est for _, _, est in run]
     return ests, feature_detections(ests)
-
-
-def _feature_truth_pixels(
-    truth: Truth, camera: CameraModel, births: Births, exposure_s: float = 0.0
-) -> dict[int, np.ndarray]:
-    """True pixel (F, 2) of every feature id, from the material point under its detection pixel: under it
-    as the frame showed the cloth, in the middle of its exposure_s (the recording's camera)."""
-    feature_truth = FeatureTruth(truth, camera, exposure_s)
-    feature_truth.learn_births(births)
-    return feature_truth.pixels
 
 
 def _node_errors_mm(truth: Truth, ests: list[Estimate]) -> np.ndarray | None:
