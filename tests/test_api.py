@@ -128,8 +128,12 @@ def test_estop_latches_and_refuses_moves_until_cleared(client: TestClient) -> No
 def test_token_guards_changes_but_not_reads() -> None:
     c = TestClient(_app(token=TOKEN), base_url=BASE)
     assert c.get("/api/v1/status").status_code == 200
-    assert c.post("/api/v1/estop").status_code == 401
-    assert c.post("/api/v1/estop", headers={"Authorization": "Bearer wrong-token-xxxxxxx"}).status_code == 401
+    missing = c.post("/api/v1/estop")
+    assert missing.status_code == 401 and "needs Authorization" in missing.json()["detail"]
+    wrong = c.post("/api/v1/estop", headers={"Authorization": "Bearer wrong-token-xxxxxxx"})
+    assert wrong.status_code == 401 and "not this daemon's" in wrong.json()["detail"]
+    basic = c.post("/api/v1/estop", headers={"Authorization": f"Basic {TOKEN}"})
+    assert basic.status_code == 401 and "must be Bearer" in basic.json()["detail"]
     assert c.post("/api/v1/estop", headers={"Authorization": f"Bearer {TOKEN}"}).status_code == 200
 
 

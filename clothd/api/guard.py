@@ -51,11 +51,20 @@ class GuardPolicy:
     def origin_ok(self, origin: str, host: str) -> bool:
         return origin.lower() == f"http://{host.lower()}" or origin in self.allowed_origins
 
-    def token_ok(self, authorization: str) -> bool:
+    def token_problem(self, authorization: str) -> str | None:
+        """Why the Authorization header does not carry the token (None: it does, or none is needed). A
+        missing token and a wrong one are told apart: the first is a client set up without it, the
+        second one holding another daemon's or an old token."""
         if self.token is None:
-            return True
+            return None
+        if not authorization:
+            return "this daemon needs Authorization: Bearer <token>"
         scheme, _, given = authorization.partition(" ")
-        return scheme.lower() == "bearer" and hmac.compare_digest(given.encode(), self.token.encode())
+        if scheme.lower() != "bearer":
+            return "the Authorization header must be Bearer <token>"
+        if not hmac.compare_digest(given.encode(), self.token.encode()):
+            return "the bearer token is not this daemon's (api.token)"
+        return None
 
 
 def _split_host(host: str) -> tuple[str, str]:
@@ -132,8 +141,9 @@ class RequestGuard:
         media = headers.get("content-type", "").split(";")[0].strip().lower()
         if has_body and media != "application/json":
             return 415, "a request body must be application/json"
-        if not p.token_ok(headers.get("authorization", "")):
-            return 401, "this daemon needs Authorization: Bearer <token>"
+        token_problem = p.token_problem(headers.get("authorization", ""))
+        if token_problem is not None:
+            return 401, token_problem
         if not length.isdigit():
             return 400, "a bad Content-Length"
         if int(length) > p.max_body_bytes:
