@@ -16,8 +16,10 @@ from clothd.tools.conformance_cli import add_commands as add_conformance_command
 
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
-    load_config(args.file)
-    print(f"{args.file}: OK")
+    from clothd.formats import read_referenced_files
+
+    read = read_referenced_files(load_config(args.file))
+    print(f"{args.file}: OK" + (f" (and {', '.join(map(str, read))})" if read else ""))
     return 0
 
 

@@ -4,7 +4,8 @@
 - table.json: the module layout;
 - frames.csv and commands.csv: a recording's capture times and the commands sent as they changed;
 - estimates.npz: what the tracker believed, frame by frame;
-- module calibration (YAML): what `clothd check-modules` found each module does with a command.
+- module calibration (YAML): what `clothd check-modules` found each module does with a command;
+- and every file a configuration names (`read_referenced_files`, for `clothd check-config`).
 
 The core never opens a file: footage, the recorder, replay and the composition root go through here and
 hand the core objects. Any problem reading is an InputError that names the file and what is wrong.
@@ -20,7 +21,7 @@ from typing import IO, Any
 import numpy as np
 import yaml
 
-from clothd.config import yaml_problem
+from clothd.config import Config, yaml_problem
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import Estimate, ModuleCommands, feature_detections
@@ -279,3 +280,18 @@ def read_module_calibration(path: Path, n_modules: int) -> list[ModuleCalibratio
             raise InputError(f"{where}.speed_scale: {e.speed_scale} is not within {SPEED_SCALE_RANGE}")
         entries.append(e)
     return entries
+
+
+def read_referenced_files(cfg: Config) -> list[Path]:
+    """Read every file the configuration names as `clothd run` reads it (each camera's calibration, the
+    modules' calibration), so that one missing or malformed is found before the daemon starts: an
+    InputError naming it. The files read."""
+    read = []
+    for camera in cfg.all_cameras:
+        if camera.source.calibration is not None:
+            read_camera(camera.source.calibration)
+            read.append(camera.source.calibration)
+    if cfg.cell.module_calibration is not None:
+        read_module_calibration(cfg.cell.module_calibration, ConveyorLayout.of_cell(cfg.cell).n_modules)
+        read.append(cfg.cell.module_calibration)
+    return read

@@ -8,7 +8,9 @@ import yaml
 
 from clothd.cli import main
 from clothd.config import Config, load_config, parse_config
+from clothd.core.camera_model import CameraModel
 from clothd.errors import ConfigError
+from clothd.formats import write_camera
 
 
 def test_defaults_are_valid() -> None:
@@ -98,6 +100,28 @@ def test_check_config_command(tmp_path: Path, capsys: pytest.CaptureFixture[str]
     assert main(["check-config", str(bad)]) == 2
     assert "tracker.model" in capsys.readouterr().err
     assert main(["check-config", str(tmp_path / "missing.yaml")]) == 2
+
+
+def test_check_config_reads_the_files_it_names(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    camera = tmp_path / "camera.json"
+    write_camera(camera, CameraModel.ideal(640, 480, 900.0, 1.0))
+    names = tmp_path / "names.yaml"
+    names.write_text(
+        f"camera: {{calibration: {camera}}}\ncell: {{module_calibration: {tmp_path / 'modules.yaml'}}}\n"
+    )
+    assert main(["check-config", str(names)]) == 2
+    assert "modules.yaml: cannot read a module calibration" in capsys.readouterr().err
+    (tmp_path / "modules.yaml").write_text("modules: [{module: 99, reversed: false}]\n")
+    assert main(["check-config", str(names)]) == 2
+    assert "modules.yaml" in capsys.readouterr().err
+    camera.write_text("{}")
+    (tmp_path / "modules.yaml").unlink()
+    names.write_text(f"camera: {{calibration: {camera}}}\n")
+    assert main(["check-config", str(names)]) == 2
+    assert "camera.json: missing key" in capsys.readouterr().err
+    write_camera(camera, CameraModel.ideal(640, 480, 900.0, 1.0))
+    assert main(["check-config", str(names)]) == 0
+    assert str(camera) in capsys.readouterr().out
 
 
 def test_shipped_config_yaml_is_the_complete_default() -> None:

@@ -40,7 +40,7 @@ from clothd.outputs.recorder import recording_path
 
 ERROR_DOC: dict[int | str, dict[str, Any]] = {
     400: {"model": ErrorResponse, "description": "a body that is not JSON"},
-    401: {"model": ErrorResponse, "description": "a token is configured and the request did not carry it, or carried another"},
+    401: {"model": ErrorResponse, "description": "a token is configured: none came, or another"},
     403: {"model": ErrorResponse, "description": "from another web origin"},
     413: {"model": ErrorResponse, "description": "a body over api.max_body_bytes"},
     415: {"model": ErrorResponse, "description": "a body that is not application/json"},
