@@ -141,6 +141,15 @@ def sim_config(cfg: Config, ready: dict[str, Any]) -> Config:
     return parse_config({**data, "stepper": stepper}, "<sim>")
 
 
+def sim_replaced_cameras(cfg: Config) -> str | None:
+    """A line for `clothd run --sim` when the configuration names cameras of its own (a `cameras:` list or
+    a camera.calibration): the simulated cell's cameras, with their true calibrations, take their place."""
+    if cfg.cameras is None and cfg.camera.calibration is None:
+        return None
+    named = "cameras" if cfg.cameras is not None else "camera.calibration"
+    return f"clothd: --sim: the simulated cell's cameras and their true calibrations replace {named}"
+
+
 def camera_model_for(cfg: Config) -> CameraModel:
     """The first camera's model: its calibration, or else the ideal tracker.camera."""
     calibration = cfg.all_cameras[0].source.calibration
@@ -371,7 +380,9 @@ def run(
     sim = start_sim(sim_scenario, sim_controllers) if sim_scenario is not None else None
     try:
         claim_realtime(cfg.loop.realtime_priority, "the loop")
+        replaced = None
         if sim is not None:
+            replaced = sim_replaced_cameras(cfg)
             cfg = sim_config(cfg, sim.ready)
         if cameras is not None:
             cfg = first_cameras(cfg, cameras)
@@ -388,6 +399,8 @@ def run(
             urls += f"\nclothd: Foxglove ws://{cfg.foxglove.host}:{cfg.foxglove.port}"
         if sim is not None:
             urls += f"\nclothd: simulated cell truth {sim.ready['truth_url']}"
+        if replaced is not None:
+            urls += f"\n{replaced}"
         truth_url = None if sim is None else str(sim.ready["truth_url"])
         asyncio.run(serve(cfg, listener, urls, truth_url, record_dir))
     finally:

@@ -275,6 +275,16 @@ def test_sim_points_every_camera_of_the_cell_and_cameras_n_keeps_the_first(tmp_p
     assert only.source.source == "http://127.0.0.1:1/video.mjpg"
 
 
+def test_sim_says_when_it_replaces_the_configurations_cameras() -> None:
+    from clothd.run import sim_replaced_cameras
+
+    assert sim_replaced_cameras(Config()) is None
+    calibrated = parse_config({"camera": {"calibration": "/etc/clothd/top.json"}})
+    assert "replace camera.calibration" in str(sim_replaced_cameras(calibrated))
+    listed = parse_config({"cameras": [{"source": "0", "calibration": "/etc/clothd/top.json"}]})
+    assert "replace cameras" in str(sim_replaced_cameras(listed))
+
+
 def test_run_takes_cameras_n(monkeypatch: pytest.MonkeyPatch) -> None:
     import clothd.run
 
