@@ -189,3 +189,25 @@ def test_hwsim_charuco_writes_the_pictures_the_truth_and_the_command(
     x, y = truth["flat_origin_m"]
     printed = capsys.readouterr().out
     assert f"clothd calibrate --images {out}" in printed and f"--flat-origin-m={x:g},{y:g}" in printed
+
+
+def test_a_camera_that_never_opens_is_named_not_the_flat_view(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    missing = tmp_path / "no-such-camera.mp4"
+    args = ("--camera", str(missing), "--views", "3", "--timeout-s", "1.5")
+    assert _calibrate(tmp_path / "taken", [0.0, 0.0], tmp_path / "camera.json", *args) == 2
+    err = capsys.readouterr().err
+    assert f"camera '{missing}': no frame came in 1.5 s" in err and "flat view" not in err
+
+
+def test_a_camera_that_never_shows_the_board_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    feed = tmp_path / "feed"
+    feed.mkdir()
+    for k in range(5):
+        cv2.imwrite(str(feed / f"frame_{k:04d}.png"), np.full((480, 640), 90 + k, dtype=np.uint8))
+    args = ("--camera", str(feed), "--views", "3", "--timeout-s", "1")
+    assert _calibrate(tmp_path / "taken", [0.0, 0.0], tmp_path / "camera.json", *args) == 2
+    assert "the board was in no frame held still" in capsys.readouterr().err

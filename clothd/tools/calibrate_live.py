@@ -115,4 +115,9 @@ def capture_views(
         print(f"stopped with {len(names)} pictures")
     finally:
         camera.stop()
+    if last_index < 0:  # not one frame: the camera, not the board, is what to look at
+        why = f" ({camera.last_error})" if camera.last_error else ""
+        raise InputError(f"camera {source!r}: no frame came in {timeout_s:g} s{why}")
+    if not names:
+        raise InputError(f"camera {source!r}: the board was in no frame held still ({timeout_s:g} s)")
     return names
