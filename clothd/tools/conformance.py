@@ -140,6 +140,7 @@ class Session:
     faults: list[Received] = field(default_factory=list)  # FAULT frames, oldest first
     skipped: list[Received] = field(default_factory=list)  # replies the last ask() passed over
     seq: int = FIRST_SEQ
+    stop: str | None = None  # why no further check can mean anything (a board of another size)
 
     def next_seq(self) -> int:
         self.seq = (self.seq + 1) & 0xFFFF
@@ -193,8 +194,9 @@ def run_checks(session: Session, checks: list[Check]) -> list[Row]:
             name = check.__name__.removeprefix("check_")
             where = traceback.extract_tb(err.__traceback__)[-1]
             rows.append(Row(name, False, "", f"{type(err).__name__}: {err} (line {where.lineno})"))
-        if session.n_modules is None:
-            rows.append(Row("handshake.modules", False, "", "no module count: nothing else can be checked"))
+        if session.n_modules is None or session.stop is not None:
+            why = session.stop or "no module count: nothing else can be checked"
+            rows.append(Row("handshake.modules", False, "", why))
             break
     return rows
 
