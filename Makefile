@@ -52,21 +52,21 @@ lint: $(STAMP)
 browser:
 	@command -v chromium >/dev/null || { \
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium; \
-	  else echo "make test: the browser tests need Debian's chromium: sudo apt-get install chromium"; exit 1; fi; }
+	  else echo "make browser: the browser tests need Debian's chromium: sudo apt-get install chromium"; exit 1; fi; }
 
 # clothd tune's shared-study test starts its own server from Debian's PostgreSQL (initdb and pg_ctl, kept
 # under /usr/lib/postgresql/VERSION/bin); CI runs as root and installs it.
 postgres:
 	@ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || command -v initdb >/dev/null || { \
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q postgresql; \
-	  else echo "make test: the shared-study test needs Debian's postgresql: sudo apt-get install postgresql"; exit 1; fi; }
+	  else echo "make postgres: the shared-study test needs Debian's postgresql: sudo apt-get install postgresql"; exit 1; fi; }
 
 # The reference stepper firmware (deploy/firmware/): its C unit tests, and the host build that
 # tests/test_firmware_host.py drives over a pty. Debian's gcc; CI runs as root and installs it.
 firmware:
 	@command -v gcc >/dev/null || { \
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q gcc make; \
-	  else echo "make test: the firmware needs Debian's gcc: sudo apt-get install gcc"; exit 1; fi; }
+	  else echo "make firmware: the firmware needs Debian's gcc: sudo apt-get install gcc"; exit 1; fi; }
 	$(MAKE) -C deploy/firmware host check
 
 # The same firmware for an STM32F405, booted in QEMU's netduinoplus2 by tests/test_firmware_qemu.py:
@@ -75,7 +75,7 @@ firmware-stm32:
 	@command -v arm-none-eabi-gcc >/dev/null && command -v qemu-system-arm >/dev/null || { \
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -q && \
 	    DEBIAN_FRONTEND=noninteractive apt-get install -y -q gcc-arm-none-eabi qemu-system-arm; \
-	  else echo "make test: the STM32 build needs: sudo apt-get install gcc-arm-none-eabi qemu-system-arm"; exit 1; fi; }
+	  else echo "make firmware-stm32: the STM32 build needs: sudo apt-get install gcc-arm-none-eabi qemu-system-arm"; exit 1; fi; }
 	$(MAKE) -C deploy/firmware stm32
 
 # The tests marked clock_free (nothing asserted of elapsed time, no deadline) run on every core, a module

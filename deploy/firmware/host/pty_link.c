@@ -65,10 +65,10 @@ static int point_link(const pty_link *pty)
         return fail(tmp);
     }
     if (symlink(pty->slave_path, tmp) != 0) {
-        return fail("symlink");
+        return fail(pty->link_path); /* its folder missing, most likely: name the path given */
     }
     if (rename(tmp, pty->link_path) != 0) {
-        return fail("rename");
+        return fail(pty->link_path);
     }
     return 0;
 }
