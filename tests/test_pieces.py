@@ -16,7 +16,7 @@ from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import ModuleCommands
 from clothd.core.modes import LoopState, Mode, PieceState
-from clothd.core.pieces import PieceTracking
+from clothd.core.pieces import LOST_FROM_VIEW, MISSED_LOOKS, PieceTracking
 from clothd.core.segmentation import find_cloths
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
@@ -143,6 +143,42 @@ def test_a_piece_that_leaves_frees_its_tracker_for_the_next(scene: tuple) -> Non
     assert len(made) == 2  # no third tracker was built
     assert len(tracking.pieces) == 2 and all(p.tracking for p in tracking.pieces)
     assert {p.id for p in tracking.pieces} == {other.id, max(first.id, other.id) + 1}
+
+
+def test_a_piece_lost_from_view_before_it_is_tracked_is_let_go_and_a_new_flow_numbers_from_0(
+    scene: tuple,
+) -> None:
+    """A piece seen coming in (outside a narrow workspace, so never tracked) that no later look sees: held
+    as entering, it would claim its modules for ever. MISSED_LOOKS looks without it let it go, rejected."""
+    image, _, cfg, model = scene
+    layout = ConveyorLayout.of_cell(cfg.cell)
+    wide = Workspace.of_cell(cfg.cell)
+    narrow = dataclasses.replace(wide, y_min_m=-0.05, y_max_m=0.05)  # no 0.20 m piece lies inside it
+    tracking = PieceTracking(cfg.flow, model, narrow, lambda: Tracker(cfg.tracker, model, layout))
+    period, every = cfg.loop.period_s, cfg.flow.search_every
+    t_s = 0.0
+    for _ in range(every + 1):
+        tracking.track(image, t_s, None)
+        tracking.upkeep()
+        t_s += period
+    assert [p.state for p in tracking.pieces] == [PieceState.ENTERING] * 2
+    empty = np.empty_like(image)
+    empty[:] = np.median(image.reshape(-1, 3), axis=0).astype(np.uint8)  # the deck alone
+    for _ in range((MISSED_LOOKS - 1) * every):
+        tracking.track(empty, t_s, None)
+        t_s += period
+    assert len(tracking.pieces) == 2  # one look without them: not yet
+    for _ in range(every):
+        tracking.track(empty, t_s, None)
+        t_s += period
+    assert (
+        tracking.pieces == []
+        and [(p.state, p.reason) for p in tracking.gone] == [(PieceState.REJECTED, LOST_FROM_VIEW)] * 2
+    )
+    tracking.reset()
+    assert not tracking.gone
+    tracking.track(image, t_s, None)
+    assert sorted(p.id for p in tracking.pieces) == [0, 1]
 
 
 class _Frames(RecordedFrames):

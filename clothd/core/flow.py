@@ -32,11 +32,9 @@ from clothd.core.control import STILL_SPEED_M_S, Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.flatness import Flatness
 from clothd.core.messages import ModuleCommands
-from clothd.core.modes import Mode, PieceState
+from clothd.core.modes import DRIVEN_OUT, Mode, PieceState
 from clothd.core.pieces import Piece
 from clothd.core.workspace import Workspace
-
-DRIVEN_OUT = (PieceState.LEAVING, PieceState.REJECTED)
 
 
 @dataclass

@@ -31,7 +31,7 @@ from clothd.config import FlowConfig
 from clothd.core.camera_model import CameraModel
 from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands, PairedView
-from clothd.core.modes import PieceState
+from clothd.core.modes import DRIVEN_OUT, PieceState
 from clothd.core.segmentation import ClothRegion, find_cloths, full_frame_region
 from clothd.core.workspace import Workspace
 
@@ -43,7 +43,10 @@ _Frame = tuple[np.ndarray, float, ModuleCommands | None, Sequence[PairedView | N
 
 GONE_KEPT = 50  # pieces that left or were rejected, kept for the API
 MATCH_M = 0.08  # an untracked piece is the region seen this near where it was last seen
-MISSED_LOOKS = 2  # an untracked piece not seen in this many looks in a row has gone from view
+# An untracked piece not seen in this many looks in a row has gone from view: it is let go, rejected, so
+# that it claims no modules (what it claimed was stopped, and a piece beside it could not be placed).
+MISSED_LOOKS = 2
+LOST_FROM_VIEW = "lost from view"
 
 
 @dataclass
@@ -158,10 +161,12 @@ class PieceTracking:
             self._free.append(len(self._trackers) - 1)
 
     def reset(self) -> None:
-        """Forget every piece: the next look finds them afresh."""
+        """Forget every piece, those gone too: the next look finds them afresh, numbered from 0."""
         for piece in list(self.pieces):
             self._release(piece)
         self.pieces.clear()
+        self.gone.clear()
+        self._next_id = 0
         self._frames = 0
         self._frame = None
 
@@ -255,9 +260,12 @@ class PieceTracking:
             inside = self.workspace.leaves(outline) is None and not _touches_border(region.corners_px, w, h)
             if inside and piece.still and self._free_slot_for(piece):
                 piece.region = region
-        for piece in self.pieces:
+        for piece in list(self.pieces):
             if piece.slot is None and piece.id not in seen:
                 piece.missed_looks += 1
+                if piece.missed_looks >= MISSED_LOOKS and piece.state not in DRIVEN_OUT:
+                    piece.enter(PieceState.REJECTED, t_s, LOST_FROM_VIEW)
+                    self.leave(piece, t_s)
 
     def _owner(self, centre_m: np.ndarray, taken: set[int]) -> Piece | None:
         for piece in self.pieces:
