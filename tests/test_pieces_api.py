@@ -121,6 +121,14 @@ def test_counts_follow_each_piece_past_the_statuss_last_fifty_and_a_flow_started
     assert _counts(_metrics(client)) == (126, 126 - 9, 9)
 
 
+def test_a_flow_no_scrape_saw_is_counted() -> None:
+    client, hub = _client()
+    for pieces in _flow(60, {3, 40}, 100.0):
+        publish(hub, pieces)
+    publish(hub, None, Mode.IDLE)  # the flow ended before the first scrape: its pieces are listed nowhere
+    assert _counts(_metrics(client)) == (60, 58, 2)
+
+
 class _StubCell:
     """hwsim's cell as its HTTP handler sees it, its outfeed as hwsim/outfeed.py's judge writes it."""
 

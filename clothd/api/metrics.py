@@ -1,7 +1,7 @@
 """Prometheus metrics (GET /metrics), read at scrape time from the status the last tick published: the
 snapshot is immutable, so the API never reads the daemon's live state, and nothing is paid
-per tick. The pieces of mode flow are counted at each scrape from the pieces it sees (piece_counts.py):
-the status keeps the last 50 gone, far more than pass between two scrapes."""
+per tick. The pieces of mode flow are counted from every status the hub takes (piece_counts.py), so a
+flow no scrape saw is counted all the same."""
 
 from __future__ import annotations
 
@@ -20,6 +20,10 @@ class StatusCollector(Collector):
     def __init__(self, hub: StreamHub) -> None:
         self.hub = hub
         self.counts = PieceCounts()
+        hub.listeners.append(self._count)
+
+    def _count(self, status: Status) -> None:
+        self.counts.see(status.pieces)
 
     def collect(self) -> Iterator[Metric]:
         s = self.hub.status
@@ -94,7 +98,6 @@ class StatusCollector(Collector):
 
     def _pieces(self, s: Status) -> Iterator[Metric]:
         """Mode flow's pieces: on the table by state, and in, out and rejected, each counted once."""
-        self.counts.see(s.pieces)
         on_table = GaugeMetricFamily(
             "clothd_pieces", "Pieces on the table by state (mode flow; 0 in any other)", labels=["state"]
         )

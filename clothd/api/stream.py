@@ -12,6 +12,7 @@ slow or stalled client loses messages and never delays the loop or another clien
 from __future__ import annotations
 
 import asyncio
+from collections.abc import Callable
 
 from clothd.loop.status import Status
 
@@ -44,6 +45,8 @@ class StreamHub:
         self.status: Status | None = None
         self.status_json = b"{}"
         self._api_loop: asyncio.AbstractEventLoop | None = None
+        # Told every status as it is taken, on the thread that takes it (what counts each one: metrics).
+        self.listeners: list[Callable[[Status], None]] = []
 
     def subscribe(self, min_interval_s: float) -> Subscriber:
         self._api_loop = asyncio.get_running_loop()
@@ -65,6 +68,8 @@ class StreamHub:
 
     def _take(self, status: Status, data: bytes) -> None:
         self.status, self.status_json = status, data  # readers on other threads see one or the other
+        for listen in self.listeners:
+            listen(status)
         loop = self._api_loop
         if loop is None or loop.is_closed():
             return
