@@ -385,7 +385,7 @@ def run_bench(
                 resource.prlimit(pid, resource.RLIMIT_NOFILE, (DAEMON_FDS, DAEMON_FDS))
             _wait(lambda: httpx.get(f"{d.base}/api/v1/status", timeout=5).json()["state"] == "tracking", 120)
             time.sleep(2.0)
-            shown = tqdm(floods, "floods", leave=False)
+            shown = tqdm(floods, "floods", leave=False, disable=None)
             rows = [_measure(d, port, kind, connections, flood_s, token) for kind in shown]
             httpx.post(f"{d.base}/api/v1/estop/clear", headers=_auth(token), timeout=5)
             return rows

@@ -121,7 +121,7 @@ def _growth(samples: list[dict[str, Any]], key: str) -> float:
 def _rest(cell: _Cell, rest_s: float, sample_s: float) -> list[dict[str, Any]]:
     samples = []
     t0 = time.monotonic()
-    with tqdm(total=round(rest_s), desc="drift bench (rest)", unit="s") as bar:
+    with tqdm(total=round(rest_s), desc="drift bench (rest)", unit="s", disable=None) as bar:
         while (t := time.monotonic() - t0) <= rest_s:
             samples.append(_sample(cell, t))
             bar.update(round(t) - bar.n)
@@ -133,7 +133,7 @@ def _drive(cell: _Cell, grader: _NodeGrader, drive_s: float, seed: int) -> list[
     rng = np.random.default_rng(seed)
     samples = []
     t0 = time.monotonic()
-    with tqdm(total=round(drive_s), desc="drift bench (drive)", unit="s") as bar:
+    with tqdm(total=round(drive_s), desc="drift bench (drive)", unit="s", disable=None) as bar:
         while (t := time.monotonic() - t0) < drive_s:
             est = cell.status()["pose"]
             turn = rng.uniform(-DRIVE_BOX[2], DRIVE_BOX[2])

@@ -304,7 +304,7 @@ def _run_starts(
     move_s: float,
 ) -> list[dict[str, Any]]:
     rows: list[dict[str, Any]] = []
-    with tqdm(total=starts, desc=f"flatten bench ({variant})", unit="start") as bar:
+    with tqdm(total=starts, desc=f"flatten bench ({variant})", unit="start", disable=None) as bar:
         for start in plan:
             rows.append(_run_start(cell, start, mode, flatten_s, move_s))
             bar.update(int(rows[-1]["wrinkled"]))
@@ -368,7 +368,7 @@ def _lockstep_rows(
     ctx = multiprocessing.get_context("spawn")  # a fresh interpreter each: its own Taichi
     with (
         ProcessPoolExecutor(max_workers=len(os.sched_getaffinity(0)), mp_context=ctx) as pool,
-        tqdm(total=starts * n, desc="flatten bench (lockstep)", unit="run") as bar,
+        tqdm(total=starts * n, desc="flatten bench (lockstep)", unit="run", disable=None) as bar,
     ):
         while len(results) < len(plan) and wrinkled() < starts:
             draws = plan[len(results) : len(results) + starts - wrinkled()]

@@ -95,7 +95,7 @@ def run_flow(minutes: float, rate_per_min: float, seed: int, cameras: int | None
     cell = LockstepFlow(load_config(None), sc, cameras=cameras)
     t_wall = time.perf_counter()
     steps = max(1, round(minutes * 60.0))
-    for _ in tqdm(range(steps), desc=f"flow {rate_per_min:g}/min", unit="sim s", leave=False):
+    for _ in tqdm(range(steps), desc=f"flow {rate_per_min:g}/min", unit="sim s", leave=False, disable=None):
         cell.run(1.0)
     wall_s = time.perf_counter() - t_wall
     outfeed = list(cell.world.outfeed)

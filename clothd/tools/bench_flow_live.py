@@ -58,7 +58,9 @@ def _run(client: CellClient, minutes: float, rate_per_min: float, seed: int) -> 
     pieces_by_id: dict[int, dict[str, Any]] = {}  # every piece the daemon reported, as last reported
     halted: tuple[float, str | None] | None = None  # when mode flow ended, and why
     fps_seen: list[float] = []  # the first camera's frames per second as the daemon received them, each poll
-    with tqdm(total=round(run_s), desc=f"flow {rate_per_min:g}/min, live", unit="s", leave=False) as bar:
+    with tqdm(
+        total=round(run_s), desc=f"flow {rate_per_min:g}/min, live", unit="s", leave=False, disable=None
+    ) as bar:
         while (elapsed := time.monotonic() - t0) < run_s:
             time.sleep(POLL_S)
             status = client.status()
