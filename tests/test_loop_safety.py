@@ -302,6 +302,14 @@ def test_flow_needs_no_tracked_cloth_but_the_link_the_e_stop_and_its_trackers_bu
             return
         daemon.set_setpoint("flow", None)
         assert daemon.setpoint.mode == "flow" and daemon.setpoint.pose is None
+        # Asked again while flowing, the flow goes on (the compute starts afresh on a new setpoint time);
+        # asked anew after another setpoint, it is a new flow.
+        asked = daemon.setpoint.started_mono_s
+        daemon.set_setpoint("flow", None)
+        assert daemon.setpoint.started_mono_s == asked
+        daemon.set_setpoint("idle", None)
+        daemon.set_setpoint("flow", None)
+        assert daemon.setpoint.started_mono_s > asked
 
     _run(scenario, flow_ready=flow_ready)
 

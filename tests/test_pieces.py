@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from recorded_frames import RecordedFrames, tick
 
-from clothd.config import load_config
+from clothd.config import Config, load_config
+from clothd.core.camera_model import CameraModel
 from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.messages import ModuleCommands
@@ -190,19 +191,8 @@ class _Frames(RecordedFrames):
         return None if self.lost else super().latest()
 
 
-def test_the_compute_in_mode_flow_reports_every_piece_and_a_lost_camera_stops_every_module(
-    scene: tuple,
-) -> None:
-    """One piece still coming in over the infeed edge (its belts pull it in), one lying in the middle:
-    both reported; then the camera is lost and every module stops, with the reason."""
-    _, _, cfg, model = scene
-    sc = flow_scenario(6.0, 0)
-    world = World(sc, log_commands=False)
-    sensors, _ = scenario_cameras(sc, world, 1)
-    spacing = sc.cloth.spacing_m
-    cloths = tuple(SceneCloth(_flat_piece(x, spacing), (spacing, spacing)) for x in (-0.44, 0.1))
-    image, _ = sensors[0].renderer.render([dataclasses.replace(world.scene_state(), cloths=cloths)])
-    frames = _Frames([np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)])
+def _flow_compute(cfg: Config, model: CameraModel, frames: RecordedFrames) -> tuple[Compute, ConveyorLayout]:
+    """A compute over `frames` on the flow table (mode flow ready), and the table's layout."""
     layout = ConveyorLayout.of_cell(cfg.cell)
     spec = ComputeSpec(
         tracker=cfg.tracker,
@@ -219,6 +209,23 @@ def test_the_compute_in_mode_flow_reports_every_piece_and_a_lost_camera_stops_ev
         flow=cfg.flow,
     )
     compute = Compute(spec, frames)
+    return compute, layout
+
+
+def test_the_compute_in_mode_flow_reports_every_piece_and_a_lost_camera_stops_every_module(
+    scene: tuple,
+) -> None:
+    """One piece still coming in over the infeed edge (its belts pull it in), one lying in the middle:
+    both reported; then the camera is lost and every module stops, with the reason."""
+    _, _, cfg, model = scene
+    sc = flow_scenario(6.0, 0)
+    world = World(sc, log_commands=False)
+    sensors, _ = scenario_cameras(sc, world, 1)
+    spacing = sc.cloth.spacing_m
+    cloths = tuple(SceneCloth(_flat_piece(x, spacing), (spacing, spacing)) for x in (-0.44, 0.1))
+    image, _ = sensors[0].renderer.render([dataclasses.replace(world.scene_state(), cloths=cloths)])
+    frames = _Frames([np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)])
+    compute, layout = _flow_compute(cfg, model, frames)
     flow = Setpoint(Mode.FLOW, None, started_mono_s=1.0)
     stopped = ModuleCommands.all_stop(layout.n_modules)
     for _ in range(2 * cfg.flow.search_every + 2):
@@ -232,3 +239,22 @@ def test_the_compute_in_mode_flow_reports_every_piece_and_a_lost_camera_stops_ev
     reply = tick(compute, TickRequest(flow, reply.commands, False, False))
     assert reply.state == LoopState.CAMERA_LOST and reply.halt_reason == "the camera is lost"
     assert not reply.commands.speed_m_s.any()
+
+
+def test_a_flow_asked_for_anew_starts_afresh_and_asked_again_goes_on(scene: tuple) -> None:
+    """Idle then flow within one tick: no tick sees the idle, yet the new flow finds its pieces afresh
+    (their first look is the new flow's). Flow again while flowing, the same setpoint, goes on."""
+    image, _, cfg, model = scene
+    compute, layout = _flow_compute(cfg, model, _Frames([image]))
+    stopped = ModuleCommands.all_stop(layout.n_modules)
+    first = Setpoint(Mode.FLOW, None, started_mono_s=1.0)
+    for _ in range(cfg.flow.search_every + 1):
+        reply = tick(compute, TickRequest(first, stopped, False, False))
+    assert reply.pieces is not None and len(reply.pieces) == 2
+    found = sorted(p.found_s for p in reply.pieces)
+    reply = tick(compute, TickRequest(first, stopped, False, False))
+    assert reply.pieces is not None and sorted(p.found_s for p in reply.pieces) == found  # goes on
+    anew = Setpoint(Mode.FLOW, None, started_mono_s=2.0)
+    reply = tick(compute, TickRequest(anew, stopped, False, False))
+    assert reply.pieces is not None and len(reply.pieces) == 2
+    assert min(p.found_s for p in reply.pieces) > max(found)  # found again by the new flow's first look

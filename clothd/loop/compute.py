@@ -85,14 +85,13 @@ class Compute:
         opened from their factories)."""
         self.spec = spec
         self.frames = frames
-        if others is None:
-            others = [c.frame_source() for c in spec.other_cameras]
+        others = [c.frame_source() for c in spec.other_cameras] if others is None else others
         self.pairing = FramePairing(others, spec.tracker.stereo.max_skew_ms / 1e3)
         self.recorder: Recorder | None = None  # a directory recording
         # The live Foxglove output: the server, and MCAP recordings (format mcap) instead of Recorder.
         serves = spec.foxglove is not None and spec.foxglove.enabled
-        needs_live = serves or spec.recording_format == RecordingFormat.MCAP
-        self.foxglove = LiveFoxglove(spec.foxglove) if needs_live else None
+        live = serves or spec.recording_format == RecordingFormat.MCAP
+        self.foxglove = LiveFoxglove(spec.foxglove) if live else None
         self.tracker = Tracker(
             spec.tracker,
             spec.camera_model,
@@ -110,6 +109,7 @@ class Compute:
             spec.tracker.estimates_shape,
         )
         self.flow: FlowCell | None = None  # mode flow's pieces and their control, while in mode flow
+        self._flow_set_s: float | None = None  # when the flow running was asked for (its setpoint's)
         self._flow_cell: FlowCell | None = None  # ... built at start (flow.warm_at_start) or when first asked
         self.view = ViewRenderer(spec.camera_model)
         self._estimate: Estimate | None = None
@@ -125,9 +125,8 @@ class Compute:
 
     def start(self) -> None:
         if self.spec.flow.warm_at_start:
-            cam = self.spec.camera_model
             self._flow_cell = self._new_flow_cell()
-            self._flow_cell.tracking.warm(cam.width, cam.height)
+            self._flow_cell.tracking.warm(self.spec.camera_model.width, self.spec.camera_model.height)
         if self.foxglove is not None:
             self.foxglove.start()
         self.frames.start()
@@ -193,16 +192,17 @@ class Compute:
         if self._after_failed:
             self._after_failed = False
             return self.stop_reply(LoopState.FAULT)
-        if reset:
-            ahead = None  # tracked on the state the reset discards: the frame is tracked afresh below
+        ahead = None if reset else ahead  # tracked on the state a reset discards: tracked afresh below
         timing, self._late_timing = self._late_timing, {}
         if ahead is not None:
             frame: CameraFrame | None = ahead.frame
         else:
             frame = self._frame(req.frame_wait_until_mono_s, timing)  # its wait is not the compute's time
         t0, began_mono_s = time.perf_counter(), time.monotonic()
-        if reset or (self.flow is not None) != (req.setpoint.mode == Mode.FLOW):  # one cloth, or pieces
-            self._start_afresh(req.setpoint.mode == Mode.FLOW)
+        flow_asked, set_s = req.setpoint.mode == Mode.FLOW, req.setpoint.started_mono_s
+        # One cloth, or pieces; a flow asked for anew (after a setpoint no tick saw, too) starts afresh.
+        if reset or (self.flow is not None) != flow_asked or (flow_asked and set_s != self._flow_set_s):
+            self._start_afresh(set_s if flow_asked else None)
         self._record_requests(req)
         if self.flow is not None:
             return self._flow_tick(self.flow, req, frame, timing, t0, began_mono_s)
@@ -245,13 +245,13 @@ class Compute:
             starved_ms=silent_s * 1e3 if starved else None,
         )
 
-    def _start_afresh(self, flow: bool) -> None:
-        """Tracking starts afresh: of one cloth, or (flow) of every piece on the table."""
+    def _start_afresh(self, flow_set_s: float | None) -> None:
+        """Tracking starts afresh: of one cloth, or of every piece (a flow asked for at flow_set_s)."""
         self.tracker.reset()
         self.cell.reset()
         self._estimate = self._flatness = None
-        self.flow = None
-        if flow:
+        self.flow, self._flow_set_s = None, flow_set_s
+        if flow_set_s is not None:
             if self._flow_cell is None:
                 self._flow_cell = self._new_flow_cell()
             self.flow = self._flow_cell

@@ -143,7 +143,10 @@ class Daemon:
             self.setpoint = Setpoint(Mode.DRIVE, None, plan, time.monotonic())
         else:
             target = None if mode == Mode.IDLE else pose
-            self.setpoint = Setpoint(mode, target, started_mono_s=time.monotonic())
+            # Flow asked for while flowing goes on with the same pieces; asked for anew, it starts afresh.
+            going_on = mode == self.setpoint.mode == Mode.FLOW
+            started = self.setpoint.started_mono_s if going_on else time.monotonic()
+            self.setpoint = Setpoint(mode, target, started_mono_s=started)
         self.halt_reason = self.halt_t_unix_s = None
         self.publish()
 
