@@ -102,6 +102,7 @@ class FakeCompute:
         self.in_force: list[ModuleCommands] = []  # what the daemon said it had sent, after each tick
         self.silent = False
         self.state = "tracking"
+        self.camera_state = "streaming"
         self.halt_reason: str | None = None
         self.recording: RecordingStatus | None = None  # as a recorder would say, from the requests
 
@@ -129,7 +130,7 @@ class FakeCompute:
         moving = req.setpoint.mode != "idle" and self.state == "tracking" and self.halt_reason is None
         commands = MOVING if moving else ModuleCommands.all_stop(N)
         est = _estimate() if self.state == "tracking" else None
-        camera = FrameSourceHealth("streaming", self.state != "camera_lost", None, 0)
+        camera = FrameSourceHealth(self.camera_state, self.state != "camera_lost", None, 0)
         return TickReply(
             state=self.state,
             estimate=est,
@@ -151,8 +152,11 @@ def _run(
     estimates_shape: bool = True,
     module_calibration: ModuleCalibration | None = None,
     flow_ready: bool = False,
+    camera_opening: bool = False,
 ) -> None:
     link, compute = FakeLink(), FakeCompute()
+    if camera_opening:  # from the start, no frame: the camera's first opening under way
+        compute.state, compute.camera_state = "camera_lost", "connecting"
     settings = DaemonSettings(
         period_s=PERIOD_S,
         max_stale_ticks=max_stale_ticks,
@@ -284,6 +288,21 @@ def test_moves_are_refused_unless_tracked_linked_clear_and_on_the_table() -> Non
         np.testing.assert_array_equal(daemon.setpoint.pose, [0.05, 0.0, 0.0])
 
     _run(scenario)
+
+
+def test_a_camera_still_opening_at_start_is_starting_not_lost() -> None:
+    async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
+        assert daemon.state == "starting"
+        compute.camera_state = "lost"  # its opening failed
+        await _ticks(daemon, 1)
+        assert daemon.state == "camera_lost"
+        compute.state, compute.camera_state = "tracking", "streaming"
+        await _ticks(daemon, 1)
+        compute.state, compute.camera_state = "camera_lost", "connecting"  # reopening after a loss
+        await _ticks(daemon, 1)
+        assert daemon.state == "camera_lost"
+
+    _run(scenario, camera_opening=True)
 
 
 @pytest.mark.parametrize("flow_ready", [True, False])

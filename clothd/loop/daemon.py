@@ -371,9 +371,16 @@ class Daemon:
         if reply.view_jpeg is not None:
             self.view.post(reply.view_jpeg)
             self._last_view_s = asked_s
-        if reply.state != self.state:
-            log.info("state: %s -> %s", self.state, reply.state)
-        self.state = reply.state
+        state = reply.state
+        if (
+            state == LoopState.CAMERA_LOST
+            and self.state == LoopState.STARTING
+            and reply.camera.state == "connecting"
+        ):
+            state = LoopState.STARTING  # the camera's first opening is under way: nothing is lost yet
+        if state != self.state:
+            log.info("state: %s -> %s", self.state, state)
+        self.state = state
         if reply.starved_ms is not None:
             self._starved(reply.starved_ms)
         if reply.halt_reason is not None:
