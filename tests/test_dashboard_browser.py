@@ -105,6 +105,8 @@ def test_page_loads_and_shows_the_live_state(page: Page) -> None:
         ".test(document.getElementById('cameras').textContent)",
         timeout=20000,
     )
+    # The tick's figures: the loop's missed deadlines and the ticks the compute answered late.
+    assert (page.text_content("#missed") or "").isdigit() and (page.text_content("#late") or "").isdigit()
     assert page.is_visible("#estop")  # always visible at 1280 x 720
     box = page.locator("#estop").bounding_box()
     assert box is not None and box["y"] + box["height"] <= 720 and box["x"] + box["width"] <= 1280

@@ -109,6 +109,7 @@ function show(s) {
   $("residual").textContent = `${fmt(s.residual.mean_px, 2)} / ${fmt(s.residual.worst_px, 2)} px`;
   const tick = s.timing.stages.compute || {};
   $("missed").textContent = s.timing.missed_ticks;
+  $("late").textContent = s.timing.compute_overruns;  // ticks that went out with the previous commands
   const c = s.link.counters;
   $("counters").textContent = `sent ${c.sent} · acked ${c.acked} · retransmitted ${c.retransmitted} · ` +
     `invalid ${c.invalid} · faults ${c.faults} · reconnects ${c.reconnects} · RTT p50 ${fmt(c.rtt_p50_ms, 1)} ms`;
