@@ -421,6 +421,14 @@ def test_bad_input_gets_a_reason(
     shutil.copytree(recording, no_commands, ignore=shutil.ignore_patterns("commands.csv"))
     assert _tune([no_commands, held_out], tmp_path / "a", wrong_config, "--trials", "1") == 2
     assert "the model has no input to follow" in capsys.readouterr().err
+    # What a refused drive leaves: its recording of one frame. Named, and no study is stored on it.
+    one_frame = tmp_path / "one-frame"
+    later_frames = lambda _dir, names: [n for n in names if n.endswith(".png") and n != "000000.png"]  # noqa: E731
+    shutil.copytree(recording, one_frame, ignore=later_frames)
+    assert len(list((one_frame / "frames").iterdir())) == 1
+    assert _tune([one_frame, held_out], tmp_path / "b", wrong_config, "--trials", "1") == 2
+    assert f"{one_frame}: the cloth was followed in 1 frame(s)" in capsys.readouterr().err
+    assert not (tmp_path / "b").exists()
     for workers in ("0", "two"):
         with pytest.raises(SystemExit) as err:
             _tune([recording, held_out], tmp_path, wrong_config, "--workers", workers)

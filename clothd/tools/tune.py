@@ -265,13 +265,16 @@ def tune(
     optuna.logging.set_verbosity(optuna.logging.WARNING)  # the bar and the table say what matters
     start = time.perf_counter()
     deadline = None if timeout_s is None else time.time() + timeout_s
+    # Every recording is read before a study is stored: one that cannot be tuned on is named now, and
+    # leaves no study behind that the next run, without it, would not match.
+    sequences = tuple(measure(r, cfg.tracker) for r in recordings)
     out_dir.mkdir(parents=True, exist_ok=True)
     url = storage_url(storage, out_dir)
     studies = tuple(
         open_study(storage_of(url), s.study_name, [recordings[i] for i in s.train], model, cfg)
         for s in searches
     )
-    job = TuneJob(url, model, searches, tuple(measure(r, cfg.tracker) for r in recordings), cfg, seed)
+    job = TuneJob(url, model, searches, sequences, cfg, seed)
     before = _finished(studies)
     ctx = multiprocessing.get_context("spawn")
     procs: list[BaseProcess] = [

@@ -108,6 +108,8 @@ def measure(recording: Path, cfg: TrackerConfig) -> Sequence:
         meas.append(_measured(est, ids0))
     if len(ids0) < MIN_FEATURES:
         raise InputError(f"{recording}: only {len(ids0)} features in the first frame (need {MIN_FEATURES})")
+    if len(t_s) < 2:  # what a refused drive leaves: its recording started, then stopped at once
+        raise InputError(f"{recording}: the cloth was followed in {len(t_s)} frame(s): nothing to fit to")
     rest_nodes = mesh.rest_nodes_m().reshape(-1, 2)
     true_nodes = None
     if (recording / "truth.npz").exists():
