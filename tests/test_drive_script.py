@@ -77,6 +77,13 @@ def test_compiling_refuses_what_the_cell_cannot_do() -> None:
     missing = {"timeline": [{"t_s": 0, "modules": {"ids": [3, 48]}, "speed_m_s": 0.1, "heading_rad": 0}]}
     with pytest.raises(InvalidRequestError, match=r"modules \[48\] out of range"):
         DrivePlan.compile(_script(**missing), LAYOUT, 0.2)
+    off_table = {
+        "timeline": [{"t_s": 0, "modules": {"region_m": [5, 5, 6, 6]}, "speed_m_s": 0.1, "heading_rad": 0}]
+    }
+    with pytest.raises(
+        InvalidRequestError, match=r"timeline\[0\]: modules.region_m holds no module's centre"
+    ):
+        DrivePlan.compile(_script(**off_table), LAYOUT, 0.2)
 
 
 def test_reach_counts_only_the_modules_near_the_cloth() -> None:

@@ -132,6 +132,8 @@ class DrivePlan:
                     " (cell.max_speed_m_s)"
                 )
             ids = chosen(e.modules, centres)
+            if not len(ids):  # a region that holds no module's centre: a typo, most likely
+                raise InvalidRequestError(f"timeline[{i}]: modules.region_m holds no module's centre")
             bad = ids[ids >= n]
             if len(bad):
                 raise InvalidRequestError(
