@@ -37,6 +37,10 @@ def test_bad_sources_are_clear_errors(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="no such file"):
         open_footage(tmp_path / "missing.mp4")
     (tmp_path / "junk.mp4").write_bytes(b"not a video")
+    mcap = tmp_path / "live.mcap"
+    mcap.write_bytes(b"\x89MCAP0\r\n")  # what recording.format mcap writes begins so
+    with pytest.raises(InputError, match=r"an MCAP recording .* cannot be replayed"):
+        open_footage(mcap)
     with pytest.raises(InputError, match="not a video"):
         open_footage(tmp_path / "junk.mp4")
     empty = tmp_path / "empty"

@@ -116,6 +116,11 @@ def open_footage(source: Path) -> Footage:
         return Footage(source, DEFAULT_FPS, None, None, None, _images_in(source))
     if not source.exists():
         raise InputError(f"{source}: no such file or directory")
+    if source.suffix.lower() == ".mcap":
+        raise InputError(
+            f"{source}: an MCAP recording (recording.format mcap) is for Foxglove and cannot be replayed;"
+            " record with recording.format dir for that"
+        )
     cap = cv2.VideoCapture(str(source))
     opened, fps = cap.isOpened(), cap.get(cv2.CAP_PROP_FPS)
     cap.release()
