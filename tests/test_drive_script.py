@@ -14,7 +14,7 @@ from clothd.core.conveyor import ConveyorLayout
 from clothd.core.drive_script import DrivePlan, DriveScript, cloth_reach_m, swept_box_m
 from clothd.core.workspace import Workspace
 from clothd.errors import InputError, InvalidRequestError
-from clothd.tools.drive import load_script
+from clothd.tools.drive import RECORD_TAIL_S, drive, load_script
 from hwsim import scenario as scenarios
 
 pytestmark = pytest.mark.clock_free
@@ -151,3 +151,31 @@ def test_a_bad_module_choice_is_refused_with_one_reason(modules: dict[str, objec
         _script(timeline=[entry])
     (error,) = refused.value.errors()
     assert words in f"{'.'.join(map(str, error['loc']))}: {error['msg']}"
+
+
+class _Cell:
+    """What `drive` asks of the daemon, in order."""
+
+    def __init__(self) -> None:
+        self.calls: list[str] = []
+
+    def record_start(self, name: str) -> Path:
+        self.calls.append("record_start")
+        return Path("recordings") / name
+
+    def play(self, script: DriveScript) -> None:
+        self.calls.append("play")
+
+    def record_stop(self) -> None:
+        self.calls.append("record_stop")
+
+
+def test_a_recorded_drive_is_recorded_past_its_end() -> None:
+    """The stop's commands and the last frames arrive after the status reads idle."""
+    cell = _Cell()
+    where = drive(cell, _script(), "fabric/shear", sleep=lambda s: cell.calls.append(f"wait {s:g} s"))  # type: ignore[arg-type]
+    assert where == Path("recordings/fabric/shear")
+    assert cell.calls == ["record_start", "play", f"wait {RECORD_TAIL_S:g} s", "record_stop"]
+    unrecorded = _Cell()
+    drive(unrecorded, _script(), None, sleep=lambda s: unrecorded.calls.append("wait"))  # type: ignore[arg-type]
+    assert unrecorded.calls == ["play"]

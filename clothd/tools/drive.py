@@ -7,6 +7,8 @@ workspace. A fault stops it as it stops a move; the recording is stopped either 
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import yaml
@@ -32,12 +34,22 @@ def load_script(path: Path) -> DriveScript:
         raise InputError(f"{path}: {where}") from None
 
 
-def drive(client: CellClient, script: DriveScript, record: str | None) -> Path | None:
-    """Play `script`, recording into `record` (a name inside the daemon's recording.dir) when given;
-    returns where it recorded."""
+# The recording goes on this long after the drive has ended: the status reads idle as the stop is sent,
+# while the frames taken up to then are still on their way (the camera's latency, a tick or two), and the
+# commands.csv row of the stop is written with the next tick. Stopped at once, it lost the last 0.1 s.
+RECORD_TAIL_S = 0.5
+
+
+def drive(
+    client: CellClient, script: DriveScript, record: str | None, sleep: Callable[[float], None] = time.sleep
+) -> Path | None:
+    """Play `script`, recording into `record` (a name inside the daemon's recording.dir) when given, up to
+    RECORD_TAIL_S after its end; returns where it recorded."""
     where = client.record_start(record) if record is not None else None
     try:
         client.play(script)
+        if where is not None:
+            sleep(RECORD_TAIL_S)
     finally:
         if where is not None:
             client.record_stop()
