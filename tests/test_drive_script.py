@@ -135,6 +135,22 @@ def test_the_example_in_the_api_docs_plays_on_make_runs_cell() -> None:
     )
 
 
+@pytest.mark.parametrize("name", ["shear", "squeeze", "twist"])
+def test_the_shipped_drive_scripts_are_the_documented_ones_and_play_on_make_runs_cell(name: str) -> None:
+    root = Path(__file__).resolve().parents[1]
+    path = root / "deploy" / "drive-scripts" / f"{name}.yaml"
+    assert path.read_text() in (root / "docs" / "commissioning.md").read_text()
+    cfg = load_config(None)
+    layout = ConveyorLayout.of_cell(cfg.cell)
+    plan = DrivePlan.compile(load_script(path), layout, cfg.cell.max_speed_m_s)
+    w, h = scenarios.load("cell").cloth.size_m
+    outline = np.array([[-w, -h], [w, -h], [w, h], [-w, h]]) / 2
+    assert (
+        Workspace.of_cell(cfg.cell).leaves(swept_box_m(outline, cloth_reach_m(plan, outline, layout))) is None
+    )
+    assert (plan.speed_m_s > 0).sum(axis=1).max() >= layout.n_modules // 2  # half the table or more driven
+
+
 @pytest.mark.parametrize(
     ("modules", "words"),
     [
