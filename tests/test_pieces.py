@@ -15,9 +15,11 @@ from clothd.config import Config, load_config
 from clothd.core.camera_model import CameraModel
 from clothd.core.control import Setpoint
 from clothd.core.conveyor import ConveyorLayout
+from clothd.core.flatness import Flatness
+from clothd.core.flow_cell import FlowCell
 from clothd.core.messages import ModuleCommands
 from clothd.core.modes import LoopState, Mode, PieceState
-from clothd.core.pieces import LOST_FROM_VIEW, MISSED_LOOKS, PieceTracking
+from clothd.core.pieces import LOST_FROM_VIEW, MISSED_LOOKS, Piece, PieceTracking
 from clothd.core.segmentation import find_cloths
 from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
@@ -33,6 +35,7 @@ from hwsim.world import World
 pytestmark = pytest.mark.clock_free
 
 GAP_M = 0.020
+FLAP_REASON = "a corner is folded over"
 SIZE_M = (0.25, 0.20)
 
 
@@ -258,3 +261,18 @@ def test_a_flow_asked_for_anew_starts_afresh_and_asked_again_goes_on(scene: tupl
     reply = tick(compute, TickRequest(anew, stopped, False, False))
     assert reply.pieces is not None and len(reply.pieces) == 2
     assert min(p.found_s for p in reply.pieces) > max(found)  # found again by the new flow's first look
+
+
+def test_a_piece_not_tracked_reports_no_flatness_as_it_reports_no_pose(
+    scene: tuple, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A reject whose tracking was lost showed its last flatness (17.8 mm, not flat) beside a null pose."""
+    _, _, cfg, model = scene
+    cell = FlowCell(cfg.flow, cfg.tracker, cfg.control, cfg.cell, model, (), cfg.loop.period_s)
+    last = Flatness(0.0178, 5.0, False, ())
+    monkeypatch.setattr(cell.controller, "flatness", lambda piece: last)
+    outline = np.array([[-0.1, -0.1], [0.1, -0.1], [0.1, 0.1], [-0.1, 0.1]])
+    cell.tracking.pieces.append(Piece(0, PieceState.REJECTED, 1.0, outline, 0.5, reason=FLAP_REASON))
+    (report,) = cell.reports()
+    assert (report.pose, report.flat, report.max_height_mm) == (None, None, None)
+    assert report.reason == FLAP_REASON

@@ -83,5 +83,9 @@ class FlowCell:
 
     def reports(self) -> tuple[PieceReport, ...]:
         """Every piece on the table, then those gone (oldest first)."""
-        on_table = [PieceReport.of(p, self.controller.flatness(p)) for p in self.tracking.pieces]
+        # A piece's flatness is read from its estimate: none while it is not tracked, as its pose.
+        on_table = [
+            PieceReport.of(p, self.controller.flatness(p) if p.tracking else None)
+            for p in self.tracking.pieces
+        ]
         return tuple(on_table + [PieceReport.of(p, None) for p in self.tracking.gone])
