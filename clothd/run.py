@@ -33,6 +33,7 @@ from clothd.api.serve_api import ApiSpec
 from clothd.api.stream import StreamHub
 from clothd.config import (
     ApiConfig,
+    CameraSourceConfig,
     Config,
     FoxgloveConfig,
     OpcUaConfig,
@@ -142,11 +143,12 @@ def sim_config(cfg: Config, ready: dict[str, Any]) -> Config:
 
 
 def sim_replaced_cameras(cfg: Config) -> str | None:
-    """A line for `clothd run --sim` when the configuration names cameras of its own (a `cameras:` list or
-    a camera.calibration): the simulated cell's cameras, with their true calibrations, take their place."""
-    if cfg.cameras is None and cfg.camera.calibration is None:
+    """A line for `clothd run --sim` when the configuration names cameras of its own (a `cameras:` list, a
+    camera.source or a camera.calibration): the simulated cell.s, true calibrations and all, replace them."""
+    default_source = CameraSourceConfig().source
+    if cfg.cameras is None and cfg.camera.calibration is None and cfg.camera.source == default_source:
         return None
-    named = "cameras" if cfg.cameras is not None else "camera.calibration"
+    named = "cameras" if cfg.cameras is not None else "camera.source and camera.calibration"
     return f"clothd: --sim: the simulated cell's cameras and their true calibrations replace {named}"
 
 

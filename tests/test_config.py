@@ -113,7 +113,7 @@ def test_check_config_reads_the_files_it_names(tmp_path: Path, capsys: pytest.Ca
     assert "modules.yaml: cannot read a module calibration" in capsys.readouterr().err
     (tmp_path / "modules.yaml").write_text("modules: [{module: 99, reversed: false}]\n")
     assert main(["check-config", str(names)]) == 2
-    assert "modules.yaml" in capsys.readouterr().err
+    assert "modules.yaml: modules[0]: needs exactly heading_offset_deg" in capsys.readouterr().err
     camera.write_text("{}")
     (tmp_path / "modules.yaml").unlink()
     names.write_text(f"camera: {{calibration: {camera}}}\n")
@@ -280,7 +280,9 @@ def test_sim_says_when_it_replaces_the_configurations_cameras() -> None:
 
     assert sim_replaced_cameras(Config()) is None
     calibrated = parse_config({"camera": {"calibration": "/etc/clothd/top.json"}})
-    assert "replace camera.calibration" in str(sim_replaced_cameras(calibrated))
+    assert "replace camera.source and camera.calibration" in str(sim_replaced_cameras(calibrated))
+    streamed = parse_config({"camera": {"source": "rtsp://cam/stream"}})
+    assert "replace camera.source" in str(sim_replaced_cameras(streamed))
     listed = parse_config({"cameras": [{"source": "0", "calibration": "/etc/clothd/top.json"}]})
     assert "replace cameras" in str(sim_replaced_cameras(listed))
 

@@ -17,7 +17,9 @@ def _bars_shown_when_piped(tree: ast.AST) -> list[int]:
     """Lines of the tqdm(...) calls that do not pass disable=None."""
     lines = []
     for node in ast.walk(tree):
-        if isinstance(node, ast.Call) and isinstance(node.func, ast.Name) and node.func.id == "tqdm":
+        func = node.func if isinstance(node, ast.Call) else None
+        name = func.id if isinstance(func, ast.Name) else func.attr if isinstance(func, ast.Attribute) else ""
+        if isinstance(node, ast.Call) and name in ("tqdm", "trange"):
             disable = next((k.value for k in node.keywords if k.arg == "disable"), None)
             if not (isinstance(disable, ast.Constant) and disable.value is None):
                 lines.append(node.lineno)
@@ -34,5 +36,8 @@ def test_every_progress_bar_is_off_when_piped() -> None:
 
 
 def test_the_check_sees_a_bar_left_on() -> None:
-    code = "for _ in tqdm(range(3), leave=False):\n    pass\nbar = tqdm(total=3, disable=None)\n"
-    assert _bars_shown_when_piped(ast.parse(code)) == [1]
+    code = (
+        "for _ in tqdm(range(3), leave=False):\n    pass\nbar = tqdm(total=3, disable=None)\n"
+        "other = tqdm.tqdm(total=3)\nfor _ in trange(3):\n    pass\n"
+    )
+    assert _bars_shown_when_piped(ast.parse(code)) == [1, 4, 5]

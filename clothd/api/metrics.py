@@ -1,6 +1,6 @@
 """Prometheus metrics (GET /metrics), read at scrape time from the status the last tick published: the
-snapshot is immutable, so the API never reads the daemon's live state, and nothing is paid
-per tick. The pieces of mode flow are counted from every status the hub takes (piece_counts.py), so a
+snapshot is immutable, so the API never reads the daemon's live state, and the daemon pays nothing per
+tick. The pieces of mode flow are counted from every status the hub takes (piece_counts.py), so a
 flow no scrape saw is counted all the same."""
 
 from __future__ import annotations

@@ -12,9 +12,12 @@ slow or stalled client loses messages and never delays the loop or another clien
 from __future__ import annotations
 
 import asyncio
+import logging
 from collections.abc import Callable
 
 from clothd.loop.status import Status
+
+log = logging.getLogger(__name__)
 
 
 class Subscriber:
@@ -68,8 +71,14 @@ class StreamHub:
 
     def _take(self, status: Status, data: bytes) -> None:
         self.status, self.status_json = status, data  # readers on other threads see one or the other
+        self._offer_all(data)
         for listen in self.listeners:
-            listen(status)
+            try:
+                listen(status)
+            except Exception:  # a listener's bug must not break what takes the statuses
+                log.exception("a status listener failed")
+
+    def _offer_all(self, data: bytes) -> None:
         loop = self._api_loop
         if loop is None or loop.is_closed():
             return

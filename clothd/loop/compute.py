@@ -90,8 +90,8 @@ class Compute:
         self.recorder: Recorder | None = None  # a directory recording
         # The live Foxglove output: the server, and MCAP recordings (format mcap) instead of Recorder.
         serves = spec.foxglove is not None and spec.foxglove.enabled
-        live = serves or spec.recording_format == RecordingFormat.MCAP
-        self.foxglove = LiveFoxglove(spec.foxglove) if live else None
+        needs_live = serves or spec.recording_format == RecordingFormat.MCAP
+        self.foxglove = LiveFoxglove(spec.foxglove) if needs_live else None
         self.tracker = Tracker(
             spec.tracker,
             spec.camera_model,

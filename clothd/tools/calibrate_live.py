@@ -90,6 +90,7 @@ def capture_views(
     camera.start()
     deadline = time.monotonic() + timeout_s
     last_index = -1
+    interrupted = False
     try:
         while len(names) < views and time.monotonic() < deadline:
             frame = camera.latest()
@@ -113,11 +114,13 @@ def capture_views(
             )
     except KeyboardInterrupt:
         print(f"stopped with {len(names)} pictures")
+        interrupted = True
     finally:
         camera.stop()
+    spent = "until stopped" if interrupted else f"in {timeout_s:g} s"
     if last_index < 0:  # not one frame: the camera, not the board, is what to look at
         why = f" ({camera.last_error})" if camera.last_error else ""
-        raise InputError(f"camera {source!r}: no frame came in {timeout_s:g} s{why}")
+        raise InputError(f"camera {camera.shown!r}: no frame came {spent}{why}")
     if not names:
-        raise InputError(f"camera {source!r}: the board was in no frame held still ({timeout_s:g} s)")
+        raise InputError(f"camera {camera.shown!r}: the board was in no frame held still ({spent})")
     return names

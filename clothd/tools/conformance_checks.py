@@ -68,7 +68,7 @@ def check_handshake_hello(s: Session) -> Row:
     notices a new opener up to a second late), and the daemon's link retries its handshake too."""
     got: Received | None = None
     rtt_ms, attempt = 0.0, 0
-    while attempt < HELLO_TRIES and not _is(got, T.HELLO_ACK):
+    while attempt < HELLO_TRIES and (attempt == 0 or got is None):  # again only when nothing came back
         attempt += 1
         got, rtt_ms = s.ask(T.HELLO, wire.hello_payload())
     if got is None or not _is(got, T.HELLO_ACK):
