@@ -144,7 +144,7 @@ def sim_config(cfg: Config, ready: dict[str, Any]) -> Config:
 
 def sim_replaced_cameras(cfg: Config) -> str | None:
     """A line for `clothd run --sim` when the configuration names cameras of its own (a `cameras:` list, a
-    camera.source or a camera.calibration): the simulated cell.s, true calibrations and all, replace them."""
+    camera.source or a camera.calibration): the simulated cell's, true calibrations and all, replace them."""
     default_source = CameraSourceConfig().source
     if cfg.cameras is None and cfg.camera.calibration is None and cfg.camera.source == default_source:
         return None
