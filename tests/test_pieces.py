@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -276,3 +277,25 @@ def test_a_piece_not_tracked_reports_no_flatness_as_it_reports_no_pose(
     (report,) = cell.reports()
     assert (report.pose, report.flat, report.max_height_mm) == (None, None, None)
     assert report.reason == FLAP_REASON
+
+
+def _square(centre_x_m: float) -> np.ndarray:
+    return np.array([[-0.1, -0.1], [0.1, -0.1], [0.1, 0.1], [-0.1, 0.1]]) + np.array([centre_x_m, 0.0])
+
+
+def test_who_is_let_go_when_no_look_sees_it(scene: tuple) -> None:
+    """Unseen for MISSED_LOOKS looks: a reject waiting for its way goes, keeping its reason; one being
+    driven out does not (it leaves the view by design); nor does one beside a tracked piece (its region
+    may have merged into the tracked one's)."""
+    _, _, cfg, model = scene
+    tracking = PieceTracking(cfg.flow, model, Workspace.of_cell(cfg.cell), lambda: None)  # type: ignore[arg-type, return-value]
+    waiting = Piece(0, PieceState.REJECTED, 1.0, _square(-0.4), 0.5, reason=FLAP_REASON)
+    going = Piece(1, PieceState.REJECTED, 1.0, _square(0.4), 0.5, reason=FLAP_REASON, driven_out=True)
+    beside = Piece(2, PieceState.ENTERING, 1.0, _square(0.05), 0.5)
+    tracked = Piece(3, PieceState.PLACING, 1.0, _square(-0.1), 0.5, slot=0)
+    tracked.estimate = SimpleNamespace(tracking=True)  # type: ignore[assignment]
+    tracking.pieces += [waiting, going, beside, tracked]
+    for k in range(MISSED_LOOKS):
+        tracking._look([], (480, 640, 3), 2.0 + k)
+    assert [p.id for p in tracking.pieces] == [1, 2, 3]
+    assert [(p.id, p.state, p.reason) for p in tracking.gone] == [(0, PieceState.REJECTED, FLAP_REASON)]

@@ -32,9 +32,11 @@ from clothd.core.control import STILL_SPEED_M_S, Setpoint
 from clothd.core.conveyor import ConveyorLayout
 from clothd.core.flatness import Flatness
 from clothd.core.messages import ModuleCommands
-from clothd.core.modes import DRIVEN_OUT, Mode, PieceState
+from clothd.core.modes import Mode, PieceState
 from clothd.core.pieces import Piece
 from clothd.core.workspace import Workspace
+
+DRIVEN_OUT = (PieceState.LEAVING, PieceState.REJECTED)
 
 
 @dataclass
@@ -117,6 +119,7 @@ class FlowController:
     def _piece_step(self, piece: Piece, pieces: list[Piece], now_s: float) -> tuple[np.ndarray, np.ndarray]:
         """This piece's velocities (n_modules, 2) and the modules under it (n_modules,) bool."""
         ctl = self._control_of(piece)
+        piece.driven_out = piece.state == PieceState.LEAVING or ctl.driving_out
         if piece.state == PieceState.ENTERING:
             return self._enter(piece, ctl)
         if not piece.tracking:

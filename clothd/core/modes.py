@@ -46,6 +46,3 @@ class PieceState(StrEnum):
     LEAVING = "leaving"  # placed, and driven out over the outfeed edge
     LEFT = "left"  # gone to the next station
     REJECTED = "rejected"  # cannot be flattened or placed: driven out and reported, with the reason
-
-
-DRIVEN_OUT = (PieceState.LEAVING, PieceState.REJECTED)  # states the flow drives a piece out in

@@ -31,7 +31,7 @@ from clothd.config import FlowConfig
 from clothd.core.camera_model import CameraModel
 from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands, PairedView
-from clothd.core.modes import DRIVEN_OUT, PieceState
+from clothd.core.modes import PieceState
 from clothd.core.segmentation import ClothRegion, find_cloths, full_frame_region
 from clothd.core.workspace import Workspace
 
@@ -65,6 +65,7 @@ class Piece:
     missed_looks: int = 0  # looks in a row that did not see it (untracked pieces only)
     last_centre_m: np.ndarray | None = None  # where the last look saw it (untracked pieces only)
     still: bool = False  # the last two looks saw it in the same place
+    driven_out: bool = False  # the flow drives it out over the outfeed (core/flow.py): it leaves the view
     tracked_since_s: float | None = None  # when its tracking last began: what the controller knew is stale
     region: ClothRegion | None = field(default=None, repr=False)  # what its tracker starts on
 
@@ -261,11 +262,22 @@ class PieceTracking:
             if inside and piece.still and self._free_slot_for(piece):
                 piece.region = region
         for piece in list(self.pieces):
-            if piece.slot is None and piece.id not in seen:
+            # Beside a tracked piece, its region may have merged into the tracked one's: not missed.
+            if piece.slot is None and piece.id not in seen and not self._beside_a_tracked(piece):
                 piece.missed_looks += 1
-                if piece.missed_looks >= MISSED_LOOKS and piece.state not in DRIVEN_OUT:
-                    piece.enter(PieceState.REJECTED, t_s, LOST_FROM_VIEW)
+                if piece.missed_looks >= MISSED_LOOKS and not piece.driven_out:
+                    if piece.state != PieceState.REJECTED:  # a reject waiting for its way keeps its reason
+                        piece.enter(PieceState.REJECTED, t_s, LOST_FROM_VIEW)
                     self.leave(piece, t_s)
+
+    def _beside_a_tracked(self, piece: Piece) -> bool:
+        """Its last outline touches a tracked piece's (their convex hulls overlap)."""
+        hull = cv2.convexHull(piece.outline_m.astype(np.float32))
+        return any(
+            cv2.intersectConvexConvex(hull, cv2.convexHull(other.outline_m.astype(np.float32)))[0] > 0.0
+            for other in self.pieces
+            if other is not piece and other.tracking
+        )
 
     def _owner(self, centre_m: np.ndarray, taken: set[int]) -> Piece | None:
         for piece in self.pieces:
