@@ -145,11 +145,19 @@ def sim_config(cfg: Config, ready: dict[str, Any]) -> Config:
 def sim_replaced_cameras(cfg: Config) -> str | None:
     """A line for `clothd run --sim` when the configuration names cameras of its own (a `cameras:` list, a
     camera.source or a camera.calibration): the simulated cell's, true calibrations and all, replace them."""
-    default_source = CameraSourceConfig().source
-    if cfg.cameras is None and cfg.camera.calibration is None and cfg.camera.source == default_source:
+    named = [
+        key
+        for key, given in (
+            ("cameras", cfg.cameras is not None),
+            ("camera.source", cfg.camera.source != CameraSourceConfig().source),
+            ("camera.calibration", cfg.camera.calibration is not None),
+        )
+        if given
+    ]
+    if not named:
         return None
-    named = "cameras" if cfg.cameras is not None else "camera.source and camera.calibration"
-    return f"clothd: --sim: the simulated cell's cameras and their true calibrations replace {named}"
+    replaced = " and ".join(named)
+    return f"clothd: --sim: the simulated cell's cameras and their true calibrations replace {replaced}"
 
 
 def camera_model_for(cfg: Config) -> CameraModel:

@@ -280,9 +280,9 @@ def test_sim_says_when_it_replaces_the_configurations_cameras() -> None:
 
     assert sim_replaced_cameras(Config()) is None
     calibrated = parse_config({"camera": {"calibration": "/etc/clothd/top.json"}})
-    assert "replace camera.source and camera.calibration" in str(sim_replaced_cameras(calibrated))
+    assert str(sim_replaced_cameras(calibrated)).endswith("replace camera.calibration")
     streamed = parse_config({"camera": {"source": "rtsp://cam/stream"}})
-    assert "replace camera.source" in str(sim_replaced_cameras(streamed))
+    assert str(sim_replaced_cameras(streamed)).endswith("replace camera.source")
     listed = parse_config({"cameras": [{"source": "0", "calibration": "/etc/clothd/top.json"}]})
     assert "replace cameras" in str(sim_replaced_cameras(listed))
 
