@@ -70,10 +70,16 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     start_taichi(cfg.taichi.arch)
     out = args.out or Path("out/replay") / args.source.stem
     result = replay(
-        args.source, out, tracker_cfg, roi=args.roi, camera_json=args.camera, commands_csv=args.commands
+        args.source,
+        out,
+        tracker_cfg,
+        roi=args.roi,
+        camera_json=args.camera,
+        commands_csv=args.commands,
+        cameras=args.cameras,
     )
     source_input = "on" if tracker_cfg.use_input else "off"
-    print(f"camera: {result.camera}")
+    print(f"camera: {result.camera}" + (f" (and {result.cameras - 1} further)" if result.cameras > 1 else ""))
     print(
         f"replayed {result.frames} frames ({tracker_cfg.model}, input {source_input}) "
         f"in {result.wall_s:.1f} s, {result.realtime_factor:.1f}x real time "
@@ -182,6 +188,12 @@ def _add_replay(sub: Subparsers) -> None:
     r.add_argument("--roi", choices=["auto", "full"], default="auto")
     r.add_argument("--camera", type=Path, help="camera.json (default: the recording's, else an ideal camera)")
     r.add_argument("--commands", type=Path, help="commands.csv (default: the recording's)")
+    r.add_argument(
+        "--cameras",
+        type=positive_int,
+        metavar="N",
+        help="a recording's first N cameras (default: every one it holds; 1: the first view only)",
+    )
     r.add_argument("--config", type=Path)
     r.set_defaults(func=_cmd_replay)
 

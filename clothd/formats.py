@@ -116,15 +116,23 @@ def write_layout(path: Path, layout: ConveyorLayout) -> None:
 # -- frames.csv and commands.csv ---------------------------------------------------------------------
 
 
-def read_frame_times(path: Path) -> tuple[float, ...] | None:
-    """frames.csv (index, t_s) of a live recording; None when there is none."""
+def read_frame_rows(path: Path) -> tuple[tuple[int, ...], tuple[float, ...]] | None:
+    """frames.csv (index, t_s) of a live recording: each row's frame index and capture time; None when
+    there is none. A further camera's rows name the first camera's frames they were paired with."""
     if not path.exists():
         return None
     try:
         with path.open(newline="") as f:
-            return tuple(float(r["t_s"]) for r in csv.DictReader(f))
+            rows = [(int(r["index"]), float(r["t_s"])) for r in csv.DictReader(f)]
     except (OSError, KeyError, ValueError) as err:
         raise InputError(f"{path}: not a usable frame-time file ({err})") from None
+    return tuple(i for i, _ in rows), tuple(t for _, t in rows)
+
+
+def read_frame_times(path: Path) -> tuple[float, ...] | None:
+    """frames.csv's capture times; None when there is none."""
+    rows = read_frame_rows(path)
+    return None if rows is None else rows[1]
 
 
 def read_commands(path: Path, n_modules: int) -> list[tuple[float, int, float, float]]:
@@ -144,22 +152,36 @@ def read_commands(path: Path, n_modules: int) -> list[tuple[float, int, float, f
     return sorted(rows)
 
 
+class FrameTimesLog:
+    """frames.csv, growing a row per frame and flushed row by row."""
+
+    def __init__(self, path: Path) -> None:
+        self._file: IO[str] = path.open("w", newline="")
+        self._file.write(FRAMES_CSV_HEADER)
+
+    def add(self, index: int, t_s: float) -> None:
+        """Frame `index` captured at t_s. OSError on a failed write."""
+        self._file.write(f"{index},{t_s:.6f}\n")
+        self._file.flush()
+
+    def close(self) -> list[str]:
+        return _close_all([self._file])
+
+
 class RecordingLog:
     """A recording's two growing CSV files, flushed row by row so that a recording cut short replays up
     to its last complete frame: frames.csv (a frame's capture time) and commands.csv (each module's
     command whenever it changes)."""
 
     def __init__(self, directory: Path) -> None:
-        self._times: IO[str] = (directory / "frames.csv").open("w", newline="")
-        self._times.write(FRAMES_CSV_HEADER)
+        self._times = FrameTimesLog(directory / "frames.csv")
         self._commands: IO[str] = (directory / "commands.csv").open("w", newline="")
         self._commands.write(COMMANDS_CSV_HEADER)
         self._last: ModuleCommands | None = None
 
     def add_frame(self, index: int, t_s: float, commands: ModuleCommands) -> None:
         """Frame `index` captured at t_s with `commands` in force. OSError on a failed write."""
-        self._times.write(f"{index},{t_s:.6f}\n")
-        self._times.flush()
+        self._times.add(index, t_s)
         last = self._last
         changed = (
             np.ones(commands.n_modules, bool)
@@ -176,13 +198,17 @@ class RecordingLog:
 
     def close(self) -> list[str]:
         """Close both files; the errors met, as text (a full disk fails on close too)."""
-        errors = []
-        for f in (self._times, self._commands):
-            try:
-                f.close()
-            except OSError as err:
-                errors.append(f"closing {f.name} failed: {err}")
-        return errors
+        return self._times.close() + _close_all([self._commands])
+
+
+def _close_all(files: list[IO[str]]) -> list[str]:
+    errors = []
+    for f in files:
+        try:
+            f.close()
+        except OSError as err:
+            errors.append(f"closing {f.name} failed: {err}")
+    return errors
 
 
 # -- estimates.npz ---------------------------------------------------------------------------------

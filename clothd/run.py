@@ -182,7 +182,7 @@ def further_cameras(cfg: Config) -> tuple[FurtherCamera, ...]:
         assert cam.source.calibration is not None  # config/camera.py check_cameras
         model = read_camera(cam.source.calibration)
         source = functools.partial(VideoCaptureSource, cam.source, capture_priority(cfg))
-        out.append(FurtherCamera(model, source))
+        out.append(FurtherCamera(cam.name, model, source))
     return tuple(out)
 
 

@@ -71,3 +71,24 @@ def test_work_that_fails_between_ticks_stops_the_modules_at_the_next_tick(
     assert not stopped.commands.speed_m_s.any()
     again = tick(compute, moving)  # the fault is answered once; the tracker starts afresh
     assert again.state == "tracking" and again.estimate is not None and again.estimate.tracking
+
+
+def test_a_flows_frames_are_recorded_after_the_reply(
+    short_recording: Callable[[str], Path], tmp_path: Path
+) -> None:
+    """In mode flow the pieces are tracked apart (no one estimate), and the frames and commands are still
+    recorded, after each tick's reply."""
+    compute = compute_on(short_recording("translate"), max_record_bytes=50_000_000)
+    n = compute.spec.layout.n_modules
+    flow = Setpoint("flow", None, started_mono_s=1.0)
+    rec = tmp_path / "rec"
+    first = TickRequest(flow, ModuleCommands.all_stop(n), reset=False, want_view=False, record_start=rec)
+    reply = compute.tick(first)
+    assert reply.pieces is not None and reply.recording is not None and reply.recording.frames == 0
+    compute.after_reply()
+    for _ in range(2):
+        tick(compute, TickRequest(flow, ModuleCommands.all_stop(n), reset=False, want_view=False))
+    stopped = TickRequest(IDLE, ModuleCommands.all_stop(n), reset=False, want_view=False, record_stop=True)
+    assert tick(compute, stopped).recording.frames == 3
+    assert len(list((rec / "frames").glob("*.png"))) == 3
+    assert (rec / "commands.csv").read_text().count("\n") > n  # a row per module, then what changed

@@ -67,8 +67,8 @@ def test_a_session_recorded_as_mcap_reads_back_with_the_exports_channels(
     finally:
         compute.close()  # the writer finishes the file
     ended_unix_s = time.time()
-    assert compute.foxglove is not None
-    status = compute.foxglove.recording_status()
+    assert compute.outputs.foxglove is not None
+    status = compute.outputs.foxglove.recording_status()
     assert status is not None and status.format == "mcap" and status.dir == str(path)
     assert rec == status and not status.active
     assert (status.frames, status.dropped_frames, status.stopped_reason) == (12, 0, "stopped")
@@ -118,8 +118,8 @@ def test_an_mcap_recording_stops_at_its_size_limit_and_its_file_stays_whole(
     finally:
         compute.close()
     assert rec is not None and not rec.active, "the recording never reached its limit"
-    assert compute.foxglove is not None
-    status = compute.foxglove.recording_status()
+    assert compute.outputs.foxglove is not None
+    status = compute.outputs.foxglove.recording_status()
     assert status is not None and status.stopped_reason == f"size limit reached ({max_bytes} bytes)"
     print(f"stopped after {status.frames} frames, {status.bytes} bytes of {max_bytes}")
     assert 2 <= status.frames < 20

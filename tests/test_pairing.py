@@ -156,7 +156,7 @@ def test_the_compute_hands_the_tracker_a_view_per_further_camera_and_reports_eac
     views to come (None), and they reach `measure_heights` between the ticks."""
     rec = short_recording("translate")
     images = [img for _, (_, img) in zip(range(4), open_footage(rec).frames(), strict=False)]
-    side = FurtherCamera(read_camera(rec / "camera.json"), lambda: RecordedFrames(images))
+    side = FurtherCamera("side", read_camera(rec / "camera.json"), lambda: RecordedFrames(images))
     compute = compute_on(rec, other_cameras=(side,))
     given: list[tuple[float, Sequence[PairedView | None] | None]] = []
     later: list[Sequence[PairedView | None]] = []
@@ -202,8 +202,10 @@ def test_once_tracking_a_frame_is_not_waited_for_and_is_paired_once_its_pair_has
     assert pairing.to_track(t0, begins=False) is None  # tracked at once
     assert pairing.due(t0) and pairing.later_views() is None  # its pair is still to come
     clock.now_s = t0 + 0.013
-    views = pairing.later_views()
-    assert views is not None and views[0] is not None and views[0].t_s == pytest.approx(t0 + 0.012)
+    paired = pairing.later_views()
+    assert paired is not None and paired[0] == t0
+    views = paired[1]
+    assert views[0] is not None and views[0].t_s == pytest.approx(t0 + 0.012)
     assert pairing.later_views() is None  # paired once
     assert len(cam.waited_s) == waited  # and never waited for
     assert pairing.stats()[0].skew_ms == pytest.approx(12.0)
@@ -228,8 +230,10 @@ def test_a_pair_that_does_not_come_is_paired_with_what_there_is_after_the_bound(
     clock.now_s = t0 + 0.019
     assert pairing.later_views() is None  # still due within the bound
     clock.now_s = t0 + MAX_SKEW_S + 0.001
-    views = pairing.later_views()
-    assert views is not None and views[0] is not None  # the frame before: the tracker refuses it
+    paired = pairing.later_views()
+    assert paired is not None and paired[0] == t0
+    views = paired[1]
+    assert views[0] is not None  # the frame before: the tracker refuses it
     assert views[0].t_s == pytest.approx(0.012 + 9 * PERIOD_S)
     assert pairing.stats()[0].paired_pct == pytest.approx(100 * 8 / 10)
     # A frame still unpaired when the next is tracked is paired then, with what there is: counted once.

@@ -20,7 +20,7 @@ import yaml
 
 from clothd.core.messages import ModuleCommands
 from clothd.errors import InputError
-from clothd.formats import read_commands, read_frame_times
+from clothd.formats import read_commands, read_frame_rows
 
 IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".bmp"}
 DEFAULT_FPS = 30.0
@@ -42,11 +42,17 @@ class Footage:
     commands_csv: Path | None
     _images: tuple[Path, ...] | None  # None for a video
     _times_s: tuple[float, ...] | None = None  # a live recording's capture times (frames.csv)
+    _indices: tuple[int, ...] | None = None  # ... and its frames' indices (a further camera's have gaps)
 
     @property
     def frame_count(self) -> int | None:
         """How many frames, where that is known without decoding (image sequences)."""
         return None if self._images is None else len(self._images)
+
+    def frame_index(self, k: int) -> int:
+        """The k-th frame's index: frames.csv's (a further camera's names the first camera's frame it was
+        paired with), else k."""
+        return self._indices[k] if self._indices is not None else k
 
     def _t(self, k: int) -> float:
         return self._times_s[k] if self._times_s is not None else k / self.fps
@@ -101,9 +107,10 @@ def open_footage(source: Path) -> Footage:
         frames_dir = source / "frames"
         if frames_dir.is_dir():
             images = _images_in(frames_dir)
-            times = read_frame_times(source / "frames.csv")
-            if times is not None:  # cut short: only frames with a capture time count
-                images, times = images[: len(times)], times[: len(images)]
+            rows = read_frame_rows(source / "frames.csv")
+            indices, times = rows if rows is not None else (None, None)
+            if indices is not None and times is not None:  # cut short: only frames with a capture time count
+                images, indices, times = images[: len(times)], indices[: len(images)], times[: len(images)]
             return Footage(
                 source,
                 _recording_fps(source, times),
@@ -112,6 +119,7 @@ def open_footage(source: Path) -> Footage:
                 _existing(source / "commands.csv"),
                 images,
                 times,
+                indices,
             )
         return Footage(source, DEFAULT_FPS, None, None, None, _images_in(source))
     if not source.exists():

@@ -28,11 +28,10 @@ from multiprocessing.connection import Connection
 
 import cv2
 
-from clothd.config import RecordingFormat
 from clothd.core.cell_controller import CellController
 from clothd.core.flatness import Flatness
 from clothd.core.flow_cell import FlowCell
-from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.messages import Estimate, ModuleCommands, PairedView
 from clothd.core.modes import LoopState, Mode
 from clothd.core.tracker import Tracker
 from clothd.drivers.ports import CameraFrame, FrameSource
@@ -41,8 +40,7 @@ from clothd.errors import ClothdError
 from clothd.logs import configure_logging
 from clothd.loop.compute_messages import ComputeSpec, InForce, TickReply, TickRequest
 from clothd.loop.pairing import FramePairing
-from clothd.outputs.foxglove_live import LiveFoxglove
-from clothd.outputs.recorder import FrameSink, Recorder, RecordingStatus
+from clothd.outputs.frame_outputs import FrameOutputs, RecordingSpec
 from clothd.outputs.view import ViewRenderer
 from clothd.taichi_runtime import start_taichi
 
@@ -64,11 +62,13 @@ class _Ahead:
 
 @dataclass(frozen=True)
 class _AfterReply:
-    """What a tick leaves for after its reply: its request, frame, the estimate it tracked (None when the
-    frame was not new) and the estimate and flatness its commands came from."""
+    """What a tick leaves for after its reply: its request, frame, whether the frame was new, the estimate
+    it tracked (None when the frame was not new, or its pieces were tracked apart: mode flow) and the
+    estimate and flatness its commands came from."""
 
     req: TickRequest
     frame: CameraFrame | None
+    new_frame: bool
     commands_in_force: ModuleCommands  # those the frame was tracked with
     tracked: Estimate | None
     estimate: Estimate | None
@@ -87,11 +87,11 @@ class Compute:
         self.frames = frames
         others = [c.frame_source() for c in spec.other_cameras] if others is None else others
         self.pairing = FramePairing(others, spec.tracker.stereo.max_skew_ms / 1e3)
-        self.recorder: Recorder | None = None  # a directory recording
-        # The live Foxglove output: the server, and MCAP recordings (format mcap) instead of Recorder.
-        serves = spec.foxglove is not None and spec.foxglove.enabled
-        needs_live = serves or spec.recording_format == RecordingFormat.MCAP
-        self.foxglove = LiveFoxglove(spec.foxglove) if needs_live else None
+        further = [(c.name, c.camera_model) for c in spec.other_cameras]
+        recording = RecordingSpec(
+            spec.camera_model, further, spec.layout, spec.max_record_bytes, spec.recording_format
+        )
+        self.outputs = FrameOutputs(recording, spec.foxglove)
         self.tracker = Tracker(
             spec.tracker,
             spec.camera_model,
@@ -127,16 +127,12 @@ class Compute:
         if self.spec.flow.warm_at_start:
             self._flow_cell = self._new_flow_cell()
             self._flow_cell.tracking.warm(self.spec.camera_model.width, self.spec.camera_model.height)
-        if self.foxglove is not None:
-            self.foxglove.start()
+        self.outputs.start()
         self.frames.start()
         self.pairing.start()
 
     def close(self) -> None:
-        if self.recorder is not None:
-            self.recorder.stop("daemon stopped")
-        if self.foxglove is not None:
-            self.foxglove.close("daemon stopped")
+        self.outputs.close("daemon stopped")
         self.frames.stop()
         self.pairing.stop()
 
@@ -203,7 +199,7 @@ class Compute:
         # One cloth, or pieces; a flow asked for anew (after a setpoint no tick saw, too) starts afresh.
         if reset or (self.flow is not None) != flow_asked or (flow_asked and set_s != self._flow_set_s):
             self._start_afresh(set_s if flow_asked else None)
-        self._record_requests(req)
+        self.outputs.requests(req.record_start, req.record_stop)
         if self.flow is not None:
             return self._flow_tick(self.flow, req, frame, timing, t0, began_mono_s)
         new_frame = frame is not None and frame.index != self._last_frame_index
@@ -226,7 +222,7 @@ class Compute:
         step = self.cell.step(frame is not None, est, req.setpoint, flatness, time.monotonic())
         timing["control"] = time.perf_counter() - t1
         timing["compute"] = time.perf_counter() - t0
-        self._after = _AfterReply(req, frame, tracked_with, tracked, est, flatness)
+        self._after = _AfterReply(req, frame, tracked is not None, tracked_with, tracked, est, flatness)
         view, self._late_view = self._late_view, None
         return TickReply(
             state=step.state,
@@ -238,7 +234,7 @@ class Compute:
             cameras=self.pairing.reports(),
             timing_s=timing,
             view_jpeg=view,
-            recording=self._recording_status(),
+            recording=self.outputs.status(),
             halt_reason=step.halt_reason,
             flatness=flatness,
             compute_mono_s=(began_mono_s, time.monotonic()),
@@ -276,15 +272,16 @@ class Compute:
         flow's commands. Without a frame every module stops, as in every mode."""
         new_frame = frame is not None and frame.index != self._last_frame_index
         if frame is not None and new_frame:
-            views = self.pairing.to_track(frame.t_mono_s, True)
-            flow.track(frame.image, frame.t_mono_s, req.commands_in_force, views or ())
+            views = self.pairing.to_track(frame.t_mono_s, True) or []
+            flow.track(frame.image, frame.t_mono_s, req.commands_in_force, views)
+            self._record_views(frame.t_mono_s, views)
             self._last_frame_index = frame.index
             timing["track"] = time.perf_counter() - t0
         t1 = time.perf_counter()
         commands = flow.step(time.monotonic()) if frame is not None else flow.stop()
         timing["control"] = time.perf_counter() - t1
         timing["compute"] = time.perf_counter() - t0
-        self._after = _AfterReply(req, frame, req.commands_in_force, None, None, None)
+        self._after = _AfterReply(req, frame, new_frame, req.commands_in_force, None, None, None)
         view, self._late_view = self._late_view, None
         return TickReply(
             state=LoopState.TRACKING if frame is not None else LoopState.CAMERA_LOST,
@@ -296,7 +293,7 @@ class Compute:
             cameras=self.pairing.reports(),
             timing_s=timing,
             view_jpeg=view,
-            recording=self._recording_status(),
+            recording=self.outputs.status(),
             halt_reason=None if frame is not None else "the camera is lost",
             compute_mono_s=(began_mono_s, time.monotonic()),
             pieces=flow.reports(),
@@ -332,12 +329,10 @@ class Compute:
         if upkeep_s is not None:
             timing["tracker_resample"] = upkeep_s
         frame, req = after.frame, after.req
-        sinks: list[FrameSink] = [s for s in (self.recorder, self.foxglove) if s is not None]
-        if after.tracked is not None and frame is not None and sinks:
+        if after.new_frame and frame is not None and self.outputs.sinks:
             t_rec = time.perf_counter()
-            for sink in sinks:
-                # The commands in force while this frame was captured: replay feeds them back the same way.
-                sink.add(frame.image, frame.t_mono_s, after.commands_in_force, after.tracked)
+            # The commands in force while this frame was captured: replay feeds them back the same way.
+            self.outputs.add(frame.image, frame.t_mono_s, after.commands_in_force, after.tracked)
             timing["record"] = time.perf_counter() - t_rec
         if req.want_view and frame is not None:
             t_view = time.perf_counter()
@@ -361,47 +356,31 @@ class Compute:
         views = self.pairing.to_track(frame.t_mono_s, self.tracker.initialising)
         if views is not None and self.pairing.cameras:
             timing["pair_wait"] = time.perf_counter() - t0
-        return self.tracker.track(frame.image, frame.t_mono_s, commands, views)
+        est = self.tracker.track(frame.image, frame.t_mono_s, commands, views)
+        if views is not None:
+            self._record_views(frame.t_mono_s, views)
+        return est
 
     def measure_heights(self, wait: bool = False) -> None:
         """Between ticks: the last tracked frame's heights, once no further camera's frame nearer it is due
         (wait: waiting for it); the next estimate carries them, the next reply their time."""
-        views = self.pairing.later_views(wait)
-        if views is None or self._after_failed or self.flow is not None:
+        paired = self.pairing.later_views(wait)
+        if paired is None or self._after_failed or self.flow is not None:
             return
         t0 = time.perf_counter()
         try:
-            self.tracker.measure_heights(views)
+            self.tracker.measure_heights(paired[1])
         except Exception:  # as in a tick: a bug must not take the loop with it
             self._failed_between_ticks("measuring a frame's heights")
         self._late_timing["tracker_heights"] = time.perf_counter() - t0
+        self._record_views(*paired)
 
-    def _recording_status(self) -> RecordingStatus | None:
-        if self.recorder is not None:
-            return self.recorder.status()
-        return None if self.foxglove is None else self.foxglove.recording_status()
-
-    def _record_requests(self, req: TickRequest) -> None:
-        if req.record_stop and self.recorder is not None:
-            self.recorder.stop()
-        if req.record_stop and self.foxglove is not None:
-            self.foxglove.stop_recording()
-        if (
-            req.record_start is not None
-            and self.foxglove is not None
-            and self.spec.recording_format == RecordingFormat.MCAP
-        ):
-            self.foxglove.start_recording(req.record_start, self.spec.max_record_bytes)
-        elif req.record_start is not None:
-            if self.recorder is not None:
-                self.recorder.stop("a new recording started")
-            spec = self.spec
-            try:
-                self.recorder = Recorder(
-                    req.record_start, spec.camera_model, spec.layout, spec.max_record_bytes
-                )
-            except OSError as err:
-                log.warning("cannot start recording in %s: %s", req.record_start, err)
+    def _record_views(self, t0_mono_s: float, views: list[PairedView | None]) -> None:
+        """The further cameras' views a frame was tracked with, to a recording (outside the tick)."""
+        if self.outputs.recorder is not None:
+            t_rec = time.perf_counter()
+            self.outputs.add_views(t0_mono_s, views)
+            self._late_timing["record_views"] = time.perf_counter() - t_rec
 
 
 def serve_compute(conn: Connection, spec: ComputeSpec) -> None:

@@ -85,14 +85,14 @@ class FramePairing:
         self._later_s = None if begins or not self.cameras else t0_s
         return self.views(t0_s) if begins else None
 
-    def later_views(self, wait: bool = False) -> list[PairedView | None] | None:
-        """`views` of the frame `to_track` left unpaired, once no frame nearer it is `due` (wait: waiting for
-        one, as `views` does); None while one is, or when no frame is to pair."""
+    def later_views(self, wait: bool = False) -> tuple[float, list[PairedView | None]] | None:
+        """The frame `to_track` left unpaired: its t0 and its `views`, once no frame nearer it is `due`
+        (wait: waiting for one, as `views` does); None while one is, or when no frame is to pair."""
         t0_s = self._later_s
         if t0_s is None or (not wait and self.due(t0_s)):
             return None
         self._later_s = None
-        return self.views(t0_s, wait)
+        return t0_s, self.views(t0_s, wait)
 
     def views(self, t0_s: float, wait: bool = True) -> list[PairedView | None]:
         """One view per further camera for a first-camera frame that arrived at t0_s; each skew kept (call
@@ -164,9 +164,10 @@ class FramePairing:
 
 @dataclass(frozen=True)
 class FurtherCamera:
-    """A camera after the first, as the compute process is given it: its model, and its source as a
-    factory (opened in the compute process)."""
+    """A camera after the first, as the compute process is given it: its name, its model, and its source
+    as a factory (opened in the compute process)."""
 
+    name: str  # its `cameras:` entry's (a recording's cameras/NAME/)
     camera_model: CameraModel
     frame_source: Callable[[], FrameSource]
 

@@ -7,6 +7,9 @@ DIR/table.json          the module layout
 DIR/commands.csv        t_s, module, speed_m_s, heading_rad: the commands sent, as they changed
 DIR/estimates.npz       what the tracker believed live (replay's format, its t_s as frames.csv's), written
                         when recording stops
+DIR/cameras/NAME/       each further camera's views the tracker was given, in the same layout: a view is
+                        numbered as the first camera's frame it was paired with (frames.csv: that index
+                        and the view's own capture time), and a frame tracked without one has none
 
 The recording's time origin is its first frame's capture time, as frame 0 of an hwsim recording is at
 0 s: the first frame may have been captured before the recording was asked for (a frame already
@@ -23,9 +26,11 @@ from __future__ import annotations
 import errno
 import logging
 import time
+from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import cv2
 import numpy as np
@@ -33,12 +38,15 @@ import numpy as np
 from clothd.config import RecordingFormat
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import ConveyorLayout
-from clothd.core.messages import Estimate, ModuleCommands
+from clothd.core.messages import Estimate, ModuleCommands, PairedView
 from clothd.errors import InvalidRequestError, RequestError, StorageError
-from clothd.formats import RecordingLog, write_camera, write_estimates, write_layout
+from clothd.formats import FrameTimesLog, RecordingLog, write_camera, write_estimates, write_layout
 
 log = logging.getLogger(__name__)
 _PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
+# A frame's views may reach the recorder before or after the frame itself (a frame tracked ahead of its
+# tick is paired before its tick records it): this many recent frames and views wait for each other.
+_RECENT = 8
 
 
 class FrameSink(Protocol):
@@ -100,8 +108,27 @@ def make_recording_place(out: Path, form: RecordingFormat) -> Path:
     return out
 
 
+class _FurtherCamera:
+    """DIR/cameras/NAME/: a further camera's views, each under its first-camera frame's index."""
+
+    def __init__(self, directory: Path, camera: CameraModel) -> None:
+        self.frames_dir = directory / "frames"
+        self.frames_dir.mkdir(parents=True)
+        write_camera(directory / "camera.json", camera)
+        self.times = FrameTimesLog(directory / "frames.csv")
+
+
 class Recorder:
-    def __init__(self, out_dir: Path, camera: CameraModel, layout: ConveyorLayout, max_bytes: int) -> None:
+    def __init__(
+        self,
+        out_dir: Path,
+        camera: CameraModel,
+        layout: ConveyorLayout,
+        max_bytes: int,
+        further: Sequence[tuple[str, CameraModel]] = (),
+    ) -> None:
+        """further: each further camera's name and model; the views paired with the first camera's frames
+        are recorded under cameras/NAME/."""
         self.dir = out_dir
         self.max_bytes = max_bytes
         self.t0_mono_s: float | None = None  # the first frame's capture time, host monotonic
@@ -114,6 +141,9 @@ class Recorder:
         write_camera(out_dir / "camera.json", camera)
         write_layout(out_dir / "table.json", layout)
         self._log = RecordingLog(out_dir)
+        self._further = [_FurtherCamera(out_dir / "cameras" / name, model) for name, model in further]
+        self._recent_frames: OrderedDict[float, int] = OrderedDict()  # capture time -> index
+        self._waiting_views: OrderedDict[float, Sequence[PairedView | None]] = OrderedDict()
 
     def status(self) -> RecordingStatus:
         return RecordingStatus(
@@ -126,24 +156,61 @@ class Recorder:
             return
         if self.t0_mono_s is None:
             self.t0_mono_s = t_mono_s
-        t_s = t_mono_s - self.t0_mono_s
-        ok, png = cv2.imencode(".png", image, _PNG_PARAMS)
-        if not ok:
-            self.stop("could not encode a frame")
-            return
-        if self.bytes + len(png) > self.max_bytes:
-            self.stop(f"size limit reached ({self.max_bytes} bytes)")
+        png = self._png(image)
+        if png is None:
             return
         try:
-            (self.dir / "frames" / f"{self.frames:06d}.png").write_bytes(png.tobytes())
-            self._log.add_frame(self.frames, t_s, commands)
+            (self.dir / "frames" / f"{self.frames:06d}.png").write_bytes(png)
+            self._log.add_frame(self.frames, t_mono_s - self.t0_mono_s, commands)
         except OSError as err:
             self.stop(f"write failed: {err.strerror or err}")
             return
         self.bytes += len(png)
+        _remember(self._recent_frames, t_mono_s, self.frames)
         self.frames += 1
         if est is not None:
             self._estimates.append(est)
+        views = self._waiting_views.pop(t_mono_s, None)
+        if views is not None:
+            self._add_views(self.frames - 1, views)
+
+    def add_views(self, t0_mono_s: float, views: Sequence[PairedView | None]) -> None:
+        """The further cameras' views (one each, None: none) that the first camera's frame captured at
+        t0_mono_s was tracked with, recorded under that frame's index whether it came here yet or not."""
+        if not self.active or not self._further:
+            return
+        index = self._recent_frames.get(t0_mono_s)
+        if index is None:
+            _remember(self._waiting_views, t0_mono_s, views)
+        else:
+            self._add_views(index, views)
+
+    def _add_views(self, index: int, views: Sequence[PairedView | None]) -> None:
+        assert self.t0_mono_s is not None  # a frame was recorded
+        for camera, view in zip(self._further, views, strict=True):
+            if view is None:
+                continue
+            png = self._png(view.image)
+            if png is None:
+                return
+            try:
+                (camera.frames_dir / f"{index:06d}.png").write_bytes(png)
+                camera.times.add(index, view.t_s - self.t0_mono_s)
+            except OSError as err:
+                self.stop(f"write failed: {err.strerror or err}")
+                return
+            self.bytes += len(png)
+
+    def _png(self, image: np.ndarray) -> bytes | None:
+        """The image as PNG; None (and the recording stopped) when it cannot be, or would cross max_bytes."""
+        ok, png = cv2.imencode(".png", image, _PNG_PARAMS)
+        if not ok:
+            self.stop("could not encode a frame")
+            return None
+        if self.bytes + len(png) > self.max_bytes:
+            self.stop(f"size limit reached ({self.max_bytes} bytes)")
+            return None
+        return bytes(png.tobytes())
 
     def stop(self, reason: str = "stopped") -> None:
         """Close the files and write the estimates; safe to call twice."""
@@ -152,10 +219,16 @@ class Recorder:
         self.active = False
         self.stopped_reason = reason
         log.info("recording %s stopped: %s (%d frames)", self.dir, reason, self.frames)
-        for error in self._log.close():
+        for error in self._log.close() + [e for c in self._further for e in c.times.close()]:
             log.warning("recording: %s", error)
         if self._estimates and self.t0_mono_s is not None:
             try:
                 write_estimates(self.dir / "estimates.npz", self._estimates, self.t0_mono_s)
             except OSError as err:  # the disk is full: the frames and commands stay replayable
                 self.stopped_reason = f"{reason}; estimates not written: {err.strerror or err}"
+
+
+def _remember(recent: OrderedDict[float, Any], key: float, value: Any) -> None:
+    recent[key] = value
+    while len(recent) > _RECENT:
+        recent.popitem(last=False)

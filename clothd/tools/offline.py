@@ -29,8 +29,8 @@ class OfflineTracking:
     (tracker.camera in the config) at the footage's image size. read_ahead decodes frames on a second
     thread (benchmarks that time the tracker's stages turn it off, to keep a core to the tracker).
     progress: a label for a progress bar, shown on a terminal only. cameras: a recording's first this many
-    (the further ones under cameras/NAME/, in name order, each with its camera.json), paired frame by
-    frame (docs/second-view.md)."""
+    (None: all; the further ones under cameras/NAME/, in name order, each with its camera.json), paired
+    by frame index (docs/second-view.md)."""
 
     def __init__(
         self,
@@ -42,7 +42,7 @@ class OfflineTracking:
         read_ahead: bool = True,
         clock: Clock = time.perf_counter,
         progress: str | None = None,
-        cameras: int = 1,
+        cameras: int | None = 1,
     ) -> None:
         self.progress = progress
         self.footage = open_footage(source)
@@ -57,10 +57,12 @@ class OfflineTracking:
         self.layout = read_layout(table) if table else None
         commands = commands_csv or self.footage.commands_csv
         self.schedule = CommandSchedule(commands, self.layout.n_modules) if commands and self.layout else None
-        further = sorted(p for p in (source / "cameras").glob("*") if p.is_dir())[: cameras - 1]
-        if len(further) < cameras - 1:
+        further = sorted(p for p in (source / "cameras").glob("*") if p.is_dir())
+        if cameras is not None and len(further) < cameras - 1:
             raise InputError(f"{source}: {cameras} cameras asked for, the recording has {len(further) + 1}")
-        self._others = [open_footage(p).frames(read_ahead=read_ahead) for p in further]
+        further = further if cameras is None else further[: cameras - 1]
+        self.cameras = len(further) + 1
+        self._others = [FurtherFrames(p, read_ahead) for p in further]
         models = [read_camera(p / "camera.json") for p in further]
         self.tracker = Tracker(
             cfg, self.camera_model, self.layout, roi=roi, clock=clock, other_cameras=models
@@ -85,7 +87,30 @@ class OfflineTracking:
         if self.progress is not None:  # a bar on a terminal only: tqdm is silent elsewhere
             total = self.footage.frame_count
             frames = tqdm(frames, desc=self.progress, total=total, unit="frame", disable=None, leave=False)
-        for t_s, image in frames:
+        for k, (t_s, image) in enumerate(frames):
             commands = self.schedule.at(t_s) if self.schedule else None
-            views = [PairedView(other_image, other_t_s) for other_t_s, other_image in map(next, self._others)]
+            views = [other.view_of(self.footage.frame_index(k)) for other in self._others]
             yield t_s, image, self.tracker.step(image, t_s, commands, views)
+
+
+class FurtherFrames:
+    """A further camera's frames in a recording, each under the first camera's frame index it goes with:
+    an hwsim recording has one for every frame; a live one, those the tracker was given (maybe none)."""
+
+    def __init__(self, directory: Path, read_ahead: bool) -> None:
+        self._frames: Iterator[tuple[int, float, np.ndarray]] = iter(())
+        frames_dir = directory / "frames"
+        if not frames_dir.is_dir() or any(frames_dir.iterdir()):  # a live recording's may hold none
+            footage = open_footage(directory)
+            numbered = enumerate(footage.frames(read_ahead=read_ahead))
+            self._frames = ((footage.frame_index(k), t_s, image) for k, (t_s, image) in numbered)
+        self._next = next(self._frames, None)
+
+    def view_of(self, index: int) -> PairedView | None:
+        """The view paired with the first camera's frame `index` (asked in increasing order); None: none."""
+        while self._next is not None and self._next[0] < index:
+            self._next = next(self._frames, None)
+        if self._next is None or self._next[0] != index:
+            return None
+        _, t_s, image = self._next
+        return PairedView(image, t_s)

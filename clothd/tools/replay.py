@@ -38,6 +38,7 @@ _OVERLAYS_AHEAD = 4  # frames queued for the drawing thread before tracking wait
 @dataclass(frozen=True)
 class ReplayResult:
     camera: str  # the camera.json used, or the ideal camera assumed
+    cameras: int  # how many cameras' frames were tracked
     frames: int
     wall_s: float
     footage_s: float
@@ -61,8 +62,11 @@ def replay(
     camera_json: Path | None = None,
     commands_csv: Path | None = None,
     write_video: bool = True,
+    cameras: int | None = None,
 ) -> ReplayResult:
-    run = OfflineTracking(source, cfg, camera_json, commands_csv, roi, progress=f"replaying {source.name}")
+    """cameras: a recording's first this many (None: every one it holds)."""
+    progress = f"replaying {source.name}"
+    run = OfflineTracking(source, cfg, camera_json, commands_csv, roi, progress=progress, cameras=cameras)
     fps = run.footage.fps
     out_dir.mkdir(parents=True, exist_ok=True)
     video = None
@@ -94,6 +98,7 @@ def replay(
     steady_frames = max(len(estimates) - _STARTUP_TICKS, 0)
     result = ReplayResult(
         run.camera_source,
+        run.cameras,
         len(estimates),
         end - start,
         len(estimates) / fps,
@@ -131,6 +136,7 @@ def _write_summary(path: Path, estimates: list[Estimate], result: ReplayResult, 
             {
                 "t_s": e.frame_t_s,
                 "status": e.status,
+                "flatness_basis": e.flatness_basis.value,
                 "features": len(e.feature_id),
                 "accepted": e.stats.accepted,
                 "rejected": e.stats.rejected,
@@ -141,6 +147,7 @@ def _write_summary(path: Path, estimates: list[Estimate], result: ReplayResult, 
         )
     summary = {
         "camera": result.camera,
+        "cameras": result.cameras,
         "model": cfg.model,
         "use_input": cfg.use_input,
         "frames": result.frames,
