@@ -8,6 +8,7 @@ import numpy as np
 from hwsim.camera import Camera
 from hwsim.cloth_grid import ClothGrid
 from hwsim.recording import noise_rng, render_frame
+from hwsim.renderer import quantise_bgr8
 from hwsim.renderer_spares import make_renderer
 from hwsim.scenario import Scenario
 from hwsim.world import World
@@ -31,8 +32,7 @@ class Sensor:
     def jpeg(self, world: World, k: int) -> bytes:
         """Frame k of the stream, at the world's current instant."""
         image, _ = render_frame(world, self.renderer, self.skew_s)
-        level = image * 255.0 + self._noise[k % NOISE_BANK]
-        bgr = np.clip(level + 0.5, 0, 255).astype(np.uint8)
+        bgr = quantise_bgr8(image, self._noise[k % NOISE_BANK])
         ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         if not ok:
             raise RuntimeError("JPEG encoding failed")

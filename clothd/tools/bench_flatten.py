@@ -33,6 +33,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any, Protocol
 
+import cv2
 import httpx
 import numpy as np
 from tqdm import tqdm
@@ -367,7 +368,9 @@ def _lockstep_rows(
 
     ctx = multiprocessing.get_context("spawn")  # a fresh interpreter each: its own Taichi
     with (
-        ProcessPoolExecutor(max_workers=len(os.sched_getaffinity(0)), mp_context=ctx) as pool,
+        ProcessPoolExecutor(
+            max_workers=len(os.sched_getaffinity(0)), mp_context=ctx, initializer=_one_thread_each
+        ) as pool,
         tqdm(total=starts * n, desc="flatten bench (lockstep)", unit="run", disable=None) as bar,
     ):
         while len(results) < len(plan) and wrinkled() < starts:
@@ -381,6 +384,11 @@ def _lockstep_rows(
             results += [[job.result() for job in per_draw] for per_draw in jobs]
     rows = [[per_draw[k][0] for per_draw in results] for k in range(n)]
     return rows, sum(simulated for per_draw in results for _, simulated in per_draw)
+
+
+def _one_thread_each() -> None:
+    """A pool worker per core: OpenCV's own threads would only contend with the other workers."""
+    cv2.setNumThreads(1)
 
 
 _cells: dict[tuple[int, int | None], LockstepCell] = {}  # a pool worker's cells, by controller and cameras
