@@ -25,7 +25,8 @@ from tqdm import tqdm
 
 from hwsim.camera import Camera
 from hwsim.paths import camera_dir, frame_path
-from hwsim.renderer import Renderer, to_sensor_bgr8
+from hwsim.quantise import to_sensor_bgr8
+from hwsim.renderer import Renderer
 from hwsim.renderer_spares import make_renderer
 from hwsim.scenario import Scenario, ScenarioError
 from hwsim.world import World

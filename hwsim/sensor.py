@@ -7,8 +7,8 @@ import numpy as np
 
 from hwsim.camera import Camera
 from hwsim.cloth_grid import ClothGrid
+from hwsim.quantise import quantise_bgr8
 from hwsim.recording import noise_rng, render_frame
-from hwsim.renderer import quantise_bgr8
 from hwsim.renderer_spares import make_renderer
 from hwsim.scenario import Scenario
 from hwsim.world import World

@@ -244,3 +244,37 @@ def test_a_pair_that_does_not_come_is_paired_with_what_there_is_after_the_bound(
     pairing.to_track(t1 + PERIOD_S, begins=False)
     assert pairing.stats()[0].paired_pct == pytest.approx(100 * 9 / 11)
     assert len(cam.waited_s) == 8  # only the first-camera frames paired with `views` waited
+
+
+def test_each_recorded_frame_keeps_the_views_it_was_tracked_with(
+    short_recording: Callable[[str], Path], monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """Through the compute as it serves ticks: the pair waited for as tracking begins, then pairs made
+    between the ticks, each written after a reply under its frame's index (the last as recording stops)."""
+    rec = short_recording("translate")
+    images = [img for _, (_, img) in zip(range(4), open_footage(rec).frames(), strict=False)]
+    side = FurtherCamera("side", read_camera(rec / "camera.json"), lambda: RecordedFrames(images))
+    compute = compute_on(rec, other_cameras=(side,), max_record_bytes=100_000_000)
+    track = compute.tracker.track
+
+    def one_view(
+        image: np.ndarray, frame_t_s: float, commands: ModuleCommands | None, views: Any = ()
+    ) -> Any:
+        return track(image, frame_t_s, commands, None if views is None else ())  # the plumbing only
+
+    monkeypatch.setattr(compute.tracker, "track", one_view)
+    monkeypatch.setattr(compute.tracker.second_view, "awaits_pair", lambda t_s, views: False)
+    monkeypatch.setattr(compute.tracker, "measure_heights", lambda views: None)
+    stopped = ModuleCommands.all_stop(compute.spec.layout.n_modules)
+    out = tmp_path / "session"
+    for k in range(5):
+        start, stop = (out if k == 0 else None), k == 4
+        req = TickRequest(Setpoint("idle", None), stopped, False, False, record_start=start, record_stop=stop)
+        tick(compute, req)
+    with (out / "frames.csv").open() as f:
+        first_s = [float(line.split(",")[1]) for line in f.readlines()[1:]]
+    with (out / "cameras" / "side" / "frames.csv").open() as f:
+        rows = [(int(i), float(t)) for i, t in (line.split(",") for line in f.readlines()[1:])]
+    assert len(first_s) == 4 and [i for i, _ in rows] == [0, 1, 2, 3]
+    assert all(t_s >= first_s[i] for i, t_s in rows)  # each the side camera's frame taken after its own
+    assert len(list((out / "cameras" / "side" / "frames").glob("*.png"))) == 4

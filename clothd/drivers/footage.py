@@ -54,8 +54,17 @@ class Footage:
         paired with), else k."""
         return self._indices[k] if self._indices is not None else k
 
+    @property
+    def has_capture_times(self) -> bool:
+        """Whether each frame's time was recorded (a live recording's frames.csv), not index / fps."""
+        return self._times_s is not None
+
     def _t(self, k: int) -> float:
         return self._times_s[k] if self._times_s is not None else k / self.fps
+
+    def t_s(self, index: int) -> float:
+        """Frame `index`'s time (its position in the footage, for a first camera)."""
+        return self._t(index)
 
     def frames(self, read_ahead: bool = True) -> Iterator[tuple[float, np.ndarray]]:
         """(t_s, BGR image) in order; t_s = index / fps, or the capture time a live recording kept.
@@ -135,6 +144,21 @@ def open_footage(source: Path) -> Footage:
     if not opened:
         raise InputError(f"{source}: not a video OpenCV can read")
     return Footage(source, fps if fps and fps > 0 else DEFAULT_FPS, None, None, None, None)
+
+
+def recorded_skews_s(recording: Path) -> dict[str, float]:
+    """An hwsim recording's further cameras' capture skews by name (scenario.yaml's `cameras`: frame k of
+    each shows the world capture_skew_s after the first camera's frame k); empty for any other."""
+    scenario = recording / "scenario.yaml"
+    data = yaml.safe_load(scenario.read_text()) if scenario.exists() else None
+    cameras = data.get("cameras") if isinstance(data, dict) else None
+    if not isinstance(cameras, list):
+        return {}
+    skews = {}
+    for index, cam in enumerate(cameras):
+        if isinstance(cam, dict) and isinstance(cam.get("capture_skew_s"), int | float):
+            skews[str(cam.get("name") or f"cam{index}")] = float(cam["capture_skew_s"])
+    return skews
 
 
 def _existing(path: Path) -> Path | None:

@@ -31,7 +31,7 @@ import cv2
 from clothd.core.cell_controller import CellController
 from clothd.core.flatness import Flatness
 from clothd.core.flow_cell import FlowCell
-from clothd.core.messages import Estimate, ModuleCommands, PairedView
+from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.modes import LoopState, Mode
 from clothd.core.tracker import Tracker
 from clothd.drivers.ports import CameraFrame, FrameSource
@@ -274,7 +274,7 @@ class Compute:
         if frame is not None and new_frame:
             views = self.pairing.to_track(frame.t_mono_s, True) or []
             flow.track(frame.image, frame.t_mono_s, req.commands_in_force, views)
-            self._record_views(frame.t_mono_s, views)
+            self.outputs.add_views(frame.t_mono_s, views)
             self._last_frame_index = frame.index
             timing["track"] = time.perf_counter() - t0
         t1 = time.perf_counter()
@@ -334,6 +334,9 @@ class Compute:
             # The commands in force while this frame was captured: replay feeds them back the same way.
             self.outputs.add(frame.image, frame.t_mono_s, after.commands_in_force, after.tracked)
             timing["record"] = time.perf_counter() - t_rec
+        t_views = time.perf_counter()
+        if self.outputs.write_views():
+            timing["record_views"] = time.perf_counter() - t_views
         if req.want_view and frame is not None:
             t_view = time.perf_counter()
             self._late_view = self.view.render(frame.image, after.estimate, req.setpoint, after.flatness)
@@ -358,7 +361,7 @@ class Compute:
             timing["pair_wait"] = time.perf_counter() - t0
         est = self.tracker.track(frame.image, frame.t_mono_s, commands, views)
         if views is not None:
-            self._record_views(frame.t_mono_s, views)
+            self.outputs.add_views(frame.t_mono_s, views)
         return est
 
     def measure_heights(self, wait: bool = False) -> None:
@@ -370,17 +373,10 @@ class Compute:
         t0 = time.perf_counter()
         try:
             self.tracker.measure_heights(paired[1])
+            self.outputs.add_views(*paired)
         except Exception:  # as in a tick: a bug must not take the loop with it
             self._failed_between_ticks("measuring a frame's heights")
         self._late_timing["tracker_heights"] = time.perf_counter() - t0
-        self._record_views(*paired)
-
-    def _record_views(self, t0_mono_s: float, views: list[PairedView | None]) -> None:
-        """The further cameras' views a frame was tracked with, to a recording (outside the tick)."""
-        if self.outputs.recorder is not None:
-            t_rec = time.perf_counter()
-            self.outputs.add_views(t0_mono_s, views)
-            self._late_timing["record_views"] = time.perf_counter() - t_rec
 
 
 def serve_compute(conn: Connection, spec: ComputeSpec) -> None:

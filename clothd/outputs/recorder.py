@@ -30,7 +30,7 @@ from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -44,9 +44,8 @@ from clothd.formats import FrameTimesLog, RecordingLog, write_camera, write_esti
 
 log = logging.getLogger(__name__)
 _PNG_PARAMS = [cv2.IMWRITE_PNG_COMPRESSION, 1]
-# A frame's views may reach the recorder before or after the frame itself (a frame tracked ahead of its
-# tick is paired before its tick records it): this many recent frames and views wait for each other.
-_RECENT = 8
+# The recent frames whose index a further camera's views can still be recorded under.
+RECENT_FRAMES = 8
 
 
 class FrameSink(Protocol):
@@ -115,7 +114,7 @@ class _FurtherCamera:
         self.frames_dir = directory / "frames"
         self.frames_dir.mkdir(parents=True)
         write_camera(directory / "camera.json", camera)
-        self.times = FrameTimesLog(directory / "frames.csv")
+        self.times: FrameTimesLog | None = None  # opened with the recording's other logs
 
 
 class Recorder:
@@ -127,8 +126,7 @@ class Recorder:
         max_bytes: int,
         further: Sequence[tuple[str, CameraModel]] = (),
     ) -> None:
-        """further: each further camera's name and model; the views paired with the first camera's frames
-        are recorded under cameras/NAME/."""
+        """further: each further camera's name and model; its views are recorded under cameras/NAME/."""
         self.dir = out_dir
         self.max_bytes = max_bytes
         self.t0_mono_s: float | None = None  # the first frame's capture time, host monotonic
@@ -140,10 +138,15 @@ class Recorder:
         (out_dir / "frames").mkdir(parents=True, exist_ok=False)
         write_camera(out_dir / "camera.json", camera)
         write_layout(out_dir / "table.json", layout)
-        self._log = RecordingLog(out_dir)
         self._further = [_FurtherCamera(out_dir / "cameras" / name, model) for name, model in further]
+        self._log = RecordingLog(out_dir)  # the files left open, last: nothing after them can fail
+        try:
+            for cam in self._further:
+                cam.times = FrameTimesLog(cam.frames_dir.parent / "frames.csv")
+        except OSError:
+            self._close_logs()
+            raise
         self._recent_frames: OrderedDict[float, int] = OrderedDict()  # capture time -> index
-        self._waiting_views: OrderedDict[float, Sequence[PairedView | None]] = OrderedDict()
 
     def status(self) -> RecordingStatus:
         return RecordingStatus(
@@ -166,26 +169,21 @@ class Recorder:
             self.stop(f"write failed: {err.strerror or err}")
             return
         self.bytes += len(png)
-        _remember(self._recent_frames, t_mono_s, self.frames)
+        self._recent_frames[t_mono_s] = self.frames
+        while len(self._recent_frames) > RECENT_FRAMES:
+            self._recent_frames.popitem(last=False)
         self.frames += 1
-        if est is not None:
-            self._estimates.append(est)
-        views = self._waiting_views.pop(t_mono_s, None)
-        if views is not None:
-            self._add_views(self.frames - 1, views)
+        # In mode flow the pieces are tracked apart: the frame's row in estimates.npz says lost.
+        self._estimates.append(est if est is not None else Estimate.lost(t_mono_s, {}))
 
-    def add_views(self, t0_mono_s: float, views: Sequence[PairedView | None]) -> None:
-        """The further cameras' views (one each, None: none) that the first camera's frame captured at
-        t0_mono_s was tracked with, recorded under that frame's index whether it came here yet or not."""
-        if not self.active or not self._further:
+    def index_of(self, t_mono_s: float) -> int | None:
+        """The index of the recent frame captured at t_mono_s; None if none was recorded (yet)."""
+        return self._recent_frames.get(t_mono_s)
+
+    def add_views(self, index: int, views: Sequence[PairedView | None]) -> None:
+        """The further cameras' views (one each, None: none) that recorded frame `index` was tracked with."""
+        if not self.active:
             return
-        index = self._recent_frames.get(t0_mono_s)
-        if index is None:
-            _remember(self._waiting_views, t0_mono_s, views)
-        else:
-            self._add_views(index, views)
-
-    def _add_views(self, index: int, views: Sequence[PairedView | None]) -> None:
         assert self.t0_mono_s is not None  # a frame was recorded
         for camera, view in zip(self._further, views, strict=True):
             if view is None:
@@ -195,6 +193,7 @@ class Recorder:
                 return
             try:
                 (camera.frames_dir / f"{index:06d}.png").write_bytes(png)
+                assert camera.times is not None  # opened in __init__
                 camera.times.add(index, view.t_s - self.t0_mono_s)
             except OSError as err:
                 self.stop(f"write failed: {err.strerror or err}")
@@ -219,7 +218,7 @@ class Recorder:
         self.active = False
         self.stopped_reason = reason
         log.info("recording %s stopped: %s (%d frames)", self.dir, reason, self.frames)
-        for error in self._log.close() + [e for c in self._further for e in c.times.close()]:
+        for error in self._close_logs():
             log.warning("recording: %s", error)
         if self._estimates and self.t0_mono_s is not None:
             try:
@@ -227,8 +226,9 @@ class Recorder:
             except OSError as err:  # the disk is full: the frames and commands stay replayable
                 self.stopped_reason = f"{reason}; estimates not written: {err.strerror or err}"
 
-
-def _remember(recent: OrderedDict[float, Any], key: float, value: Any) -> None:
-    recent[key] = value
-    while len(recent) > _RECENT:
-        recent.popitem(last=False)
+    def _close_logs(self) -> list[str]:
+        """Close the growing files; the errors met, as text."""
+        errors = self._log.close()
+        for cam in self._further:
+            errors += cam.times.close() if cam.times is not None else []
+        return errors

@@ -16,7 +16,7 @@ from clothd.config import TrackerConfig
 from clothd.core.camera_model import CameraModel
 from clothd.core.messages import Estimate, PairedView
 from clothd.core.tracker import Clock, Tracker
-from clothd.drivers.footage import CommandSchedule, open_footage
+from clothd.drivers.footage import CommandSchedule, Footage, open_footage, recorded_skews_s
 from clothd.errors import InputError
 from clothd.formats import read_camera, read_layout
 
@@ -30,7 +30,7 @@ class OfflineTracking:
     thread (benchmarks that time the tracker's stages turn it off, to keep a core to the tracker).
     progress: a label for a progress bar, shown on a terminal only. cameras: a recording's first this many
     (None: all; the further ones under cameras/NAME/, in name order, each with its camera.json), paired
-    by frame index (docs/second-view.md)."""
+    by frame index (docs/recording-format.md)."""
 
     def __init__(
         self,
@@ -62,7 +62,8 @@ class OfflineTracking:
             raise InputError(f"{source}: {cameras} cameras asked for, the recording has {len(further) + 1}")
         further = further if cameras is None else further[: cameras - 1]
         self.cameras = len(further) + 1
-        self._others = [FurtherFrames(p, read_ahead) for p in further]
+        skews_s = recorded_skews_s(source)
+        self._others = [FurtherFrames(p, read_ahead, self.footage, skews_s.get(p.name, 0.0)) for p in further]
         models = [read_camera(p / "camera.json") for p in further]
         self.tracker = Tracker(
             cfg, self.camera_model, self.layout, roi=roi, clock=clock, other_cameras=models
@@ -95,16 +96,23 @@ class OfflineTracking:
 
 class FurtherFrames:
     """A further camera's frames in a recording, each under the first camera's frame index it goes with:
-    an hwsim recording has one for every frame; a live one, those the tracker was given (maybe none)."""
+    an hwsim recording has one for every frame, captured skew_s after the first camera's; a live one has
+    those the tracker was given (maybe none), each with its own capture time."""
 
-    def __init__(self, directory: Path, read_ahead: bool) -> None:
+    def __init__(self, directory: Path, read_ahead: bool, first: Footage, skew_s: float = 0.0) -> None:
         self._frames: Iterator[tuple[int, float, np.ndarray]] = iter(())
         frames_dir = directory / "frames"
         if not frames_dir.is_dir() or any(frames_dir.iterdir()):  # a live recording's may hold none
-            footage = open_footage(directory)
-            numbered = enumerate(footage.frames(read_ahead=read_ahead))
-            self._frames = ((footage.frame_index(k), t_s, image) for k, (t_s, image) in numbered)
+            self._frames = self._indexed(open_footage(directory), read_ahead, first, skew_s)
         self._next = next(self._frames, None)
+
+    @staticmethod
+    def _indexed(
+        footage: Footage, read_ahead: bool, first: Footage, skew_s: float
+    ) -> Iterator[tuple[int, float, np.ndarray]]:
+        for k, (t_s, image) in enumerate(footage.frames(read_ahead=read_ahead)):
+            index = footage.frame_index(k)
+            yield index, t_s if footage.has_capture_times else first.t_s(index) + skew_s, image
 
     def view_of(self, index: int) -> PairedView | None:
         """The view paired with the first camera's frame `index` (asked in increasing order); None: none."""
