@@ -105,7 +105,7 @@ class Cell:
             )
         ]
         self.camera_every = self.streams[0].every
-        self.lock = threading.Lock()  # the world, between its thread and the HTTP handlers
+        self.lock = threading.Lock()  # the world and Taichi, between its thread and the HTTP handlers
         self.firmwares = start_firmwares(self.world.table.n_modules, controllers, state_dir)
         self.firmware = self.firmwares[0]
         for stream in self.streams:
@@ -201,7 +201,11 @@ class Cell:
                 if dropped_last:
                     self.camera_frames_dropped += 1
                 else:
-                    self._publish_frames()
+                    # Under the lock too: a push or a lay between step and render would be half seen,
+                    # and Taichi takes one thread at a time (a push's kernels during a render broke the
+                    # render's to_numpy: "cannot be called in Taichi-scope", and the world thread died).
+                    with self.lock:
+                        self._publish_frames()
             if behind_s < 0:
                 self._stop.wait(-behind_s)
             elif behind_s > MAX_CATCH_UP_S:

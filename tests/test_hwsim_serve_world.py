@@ -1,0 +1,64 @@
+"""`hwsim serve`'s world thread renders each frame holding the world's lock, as the HTTP handlers hold it
+to push or lay the cloth: Taichi takes one thread at a time, and a push must not land between a step and
+its frame. Pushes sent while frames render leave the world thread running."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from hwsim import scenario as scenarios
+from hwsim.scenario import Push
+from hwsim.sensor import Sensor
+from hwsim.serve import Cell
+
+pytestmark = pytest.mark.clock_free
+
+SMALL = {"width": 160, "height": 120, "f_px": 225.0}
+SIDE = {**SMALL, "name": "side", "position_m": [0.0, -0.423, 0.906], "tilt_rad": 0.436}
+FRAMES = 12
+
+
+def test_frames_render_under_the_worlds_lock_while_pushes_come(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    scenario = scenarios.parse(
+        {
+            "name": "served",
+            "duration_s": 3600.0,
+            "settle_s": 0.0,
+            "supersample": 1,
+            "cloth": {"spacing_m": 0.0075, "substep_s": 0.0005, "stretch_iterations": 1},
+            "cameras": [
+                SMALL,
+                {**SMALL, "name": "side", "position_m": [0.0, -0.423, 0.906], "tilt_rad": 0.436},
+            ],
+        }
+    )
+    cell = Cell(scenario, tmp_path / "state", camera_fps=15.0)
+    held: list[bool] = []
+    rendered = threading.Event()
+    jpeg = Sensor.jpeg
+
+    def watched(sensor: Sensor, world: Any, k: int) -> bytes:
+        if threading.current_thread().name == "world":
+            held.append(cell.lock.locked())
+            if len(held) >= FRAMES:
+                rendered.set()
+        return jpeg(sensor, world, k)
+
+    monkeypatch.setattr(Sensor, "jpeg", watched)
+    cell.start()
+    try:
+        push = Push.model_validate({"at_m": [-0.03, 0.02], "direction_rad": 1.0, "slack_m": 0.004})
+        while not rendered.wait(0.05):
+            assert cell._thread.is_alive(), "the world thread died"
+            with cell.lock:  # as the HTTP handler for POST /cloth/push does
+                cell.world.push(push)
+        assert cell._thread.is_alive()
+    finally:
+        cell.stop()
+    assert len(held) >= FRAMES and all(held)
