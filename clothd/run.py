@@ -322,9 +322,11 @@ async def serve(
     on_ready: str | None = None,
     sim_truth_url: str | None = None,
     record_dir: Path | None = None,
+    sim_process: subprocess.Popen[bytes] | None = None,
 ) -> None:
     """The daemon on this event loop, once its API process (api/process.py) serves on `listener`; until
-    a signal, an error, or the API process's end, which stops the modules and raises HardwareError."""
+    a signal, an error, or the end of the API process or of the simulated cell (`sim_process`), which
+    stops the modules and raises HardwareError."""
     parts = build(cfg)
     daemon = parts.daemon
     if record_dir is not None:  # the operator's own choice, anywhere
@@ -349,11 +351,16 @@ async def serve(
         if on_ready:
             print(on_ready, flush=True)
         assert api.ended is not None
-        either: set[asyncio.Future[Any]] = {loop_task, api.ended}
+        sim_ended = asyncio.create_task(_exit_code(sim_process))
+        either: set[asyncio.Future[Any]] = {loop_task, api.ended, sim_ended}
         await asyncio.wait(either, return_when=asyncio.FIRST_COMPLETED)
         if api.ended.done():  # no API, no e-stop from it: the modules stop (fail safe)
             log.error("the API process ended (%s): stopping the modules", api.ended.result())
             daemon.stop()
+        if sim_ended.done():  # a simulated cell does not come back: say so, rather than retry for ever
+            log.error("the simulated cell (hwsim serve) ended with code %s: stopping", sim_ended.result())
+            daemon.stop()
+        sim_ended.cancel()
         await asyncio.gather(loop_task, return_exceptions=True)
     finally:
         await api.stop()  # after the modules stopped
@@ -361,6 +368,15 @@ async def serve(
         raise loop_task.exception()  # type: ignore[misc]
     if api.ended.done():
         raise HardwareError(f"the API process ended ({api.ended.result()}); modules stopped")
+    if sim_ended.done() and not sim_ended.cancelled():
+        raise HardwareError(f"the simulated cell (hwsim serve) ended with code {sim_ended.result()}")
+
+
+async def _exit_code(process: subprocess.Popen[bytes] | None) -> int:
+    """The process's exit code once it has ended; never, for none."""
+    while process is None or process.poll() is None:
+        await asyncio.sleep(SIM_READ_POLL_S)
+    return process.returncode
 
 
 def run(
@@ -412,7 +428,7 @@ def run(
         if replaced is not None:
             urls += f"\n{replaced}"
         truth_url = None if sim is None else str(sim.ready["truth_url"])
-        asyncio.run(serve(cfg, listener, urls, truth_url, record_dir))
+        asyncio.run(serve(cfg, listener, urls, truth_url, record_dir, None if sim is None else sim.process))
     finally:
         listener.close()
         if sim is not None:

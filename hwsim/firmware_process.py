@@ -103,3 +103,17 @@ def main(argv: list[str]) -> None:
 
 if __name__ == "__main__":
     main(sys.argv[1:])
+
+
+def start_firmwares(n_modules: int, controllers: int, state_dir: Path) -> list[FirmwareProcess]:
+    """One firmware process on STATE_DIR/ttyCELL driving every module, or `controllers` of them on
+    ttyCELL-K, controller K driving the K-th equal share of the module ids, in order."""
+    if controllers == 1:
+        return [FirmwareProcess(n_modules, state_dir / "ttyCELL", state_dir / "drives.bin")]
+    if not 1 <= controllers <= n_modules:
+        raise ValueError(f"--controllers {controllers}: the cell has {n_modules} modules")
+    shares = np.array_split(np.arange(n_modules), controllers)
+    return [
+        FirmwareProcess(len(ids), state_dir / f"ttyCELL-{k}", state_dir / f"drives-{k}.bin", ids)
+        for k, ids in enumerate(shares)
+    ]

@@ -433,4 +433,3 @@ class Renderer:
                     if self.vdepth[slot, j, i] - front_m > _VISIBLE_DEPTH_TOL_M:
                         seen = 0
             self.visible[slot, j, i] = seen
-

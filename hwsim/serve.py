@@ -27,6 +27,8 @@ from __future__ import annotations
 import json
 import threading
 import time
+import traceback
+from collections.abc import Callable
 from dataclasses import dataclass
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -38,7 +40,7 @@ import numpy as np
 
 from hwsim.camera import Camera
 from hwsim.firmware import Counters
-from hwsim.firmware_process import FirmwareProcess
+from hwsim.firmware_process import FirmwareProcess, start_firmwares
 from hwsim.pieces import piece_truth
 from hwsim.recording import write_table
 from hwsim.scenario import Pose, Push, Scenario
@@ -118,6 +120,7 @@ class Cell:
         self.behind_real_time_s = 0.0  # time the world fell behind real time for good
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="world", daemon=True)
+        self.world_died: Callable[[BaseException], None] = lambda err: None  # serve() ends the process
         self._truth_cache: dict[str, Any] = {}
         self._outfeed_cache: tuple[dict[str, object], ...] = ()  # replaced whole, as the truth's cache
 
@@ -179,6 +182,13 @@ class Cell:
         return list(self._outfeed_cache)
 
     def _run(self) -> None:
+        try:
+            self._step_in_real_time()
+        except BaseException as err:  # the cell is dead: whoever runs it must hear so, not see it stall
+            traceback.print_exc()
+            self.world_died(err)
+
+    def _step_in_real_time(self) -> None:
         """Step at absolute deadlines. A world held up (a loaded PC) catches up by stepping without
         rendering, as a real cloth keeps moving while a camera drops frames, though never two frames in a
         row: a camera does not fall silent. Only a world more than MAX_CATCH_UP_S behind gives up that
@@ -261,20 +271,6 @@ class Cell:
                 for stream, frame in rendered:
                     stream.frame = frame
                 self.frame_cond.notify_all()
-
-
-def start_firmwares(n_modules: int, controllers: int, state_dir: Path) -> list[FirmwareProcess]:
-    """One firmware process on STATE_DIR/ttyCELL driving every module, or `controllers` of them on
-    ttyCELL-K, controller K driving the K-th equal share of the module ids, in order."""
-    if controllers == 1:
-        return [FirmwareProcess(n_modules, state_dir / "ttyCELL", state_dir / "drives.bin")]
-    if not 1 <= controllers <= n_modules:
-        raise ValueError(f"--controllers {controllers}: the cell has {n_modules} modules")
-    shares = np.array_split(np.arange(n_modules), controllers)
-    return [
-        FirmwareProcess(len(ids), state_dir / f"ttyCELL-{k}", state_dir / f"drives-{k}.bin", ids)
-        for k, ids in enumerate(shares)
-    ]
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -426,6 +422,13 @@ def serve(
     }
     if scenario.flow is not None:  # what the outfeed judges each piece against
         ready["placement"] = scenario.flow.placement.model_dump()
+    died: list[BaseException] = []
+
+    def world_died(err: BaseException) -> None:
+        died.append(err)
+        server.shutdown()  # serve_forever returns: the cell stops, and the process ends with the error
+
+    cell.world_died = world_died
     cell.start()
     (state_dir / "ready.json").write_text(json.dumps(ready, indent=2) + "\n")
     print(json.dumps(ready), flush=True)
@@ -434,3 +437,5 @@ def serve(
     finally:
         server.server_close()
         cell.stop()
+    if died:
+        raise SystemExit(f"hwsim serve: the world stopped: {died[0]!r}")

@@ -1,6 +1,7 @@
 """`hwsim serve`'s world thread renders each frame holding the world's lock, as the HTTP handlers hold it
 to push or lay the cloth: Taichi takes one thread at a time, and a push must not land between a step and
-its frame. Pushes sent while frames render leave the world thread running."""
+its frame. Pushes sent while frames render leave the world thread running; a world thread that fails
+says so to whoever runs the cell (`hwsim serve` ends with the error)."""
 
 from __future__ import annotations
 
@@ -22,9 +23,7 @@ SIDE = {**SMALL, "name": "side", "position_m": [0.0, -0.423, 0.906], "tilt_rad":
 FRAMES = 12
 
 
-def test_frames_render_under_the_worlds_lock_while_pushes_come(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def _cell(state_dir: Path) -> Cell:
     scenario = scenarios.parse(
         {
             "name": "served",
@@ -32,13 +31,16 @@ def test_frames_render_under_the_worlds_lock_while_pushes_come(
             "settle_s": 0.0,
             "supersample": 1,
             "cloth": {"spacing_m": 0.0075, "substep_s": 0.0005, "stretch_iterations": 1},
-            "cameras": [
-                SMALL,
-                {**SMALL, "name": "side", "position_m": [0.0, -0.423, 0.906], "tilt_rad": 0.436},
-            ],
+            "cameras": [SMALL, SIDE],
         }
     )
-    cell = Cell(scenario, tmp_path / "state", camera_fps=15.0)
+    return Cell(scenario, state_dir, camera_fps=15.0)
+
+
+def test_frames_render_under_the_worlds_lock_while_pushes_come(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    cell = _cell(tmp_path / "state")
     held: list[bool] = []
     rendered = threading.Event()
     jpeg = Sensor.jpeg
@@ -62,3 +64,25 @@ def test_frames_render_under_the_worlds_lock_while_pushes_come(
     finally:
         cell.stop()
     assert len(held) >= FRAMES and all(held)
+
+
+def test_a_world_thread_that_fails_says_so(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    cell = _cell(tmp_path / "state")
+    died: list[BaseException] = []
+    ended = threading.Event()
+
+    def world_died(err: BaseException) -> None:
+        died.append(err)
+        ended.set()
+
+    def broken() -> None:
+        raise RuntimeError("a world bug")
+
+    cell.world_died = world_died
+    monkeypatch.setattr(cell.world, "step", broken)
+    cell.start()
+    try:
+        assert ended.wait(30), "the world thread's failure was not reported"
+    finally:
+        cell.stop()
+    assert [str(err) for err in died] == ["a world bug"]
