@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import csv
 import json
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
@@ -42,6 +43,8 @@ def _read_json(path: Path) -> Any:
         raise InputError(f"{path}: cannot read: {err.strerror}") from None
     except json.JSONDecodeError as err:
         raise InputError(f"{path}: not valid JSON: {err}") from None
+    except UnicodeDecodeError:
+        raise InputError(f"{path}: not a text file, so not JSON (a picture?)") from None
 
 
 def _write_json(path: Path, obj: Any) -> None:
@@ -311,13 +314,20 @@ def read_module_calibration(path: Path, n_modules: int) -> list[ModuleCalibratio
 def read_referenced_files(cfg: Config) -> list[Path]:
     """Read every file the configuration names as `clothd run` reads it (each camera's calibration, the
     modules' calibration), so that one missing or malformed is found before the daemon starts: an
-    InputError naming it. The files read."""
-    read = []
-    for camera in cfg.all_cameras:
+    InputError naming its key and the file. The files read. A relative path is read from the working
+    directory, as the daemon reads it."""
+    named: list[tuple[str, Path, Callable[[Path], object]]] = []
+    for k, camera in enumerate(cfg.all_cameras):
         if camera.source.calibration is not None:
-            read_camera(camera.source.calibration)
-            read.append(camera.source.calibration)
+            key = "camera.calibration" if cfg.cameras is None else f"cameras.{k}.calibration"
+            named.append((key, camera.source.calibration, read_camera))
     if cfg.cell.module_calibration is not None:
-        read_module_calibration(cfg.cell.module_calibration, ConveyorLayout.of_cell(cfg.cell).n_modules)
-        read.append(cfg.cell.module_calibration)
-    return read
+        n_modules = ConveyorLayout.of_cell(cfg.cell).n_modules
+        modules = cfg.cell.module_calibration
+        named.append(("cell.module_calibration", modules, lambda p: read_module_calibration(p, n_modules)))
+    for key, path, read in named:
+        try:
+            read(path)
+        except InputError as err:
+            raise InputError(f"{key}: {err}") from None
+    return [path for _, path, _ in named]

@@ -411,7 +411,7 @@ def run(
             replaced = sim_replaced_cameras(cfg)
             cfg = sim_config(cfg, sim.ready)
         if cameras is not None:
-            cfg = first_cameras(cfg, cameras)
+            cfg = first_cameras(cfg, cameras, "the configuration" if sim is None else "the simulated cell")
         base = f"http://{cfg.api.host}:{cfg.api.port}"
         urls = (
             f"clothd: dashboard {base}/\n"

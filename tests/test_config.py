@@ -110,7 +110,8 @@ def test_check_config_reads_the_files_it_names(tmp_path: Path, capsys: pytest.Ca
         f"camera: {{calibration: {camera}}}\ncell: {{module_calibration: {tmp_path / 'modules.yaml'}}}\n"
     )
     assert main(["check-config", str(names)]) == 2
-    assert "modules.yaml: cannot read a module calibration" in capsys.readouterr().err
+    assert "cell.module_calibration: " in (err := capsys.readouterr().err)
+    assert "modules.yaml: cannot read a module calibration" in err
     (tmp_path / "modules.yaml").write_text("modules: [{module: 99, reversed: false}]\n")
     assert main(["check-config", str(names)]) == 2
     assert "modules.yaml: modules[0]: needs exactly heading_offset_deg" in capsys.readouterr().err
@@ -118,8 +119,16 @@ def test_check_config_reads_the_files_it_names(tmp_path: Path, capsys: pytest.Ca
     (tmp_path / "modules.yaml").unlink()
     names.write_text(f"camera: {{calibration: {camera}}}\n")
     assert main(["check-config", str(names)]) == 2
-    assert "camera.json: missing key" in capsys.readouterr().err
+    assert f"camera.calibration: {camera}: missing key" in capsys.readouterr().err
+    picture = tmp_path / "camera-calibration.png"  # the report calibrate writes beside camera.json
+    picture.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
     write_camera(camera, CameraModel.ideal(640, 480, 900.0, 1.0))
+    names.write_text(
+        f"cameras:\n  - {{source: '0', calibration: {camera}}}\n  - {{source: '1', calibration: {picture}}}\n"
+    )
+    assert main(["check-config", str(names)]) == 2
+    assert f"cameras.1.calibration: {picture}: not a text file" in capsys.readouterr().err
+    names.write_text(f"camera: {{calibration: {camera}}}\n")
     assert main(["check-config", str(names)]) == 0
     assert str(camera) in capsys.readouterr().out
 
@@ -188,6 +197,14 @@ def test_a_cameras_list_shares_camera_settings_and_names_each() -> None:
         ),
         ({"cameras": [{"source": "0"}, {"source": "1"}]}, ["cameras.1.calibration", "needs its camera.json"]),
         (
+            {"cameras": [{"source": "0"}, {"source": "1", "calibration": "c.json"}]},
+            ["cameras.0.calibration", "the first needs its camera.json"],
+        ),
+        (
+            {"cameras": [{"source": str(i), "calibration": "c.json"} for i in range(2)]},
+            ["cameras.1.calibration", "c.json is cameras.0's too"],
+        ),
+        (
             {"cameras": [{"source": "0"}, {"name": "cam0", "source": "1", "calibration": "c.json"}]},
             ["cameras.1.name", "'cam0' is taken"],
         ),
@@ -206,16 +223,25 @@ def test_overrides_keep_a_cameras_list_valid() -> None:
     from clothd.config import first_cameras, with_cameras, with_overrides
 
     cfg = parse_config(
-        {"cameras": [{"source": "0"}, {"name": "side", "source": "1", "calibration": "c.json"}]}
+        {
+            "cameras": [
+                {"source": "0", "calibration": "a.json"},
+                {"name": "side", "source": "1", "calibration": "c.json"},
+            ]
+        }
     )
     assert [c.name for c in with_overrides(cfg, {"api": {"port": 9000}}).all_cameras] == ["cam0", "side"]
     mono = first_cameras(cfg, 1)
     assert [c.source.source for c in mono.all_cameras] == ["0"]
     with pytest.raises(ConfigError, match="--cameras 3: the configuration has 2"):
         first_cameras(cfg, 3)
+    with pytest.raises(ConfigError, match="--cameras 3: the simulated cell has 2"):  # run --sim's cameras
+        first_cameras(cfg, 3, "the simulated cell")
     # A single camera's source becomes a list's entry: camera.source is no longer set beside it.
     one = parse_config({"camera": {"source": "5", "stale_after_s": 3}})
-    two = with_cameras(one, [{"source": "a"}, {"source": "b", "calibration": "c.json"}])
+    two = with_cameras(
+        one, [{"source": "a", "calibration": "a.json"}, {"source": "b", "calibration": "c.json"}]
+    )
     assert [c.source.source for c in two.all_cameras] == ["a", "b"]
     assert two.camera.stale_after_s == 3
     assert [c.source.source for c in first_cameras(one, 1).all_cameras] == ["5"]

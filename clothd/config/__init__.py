@@ -380,10 +380,11 @@ def with_cameras(cfg: Config, cameras: list[dict[str, Any]]) -> Config:
     return parse_config(data, "<cameras>")
 
 
-def first_cameras(cfg: Config, n: int) -> Config:
-    """cfg with only its first n cameras (n = 1: mono); more than it has is an error."""
+def first_cameras(cfg: Config, n: int, whose: str = "the configuration") -> Config:
+    """cfg with only its first n cameras (n = 1: mono); more than it has is an error, saying `whose`
+    cameras they are."""
     have = cfg.all_cameras
     if n > len(have):
-        raise ConfigError(f"--cameras {n}: the configuration has {len(have)} camera(s)")
+        raise ConfigError(f"--cameras {n}: {whose} has {len(have)} camera(s)")
     entries = [{"name": c.name, "source": c.source.source, "calibration": c.source.calibration} for c in have]
     return with_cameras(cfg, entries[:n])

@@ -76,6 +76,18 @@ def check_cameras(camera: CameraSourceConfig, cameras: list[CameraConfig] | None
     for i, name in enumerate(names):
         if name in names[:i]:
             raise ValueError(f"cameras.{i}.name: {name!r} is taken by an earlier camera")
+    if len(cameras) > 1 and cameras[0].calibration is None:
+        raise ValueError(
+            "cameras.0.calibration: with further cameras the first needs its camera.json too (an ideal "
+            "camera assumed for it would not stand where the further cameras' poses were measured from)"
+        )
+    paths = [entry.calibration for entry in cameras]
+    for i, path in enumerate(paths):
+        if path is not None and path in paths[:i]:
+            raise ValueError(
+                f"cameras.{i}.calibration: {path} is cameras.{paths.index(path)}'s too: each camera has its "
+                "own (clothd calibrate writes camera.json for the first and NAME.json for each further one)"
+            )
 
 
 def cameras_of(camera: CameraSourceConfig, cameras: list[CameraConfig] | None) -> tuple[NamedCamera, ...]:

@@ -90,9 +90,7 @@ class FrameOutputs:
     def sinks(self) -> list[FrameSink]:
         return [s for s in (self.recorder, self.foxglove) if s is not None]
 
-    def add(
-        self, image: np.ndarray, t_mono_s: float, commands: ModuleCommands, est: Estimate | None
-    ) -> None:
+    def add(self, image: np.ndarray, t_mono_s: float, commands: ModuleCommands, est: Estimate | None) -> None:
         """A tracked frame, the commands in force while it was captured, and its estimate (None: its pieces
         were tracked apart, mode flow)."""
         for sink in self.sinks:
