@@ -79,7 +79,10 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         cameras=args.cameras,
     )
     source_input = "on" if tracker_cfg.use_input else "off"
-    print(f"camera: {result.camera}" + (f" (and {result.cameras - 1} further)" if result.cameras > 1 else ""))
+    print(f"camera: {result.camera}")
+    for name, views in result.views.items():
+        heights = "" if views else ": tracked on the first camera alone, heights inferred"
+        print(f"camera {name}: a view for {views} of {result.frames} frames{heights}")
     print(
         f"replayed {result.frames} frames ({tracker_cfg.model}, input {source_input}) "
         f"in {result.wall_s:.1f} s, {result.realtime_factor:.1f}x real time "

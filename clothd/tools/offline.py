@@ -83,6 +83,11 @@ class OfflineTracking:
         )
         return CameraModel.ideal(w, h, c.f_px, c.distance_m), source
 
+    @property
+    def views_given(self) -> dict[str, int]:
+        """Each further camera's name and how many of the frames tracked so far had a view of it."""
+        return {other.name: other.views_given for other in self._others}
+
     def __iter__(self) -> Iterator[tuple[float, np.ndarray, Estimate]]:
         frames = itertools.chain([self._first], self._frames)
         if self.progress is not None:  # a bar on a terminal only: tqdm is silent elsewhere
@@ -100,6 +105,8 @@ class FurtherFrames:
     those the tracker was given (maybe none), each with its own capture time."""
 
     def __init__(self, directory: Path, read_ahead: bool, first: Footage, skew_s: float = 0.0) -> None:
+        self.name = directory.name
+        self.views_given = 0  # first-camera frames this camera had a view for
         self._frames: Iterator[tuple[int, float, np.ndarray]] = iter(())
         frames_dir = directory / "frames"
         if not frames_dir.is_dir() or any(frames_dir.iterdir()):  # a live recording's may hold none
@@ -121,4 +128,5 @@ class FurtherFrames:
         if self._next is None or self._next[0] != index:
             return None
         _, t_s, image = self._next
+        self.views_given += 1
         return PairedView(image, t_s)

@@ -38,7 +38,7 @@ _OVERLAYS_AHEAD = 4  # frames queued for the drawing thread before tracking wait
 @dataclass(frozen=True)
 class ReplayResult:
     camera: str  # the camera.json used, or the ideal camera assumed
-    cameras: int  # how many cameras' frames were tracked
+    views: dict[str, int]  # each further camera's name: how many frames had a view of it
     frames: int
     wall_s: float
     footage_s: float
@@ -98,7 +98,7 @@ def replay(
     steady_frames = max(len(estimates) - _STARTUP_TICKS, 0)
     result = ReplayResult(
         run.camera_source,
-        run.cameras,
+        run.views_given,
         len(estimates),
         end - start,
         len(estimates) / fps,
@@ -147,7 +147,8 @@ def _write_summary(path: Path, estimates: list[Estimate], result: ReplayResult, 
         )
     summary = {
         "camera": result.camera,
-        "cameras": result.cameras,
+        "cameras": 1 + len(result.views),
+        "views": result.views,
         "model": cfg.model,
         "use_input": cfg.use_input,
         "frames": result.frames,
