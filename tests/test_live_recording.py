@@ -69,7 +69,12 @@ def test_a_live_recording_starts_at_its_first_frame_and_exports(live_recording: 
         np.testing.assert_allclose(z["t_s"], times_s, atol=1e-6)  # frames.csv keeps 6 decimals
     mcap = tmp_path / "session.mcap"
     assert main(["export", str(live_recording), "--mcap", str(mcap)]) == 0
-    assert read_mcap(mcap).times["/camera"] == [round(t * 1e9) for t in times_s]
+    exported = read_mcap(mcap)
+    assert exported.times["/camera"] == [round(t * 1e9) for t in times_s]
+    with (live_recording / "cameras" / "cam1" / "frames.csv").open(newline="") as f:
+        views_s = [float(r["t_s"]) for r in csv.DictReader(f)]
+    # The second camera's views, each at its own time (one taken before the first frame, at 0).
+    assert exported.times["/cameras/cam1"] == [max(round(t * 1e9), 0) for t in views_s]
     assert main(["picture", str(mcap), "--out", str(tmp_path / "session.png")]) == 0
 
 

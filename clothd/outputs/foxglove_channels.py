@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import cv2
 import foxglove
@@ -99,8 +99,12 @@ class CellChannels:
     can draw it), so that no sink is offered a channel that stays empty. `counts` holds the messages
     logged per topic."""
 
-    def __init__(self, context: foxglove.Context, annotated: bool = False) -> None:
+    def __init__(
+        self, context: foxglove.Context, annotated: bool = False, further: Sequence[str] = ()
+    ) -> None:
+        """further: the further cameras' names, each a channel /cameras/NAME (an export's)."""
         self.camera = CompressedImageChannel("/camera", context=context)
+        self.further = {name: CompressedImageChannel(f"/cameras/{name}", context=context) for name in further}
         self.annotated = CompressedImageChannel("/camera/annotated", context=context) if annotated else None
         self.mesh = SceneUpdateChannel("/mesh", context=context)
         self.pose = PoseInFrameChannel("/pose", context=context)
@@ -117,6 +121,7 @@ class CellChannels:
             context=context,
         )
         self.counts = {topic: 0 for topic in TOPICS if annotated or topic != "/camera/annotated"}
+        self.counts.update({f"/cameras/{name}": 0 for name in further})
 
     def has_sinks(self) -> bool:
         """Anything listens: an MCAP writer, or a WebSocket client subscribed to any topic."""
@@ -127,6 +132,12 @@ class CellChannels:
         msg = fm.CompressedImage(timestamp=_stamp(log_time), frame_id=CAMERA_FRAME, data=jpeg, format="jpeg")
         self.camera.log(msg, log_time=log_time)
         self.counts["/camera"] += 1
+
+    def log_further(self, name: str, jpeg: bytes, log_time: int) -> None:
+        """A further camera's view, frame id NAME."""
+        msg = fm.CompressedImage(timestamp=_stamp(log_time), frame_id=name, data=jpeg, format="jpeg")
+        self.further[name].log(msg, log_time=log_time)
+        self.counts[f"/cameras/{name}"] += 1
 
     def log_annotated(self, jpeg: bytes, log_time: int) -> None:
         if self.annotated is None:

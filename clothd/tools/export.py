@@ -1,8 +1,9 @@
 """`clothd export REC --mcap FILE`: a recording as MCAP, with Foxglove's well-known schemas, to open in
 Foxglove: the camera (/camera, CompressedImage), the frame with the estimate drawn on
 (/camera/annotated, where the recording has a camera.json), the mesh coloured by height (/mesh,
-SceneUpdate), the pose (/pose, PoseInFrame), the module commands (/commands) and a per-frame summary
-(/status), the last two as JSON with a JSON schema. Every message is stamped with its frame's time.
+SceneUpdate), the pose (/pose, PoseInFrame), the module commands (/commands), a per-frame summary
+(/status), the last two as JSON with a JSON schema, and each further camera's views (/cameras/NAME).
+Every message is stamped with its frame's time; a further camera's view with its own.
 
 REC is a recording directory (`clothd run --record`, `hwsim record`); the estimates are its own
 estimates.npz (a live recording writes one) or `--estimates` (a `clothd replay` output's).
@@ -17,11 +18,12 @@ import foxglove
 import numpy as np
 from tqdm import tqdm
 
-from clothd.drivers.footage import CommandSchedule, open_footage
+from clothd.drivers.footage import CommandSchedule, open_footage, recorded_skews_s
 from clothd.errors import InputError
 from clothd.formats import read_camera, read_layout
 from clothd.outputs.foxglove_channels import CellChannels, encode_jpeg, residual_mean_px
 from clothd.outputs.view import draw_tracking
+from clothd.tools.offline import FurtherFrames
 
 
 @dataclass(frozen=True)
@@ -40,7 +42,12 @@ def export_mcap(recording: Path, out: Path, estimates_npz: Path | None = None) -
     )
     camera_model = read_camera(footage.camera_json) if footage.camera_json and est is not None else None
     ctx = foxglove.Context()  # this export's own channels, not the process-wide default
-    channels = CellChannels(ctx, annotated=camera_model is not None)
+    skews_s = recorded_skews_s(recording)
+    further = [
+        FurtherFrames(p, False, footage, skews_s.get(p.name, 0.0))
+        for p in sorted(p for p in (recording / "cameras").glob("*") if p.is_dir())
+    ]
+    channels = CellChannels(ctx, annotated=camera_model is not None, further=[f.name for f in further])
     frames = 0
     out.parent.mkdir(parents=True, exist_ok=True)
     with foxglove.open_mcap(out, allow_overwrite=True, context=ctx):
@@ -51,6 +58,7 @@ def export_mcap(recording: Path, out: Path, estimates_npz: Path | None = None) -
             if jpeg is None:
                 raise InputError(f"{recording}: frame {k} could not be encoded")
             channels.log_camera(jpeg, log_time)
+            _log_views(channels, further, footage.frame_index(k), recording)
             if schedule is not None:
                 c = schedule.at(t_s)
                 channels.log_commands(c.speed_m_s, c.heading_rad, log_time)
@@ -69,3 +77,18 @@ def export_mcap(recording: Path, out: Path, estimates_npz: Path | None = None) -
                     channels.log_annotated(annotated, log_time)
             frames += 1
     return ExportCounts(frames, dict(channels.counts))
+
+
+def _log_views(channels: CellChannels, further: list[FurtherFrames], index: int, recording: Path) -> None:
+    """Each further camera's view of first-camera frame `index`, at its own capture time (a view taken
+    just before the recording's first frame at 0: an MCAP file holds no earlier time)."""
+    for camera in further:
+        view = camera.view_of(index)
+        if view is None:
+            continue
+        jpeg = encode_jpeg(view.image)
+        if jpeg is None:
+            raise InputError(
+                f"{recording}: camera {camera.name}'s view of frame {index} could not be encoded"
+            )
+        channels.log_further(camera.name, jpeg, max(round(view.t_s * 1e9), 0))
