@@ -427,6 +427,8 @@ def run(
             urls += f"\nclothd: simulated cell truth {sim.ready['truth_url']}"
         if replaced is not None:
             urls += f"\n{replaced}"
+        if record_dir is not None:
+            urls += f"\nclothd: recording into {record_dir}"
         truth_url = None if sim is None else str(sim.ready["truth_url"])
         asyncio.run(serve(cfg, listener, urls, truth_url, record_dir, None if sim is None else sim.process))
     finally:

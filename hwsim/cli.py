@@ -98,7 +98,8 @@ def _cmd_charuco(args: argparse.Namespace) -> int:
     x, y = origin
     print(
         f"rendered {len(names)} pictures of a {board.squares_x}x{board.squares_y} ChArUco board through "
-        f"{sc.name}'s camera to {args.out} (true camera: {args.out / 'camera.json'}); calibrate with\n"
+        f"{sc.name}'s {'cameras' if len(sc.camera_specs) > 1 else 'camera'} to {args.out} (true camera: "
+        f"{args.out / 'camera.json'}); calibrate with\n"
         f"  clothd calibrate --images {args.out} --board {board.squares_x}x{board.squares_y} "
         f"--square-m {board.square_m:g} --marker-m {board.marker_m:g} --dictionary {board.dictionary} "
         f"--flat {FLAT_NAME} --flat-origin-m={x:g},{y:g} --out camera.json"

@@ -107,7 +107,11 @@ def format_report(cal: Calibration) -> str:
     for s in r["skipped"]:
         lines.append(f"{s['name']:<24} not used: {s['reason']}")
     cov = r["coverage"]
-    lines += ["", f"coverage: {cov['cells_covered']} of {cov['cells']} cells"]
+    short = cov["cells_covered"] < cov["cells"]
+    hint = (
+        " (the lens is extrapolated over the empty ones: add pictures with the board there)" if short else ""
+    )
+    lines += ["", f"coverage: {cov['cells_covered']} of {cov['cells']} cells{hint}"]
     lines += ["  " + row for row in coverage_map(np.array(cov["corners_per_cell"]))]
     if r["outliers"]:
         lines.append(f"outliers (RMS over {OUTLIER_FACTOR:g} x the median): {', '.join(r['outliers'])}")
