@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from small_scenarios import SMALL_OBLIQUE, SMALL_TOP, two_cameras
 
 from hwsim import scenario as scenarios
 from hwsim.camera import Camera
@@ -29,27 +30,11 @@ from hwsim.world import World
 
 pytestmark = pytest.mark.clock_free
 
-# A quarter-size picture of the live cell's two cameras: f_px / 4 keeps the view, at 1/16 of the pixels.
-SMALL_TOP = {"width": 160, "height": 120, "f_px": 225.0}
-SMALL_OBLIQUE = {**SMALL_TOP, "name": "side", "position_m": [0.0, -0.423, 0.906], "tilt_rad": 0.436}
 TABLE_HALF_M = (0.3, 0.225)  # the default 8 x 6 modules at 75 mm
 
 
-def _small(**extra: Any) -> dict[str, Any]:
-    """A short two-camera scenario on the live cell's coarse cloth, cheap to run."""
-    return {
-        "name": "two-cameras",
-        "duration_s": 0.1,
-        "settle_s": 0.0,
-        "supersample": 1,
-        "cloth": {"spacing_m": 0.0075, "substep_s": 0.0005, "stretch_iterations": 1},
-        "cameras": [SMALL_TOP, SMALL_OBLIQUE],
-        **extra,
-    }
-
-
 def test_two_cameras_validate_and_camera_stays_one() -> None:
-    sc = scenarios.parse(_small())
+    sc = scenarios.parse(two_cameras())
     assert [c.name for c in sc.camera_specs] == ["cam0", "side"]
     assert sc.camera == sc.cameras[0]  # `camera` is the first camera, for every one-camera reader
     assert scenarios.parse(sc.model_dump(mode="json")) == sc  # scenario.yaml reloads
@@ -72,7 +57,7 @@ def test_two_cameras_validate_and_camera_stays_one() -> None:
 )
 def test_bad_cameras_are_refused_naming_the_key(change: dict[str, Any], key: str) -> None:
     with pytest.raises(scenarios.ScenarioError, match=key):
-        scenarios.parse(_small(**change))
+        scenarios.parse(two_cameras(**change))
 
 
 def _cloth_blue(image: np.ndarray, px: np.ndarray) -> bool:
@@ -83,7 +68,7 @@ def _cloth_blue(image: np.ndarray, px: np.ndarray) -> bool:
 
 
 def test_record_writes_every_camera_and_each_sees_the_cloth_where_it_projects(tmp_path: Path) -> None:
-    record(scenarios.parse(_small()), tmp_path)
+    record(scenarios.parse(two_cameras()), tmp_path)
     truth = np.load(tmp_path / "truth.npz")
     nodes = truth["nodes_m"][0]
     centre_m = nodes[nodes.shape[0] // 2, nodes.shape[1] // 2]
@@ -137,7 +122,7 @@ def _one_jpeg(url: str) -> np.ndarray:
 
 def test_serve_streams_every_camera(tmp_path: Path) -> None:
     path = tmp_path / "two.yaml"
-    path.write_text(yaml.safe_dump(_small(duration_s=600.0)))
+    path.write_text(yaml.safe_dump(two_cameras(duration_s=600.0)))
     state = tmp_path / "state"
     cmd = [sys.executable, "-m", "hwsim.cli", "serve", "--scenario", str(path), "--state-dir", str(state)]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
@@ -166,7 +151,8 @@ def test_a_skewed_camera_shows_the_world_later(tmp_path: Path) -> None:
     0.2 m/s: its cloth lies 10 mm (2.25 px at f 225 from 1 m) further along."""
     drive = {"t_s": 0.0, "modules": {"all": True}, "speed_m_s": 0.2, "heading_rad": 0.0}
     late = {**SMALL_TOP, "name": "late", "capture_skew_s": 0.05}
-    record(scenarios.parse(_small(duration_s=0.4, cameras=[SMALL_TOP, late], timeline=[drive])), tmp_path)
+    scenario = two_cameras(duration_s=0.4, cameras=[SMALL_TOP, late], timeline=[drive])
+    record(scenarios.parse(scenario), tmp_path)
 
     def cloth_centroid_u(cam_dir: Path) -> float:
         image = cv2.imread(str(sorted((cam_dir / "frames").glob("*.png"))[-1])).astype(float)
@@ -189,7 +175,7 @@ def _top_down_pair() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     every texture): their images (grey), and the homography that takes the first's pixels to the second's."""
     near = {"width": 640, "height": 480, "f_px": 900.0}
     far = {"width": 320, "height": 240, "f_px": 450.0}
-    sc = scenarios.parse({**_small(), "cameras": [far, {**near, "name": "near"}]})
+    sc = scenarios.parse({**two_cameras(), "cameras": [far, {**near, "name": "near"}]})
     world = World(sc, log_commands=False)
     world.step()
     images = []

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from small_scenarios import two_cameras
 
 from hwsim import scenario as scenarios
 from hwsim.scenario import Push
@@ -18,23 +19,11 @@ from hwsim.serve import Cell
 
 pytestmark = pytest.mark.clock_free
 
-SMALL = {"width": 160, "height": 120, "f_px": 225.0}
-SIDE = {**SMALL, "name": "side", "position_m": [0.0, -0.423, 0.906], "tilt_rad": 0.436}
 FRAMES = 12
 
 
 def _cell(state_dir: Path) -> Cell:
-    scenario = scenarios.parse(
-        {
-            "name": "served",
-            "duration_s": 3600.0,
-            "settle_s": 0.0,
-            "supersample": 1,
-            "cloth": {"spacing_m": 0.0075, "substep_s": 0.0005, "stretch_iterations": 1},
-            "cameras": [SMALL, SIDE],
-        }
-    )
-    return Cell(scenario, state_dir, camera_fps=15.0)
+    return Cell(scenarios.parse(two_cameras(name="served", duration_s=3600.0)), state_dir, camera_fps=15.0)
 
 
 def test_frames_render_under_the_worlds_lock_while_pushes_come(

@@ -132,9 +132,10 @@ def test_a_live_recording_keeps_the_second_cameras_views_and_replays_with_them(
     max_skew_s = load_config(None).tracker.stereo.max_skew_ms / 1e3
     assert np.median(np.abs(skews_s)) < 0.25 * max_skew_s and np.mean(np.abs(skews_s) <= max_skew_s) >= 0.8
     assert sorted(p.name for p in (side / "frames").iterdir()) == [f"{i:06d}.png" for i in indices]
-    assert read_camera(side / "camera.json").T_cam_world[2, 3] != read_camera(
-        live_recording / "camera.json"
-    ).T_cam_world[2, 3]  # the oblique camera's own pose
+    assert (
+        read_camera(side / "camera.json").T_cam_world[2, 3]
+        != read_camera(live_recording / "camera.json").T_cam_world[2, 3]
+    )  # the oblique camera's own pose
     bases = {}
     for cameras in (None, 1):
         out = tmp_path / f"cameras-{cameras}"

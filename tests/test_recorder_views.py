@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from small_scenarios import SMALL_TOP, two_cameras
 
 from clothd.config import RecordingFormat, load_config
 from clothd.core.camera_model import CameraModel
@@ -108,16 +109,8 @@ def test_an_hwsim_further_camera_takes_the_first_cameras_times_and_its_skew(
 ) -> None:
     """hwsim writes no frames.csv: a further camera's frame k is the first camera's frame k, captured
     `capture_skew_s` later (scenario.yaml), at the scenario's frame rate."""
-    small = {"width": 160, "height": 120, "f_px": 225.0}
-    scenario = {
-        "name": "skewed",
-        "duration_s": 0.4,
-        "fps": 15,
-        "settle_s": 0.0,
-        "supersample": 1,
-        "cloth": {"spacing_m": 0.0075, "substep_s": 0.0005, "stretch_iterations": 1},
-        "cameras": [small, {**small, "name": "late", "capture_skew_s": 0.05}],
-    }
+    late = {**SMALL_TOP, "name": "late", "capture_skew_s": 0.05}
+    scenario = two_cameras(name="skewed", duration_s=0.4, fps=15, cameras=[SMALL_TOP, late])
     record(scenarios.parse(scenario), tmp_path)
     first = open_footage(tmp_path)
     assert recorded_skews_s(tmp_path) == {"cam0": 0.0, "late": 0.05}
