@@ -316,10 +316,11 @@ def test_camera_credentials_stay_out_of_the_status() -> None:
 def test_every_camera_is_in_the_status_metrics_and_health_and_only_the_first_is_needed(
     tmp_path: Path,
 ) -> None:
-    side_json = tmp_path / "side.json"
-    write_camera(side_json, CameraModel.ideal(640, 480, 900.0, 1.0))
+    top_json, side_json = tmp_path / "top.json", tmp_path / "side.json"
+    for path in (top_json, side_json):
+        write_camera(path, CameraModel.ideal(640, 480, 900.0, 1.0))
     cameras = [
-        {"source": "0"},
+        {"source": "0", "calibration": str(top_json)},
         {"name": "side", "source": "rtsp://u:s3cret@side/s", "calibration": str(side_json)},
     ]
     parts = build(parse_config({"cameras": cameras}))
