@@ -252,10 +252,14 @@ def test_a_compute_that_stops_answering_stops_the_modules() -> None:
         await _ticks(daemon, 3)
         assert _moving(link)
         compute.silent = True
+        told = len(compute.in_force)
         await _ticks(daemon, 8)
         assert daemon.stats.compute_overruns >= 3
         assert not link.sent[-1].speed_m_s.any()  # stale commands are not resent past max_stale_ticks
         assert daemon.setpoint.mode == "idle" and "compute has not answered" in (daemon.halt_reason or "")
+        # Nothing more is sent to a compute still at its request: a hung one would fill the pipe until
+        # the send blocked the tick.
+        assert len(compute.in_force) == told
 
     _run(scenario, max_stale_ticks=3)
 

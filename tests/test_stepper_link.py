@@ -428,3 +428,33 @@ def test_a_run_past_the_bound_is_noise_up_to_the_next_zero(tmp_path: Path) -> No
     finally:
         os.close(port)
         fw.stop()
+
+
+def test_a_controller_latched_unknown_to_the_host_latches_the_host_too(tmp_path: Path) -> None:
+    """The controller's e-stop latched while the host heard nothing of it (its FAULT lost, or latched
+    before the link came up): its answers say so, and the host latches, reporting that input's fault, so
+    that no command waits to run on a clear. Answers to what went before a clear do not latch it again."""
+
+    async def body(fw: Firmware, table: Table) -> None:
+        link = _link(fw.link_path)
+        reported: list[int] = []
+        link.on_fault = lambda fault: reported.append(fault.code)
+        async with _running(link):
+            await _until(lambda: link.connected)
+            assert link.send_commands(_forward(0.05))
+            await _until(lambda: table.cmd_speed_m_s[0] > 0)
+            fw.estopped = True  # latched by its own input; the FAULT never reached the host
+            link.send_commands(_forward(0.05))
+            await _until(lambda: link.estopped)
+            assert reported == [wire.FAULT_ESTOP_INPUT] and "e-stop input" in link.faults[-1].text
+            assert not link.send_commands(_forward(0.05))  # held back until the operator clears it
+            link.estop_clear()
+            await _until(lambda: not fw.estopped)
+            for _ in range(10):
+                link.send_commands(_forward(0.03))
+                await asyncio.sleep(0.02)
+            assert not link.estopped and reported == [wire.FAULT_ESTOP_INPUT]
+            await _until(lambda: abs(table.cmd_speed_m_s[0] - 0.03) < 1e-4)
+            await link.stop()
+
+    _with_firmware(tmp_path, body)

@@ -70,6 +70,9 @@ class StepperLink:
         self.firmware: str | None = None
         self.controller_flags = 0
         self._estop_latched = False
+        self._clear_seq: int | None = (
+            None  # an ESTOP_CLEAR not answered yet: earlier answers still show the latch
+        )
         self._clear_on_connect = False  # an e-stop cleared while the link was down: the controller is told
         self._writer: asyncio.StreamWriter | None = None
         self._seqs = itertools.count(1)
@@ -124,6 +127,7 @@ class StepperLink:
         line; repeated until acknowledged."""
         self._estop_latched = True
         self._clear_on_connect = False
+        self._clear_seq = None
         self._pending = None
         if self.connected:  # (while connecting, what waits is the HELLO, and the handshake sends ESTOP)
             self._discard_unsent()
@@ -134,9 +138,13 @@ class StepperLink:
         latch across a lost link, and would otherwise refuse every command)."""
         self._estop_latched = False
         if self.connected:
-            self._write(wire.encode(wire.MsgType.ESTOP_CLEAR, self._next_seq()))
+            self._send_clear()
         else:
             self._clear_on_connect = True
+
+    def _send_clear(self) -> None:
+        self._clear_seq = self._next_seq()
+        self._write(wire.encode(wire.MsgType.ESTOP_CLEAR, self._clear_seq))
 
     async def stop(self) -> None:
         """Stop the modules, then close the port."""
@@ -225,7 +233,7 @@ class StepperLink:
             if self._estop_latched:
                 self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()))
             elif self._clear_on_connect:
-                self._write(wire.encode(wire.MsgType.ESTOP_CLEAR, self._next_seq()))
+                self._send_clear()
             self._clear_on_connect = False
             return
         if self.counters.invalid:
@@ -270,10 +278,12 @@ class StepperLink:
             if p is not None and p.seq == frame.seq:
                 self.counters.rtt_ms.append((self.clock() - p.sent_t_s) * 1e3)
                 self._pending = None
+            self._mirror_latch(frame.seq, bool(self.controller_flags & wire.FLAG_ESTOP))
         elif frame.type == wire.MsgType.NACK:
             self.counters.nacked += 1
             if self._pending is not None and self._pending.seq == frame.seq:
                 self._pending = None
+            self._mirror_latch(frame.seq, frame.payload[:1] == bytes([wire.NACK_ESTOPPED]))
         elif frame.type == wire.MsgType.FAULT:
             fault = wire.parse_fault(frame.payload)
             self.counters.faults += 1
@@ -282,6 +292,25 @@ class StepperLink:
             self.faults.append(report)
             if self.on_fault is not None:
                 self.on_fault(report)
+
+    def _mirror_latch(self, seq: int, controller_latched: bool) -> None:
+        """A controller latched while the host is not (its e-stop input opened and the FAULT was lost, it
+        latched before this link came up, or it refused a clear while its input stays open): the host
+        latches too and reports it as that input's FAULT, so no setpoint waits to run on a clear. An
+        answer to a message sent before the last clear still shows the old latch, and counts for nothing."""
+        if self._clear_seq is not None:
+            if seq != self._clear_seq:
+                return
+            self._clear_seq = None
+        if not controller_latched or self._estop_latched:
+            return
+        self.estop()
+        text = "the controller's e-stop is latched: its e-stop input is open, or it refused the clear"
+        report = ControllerFault(time.time(), wire.FAULT_ESTOP_INPUT, wire.WHOLE_CONTROLLER, text)
+        log.warning("%s", text)
+        self.faults.append(report)
+        if self.on_fault is not None:
+            self.on_fault(report)
 
     async def _supervise(self) -> None:
         """Watch the controller's answers: each `ack_timeout_s` without one, send the newest unanswered

@@ -40,6 +40,8 @@ FLAG_ESTOP = 0x01
 FLAG_WATCHDOG = 0x02
 FAULT_NAMES = {1: "WATCHDOG", 2: "STALL", 3: "OVERTEMP", 4: "ESTOP_INPUT"}
 FAULT_ESTOP_INPUT = 4  # the cell's hardware e-stop chain opened
+WHOLE_CONTROLLER = 0xFFFF  # a FAULT's module: the controller as a whole
+NACK_ESTOPPED = 1  # a NACK's reason: a COMMAND while the controller's e-stop is latched
 
 
 class WireError(ValueError):

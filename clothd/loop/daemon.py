@@ -313,10 +313,13 @@ class Daemon:
         )
         # A link that is down or e-stopped moves nothing: the controller's watchdog or e-stop holds them.
         self._in_force = self._commands if sent else ModuleCommands.all_stop(self.settings.n_modules)
-        try:
-            self.compute.tell_in_force(InForce(self._in_force))
-        except OSError as err:
-            self._compute_died(err)
+        # Only to a compute that has answered: one still at a request reads nothing, and a hung one would
+        # fill the pipe until this send blocked the tick (its next request carries what is in force).
+        if self._pending is None:
+            try:
+                self.compute.tell_in_force(InForce(self._in_force))
+            except OSError as err:
+                self._compute_died(err)
         self.stats.ticks += 1
         if self._unsent_frame is not None:
             self.stats.latency.add(*self._unsent_frame, time.monotonic())
