@@ -234,6 +234,52 @@ def test_a_controller_that_answers_garbage_gets_a_clear_error(tmp_path: Path) ->
         os.close(slave)
 
 
+@pytest.mark.parametrize("answer", ["ack", "short"], ids=["an-ack", "a-short-hello-ack"])
+def test_a_controller_that_answers_hello_wrongly_gets_a_clear_error_and_is_tried_again(
+    tmp_path: Path, answer: str
+) -> None:
+    """A HELLO answered by a plain ACK or a HELLO_ACK too short to read: said so, and tried again (the link
+    task ended on it, unseen, leaving the link `starting` for good)."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    port = tmp_path / "ttyWRONG"
+    port.symlink_to(os.ttyname(slave))
+    stop = threading.Event()
+    hellos: list[int] = []
+
+    def answer_wrongly() -> None:
+        splitter = wire.FrameSplitter()
+        while not stop.is_set():
+            try:
+                data = os.read(master, 4096)
+            except OSError:
+                return
+            for packet in splitter.feed(data):
+                msg = wire.decode(packet)
+                if msg.type == wire.MsgType.HELLO:
+                    hellos.append(msg.seq)
+                    kind, payload = (
+                        (wire.MsgType.ACK, b"\x00") if answer == "ack" else (wire.MsgType.HELLO_ACK, b"\x01")
+                    )
+                    os.write(master, wire.encode(kind, msg.seq, payload))
+
+    threading.Thread(target=answer_wrongly, daemon=True).start()
+
+    async def body() -> None:
+        async with _running(_link(port)) as link:
+            await _until(lambda: "answered HELLO wrongly" in (link.last_error or ""))
+            first_tries = len(hellos)
+            await _until(lambda: len(hellos) > first_tries)  # the link task lives on, and tries again
+            assert not link.connected
+
+    try:
+        asyncio.run(asyncio.wait_for(body(), 20))
+    finally:
+        stop.set()
+        os.close(master)
+        os.close(slave)
+
+
 # -- faults injected between the link and the controller (a pty relay) ---------------------------------
 
 

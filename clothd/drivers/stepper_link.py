@@ -165,6 +165,9 @@ class StepperLink:
                 delay = self.cfg.reconnect_initial_s
             except (TimeoutError, OSError, HardwareError) as err:
                 self._set_error(str(err) or type(err).__name__)
+            except Exception as err:  # a bug here must not end the link for good, unseen: tried again
+                log.exception("stepper link on %s failed", self.cfg.port)
+                self._set_error(f"{type(err).__name__}: {err}")
             finally:
                 self._close()
             if self._stopping:
@@ -218,7 +221,12 @@ class StepperLink:
                 raise HardwareError(
                     f"controller on {self.cfg.port} refused protocol v{wire.PROTOCOL_VERSION}"
                 )
-            hello = wire.parse_hello_ack(reply.payload)
+            try:
+                if reply.type != wire.MsgType.HELLO_ACK:
+                    raise wire.WireError(f"message type {reply.type:#04x} where its HELLO_ACK belongs")
+                hello = wire.parse_hello_ack(reply.payload)
+            except wire.WireError as err:
+                raise HardwareError(f"controller on {self.cfg.port} answered HELLO wrongly: {err}") from None
             if hello.version != wire.PROTOCOL_VERSION:
                 raise HardwareError(
                     f"controller on {self.cfg.port} speaks protocol v{hello.version}, "
