@@ -78,3 +78,19 @@ def test_a_camera_off_the_ticks_grid_leaves_the_tick_free() -> None:
 def test_no_frames_no_lock() -> None:
     lock = FramePhaseLock(PERIOD_S, LEAD_S, STEP_S, WAIT_S)
     assert lock.shift_s(1.0) == 0.0 and lock.wait_until_s(1.0) is None and not lock.locked
+
+
+def test_after_a_long_pause_the_grid_goes_on_where_the_frames_would_be() -> None:
+    """Hours without a frame: the next frame is expected on the grid the camera kept, found at once (it
+    was stepped to one frame period at a time, a cost that grew with the pause)."""
+    frame_s = 2 * PERIOD_S
+    lock, starts, _ = _run(frame_s, first_frame_s=0.0207, ticks=120)
+    assert lock.locked
+    t_s = starts[-1] + 8 * 3600.0
+    wait_until = lock.wait_until_s(t_s)
+    shift = lock.shift_s(t_s)
+    assert abs(shift) <= STEP_S + 1e-9
+    # A frame is due within the next frame period of t_s - one tick, on the grid of 0.0207 + k frame_s.
+    grid = 0.0207 + frame_s * np.ceil((t_s - PERIOD_S - 0.0207) / frame_s)
+    expected_wait = t_s + LEAD_S + WAIT_S if grid <= t_s + LEAD_S + WAIT_S else None
+    assert wait_until == expected_wait

@@ -13,6 +13,7 @@ as it would without a lock.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
@@ -66,8 +67,8 @@ class FramePhaseLock:
         if frame_s is None:
             return None
         due = self._last_due_s + frame_s
-        while due < after_s - self.period_s:  # frames were missed (camera paused): the grid goes on
-            due += frame_s
+        if due < after_s - self.period_s:  # frames were missed (camera paused): the grid goes on
+            due += math.ceil((after_s - self.period_s - due) / frame_s) * frame_s
         return due
 
     def shift_s(self, next_deadline_s: float) -> float:
