@@ -147,13 +147,30 @@ def test_a_piece_that_does_not_flatten_in_time_is_rejected_with_the_reason_and_d
         flow.step([piece], t_s)
         t_s += DT_S
     assert piece.state == PieceState.REJECTED
-    assert piece.reason == f"not flat after {FLOW.flatten_timeout_s:g} s"
+    assert piece.reason == f"not flat for {FLOW.flatten_timeout_s:g} s"
     assert t_s > FLOW.flatten_timeout_s
     for _ in range(10):
         commands, _ = flow.step([piece], t_s)
         t_s += DT_S
     under = _under(piece.outline_m)
     assert (commands.speed_m_s[under] > 0).all() and (np.cos(commands.heading_rad[under]) > 0.99).all()
+
+
+def test_a_flat_piece_waiting_for_its_way_is_not_rejected_for_a_frame_read_not_flat() -> None:
+    """Flat and held behind a piece that is not yet out of the way, past the flattening timeout: one
+    frame read not flat (noise) is no reason to reject it; only a piece not flat for the whole timeout is."""
+    flow = _controller()
+    ahead = _tracked(0, (0.05, 0.0, 0.0), PieceState.FLATTENING, ridge=True)  # in the way, not leaving
+    piece = _tracked(1, (-0.2, 0.0, 0.0), PieceState.TRACKED)
+    t_s = 0.0
+    while t_s < FLOW.flatten_timeout_s + 2.0:
+        noisy = abs(t_s - (FLOW.flatten_timeout_s + 1.0)) < DT_S / 2  # one frame reads a ridge
+        piece.estimate = _estimate((-0.2, 0.0, 0.0), ridge=noisy, t_s=t_s)
+        ahead.estimate = _estimate((0.05, 0.0, 0.0), ridge=True, t_s=t_s)
+        flow.step([ahead, piece], t_s)
+        t_s += DT_S
+    assert piece.state == PieceState.FLATTENING  # still waiting for its way, not rejected
+    assert ahead.state == PieceState.REJECTED and ahead.reason == f"not flat for {FLOW.flatten_timeout_s:g} s"
 
 
 def test_stop_stops_every_module() -> None:

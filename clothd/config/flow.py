@@ -38,7 +38,7 @@ class FlowConfig(Strict):
     )
     search_every: int = Field(5, ge=1, le=30, description="frames between two looks for pieces coming in")
     flat_for_s: float = Field(0.5, ge=0, le=10, description="flat this long before it is placed")
-    flatten_timeout_s: float = Field(8.0, gt=0, le=120, description="not flat by then: a reject")
+    flatten_timeout_s: float = Field(8.0, gt=0, le=120, description="not flat for this long: a reject")
     flap_for_s: float = Field(1.0, gt=0, le=30, description="a folded-over corner seen this long: a reject")
     placed_mm: float = Field(1.5, gt=0, le=50, description="within this of the placement it is placed ...")
     placed_deg: float = Field(0.3, gt=0, le=10, description="... and within this of its heading")

@@ -47,6 +47,7 @@ class _PieceControl:
     flatness: Flatness | None = None
     hold_pose: np.ndarray | None = None  # where flattening holds it
     flat_since_s: float | None = None
+    flat_seen_s: float | None = None  # when it last read flat
     flap_since_s: float | None = None
     out_speed_m_s: float = 0.0  # a piece driven out speeds up within the acceleration limit
     driving_out: bool = False  # a reject, once its way is clear
@@ -150,7 +151,7 @@ class FlowController:
         if piece.tracked_since_s != ctl.tracked_since_s:  # tracking began afresh: nothing learned holds
             ctl.cell.reset()
             ctl.tracked_since_s = piece.tracked_since_s
-            ctl.flatness = ctl.flat_since_s = ctl.flap_since_s = None
+            ctl.flatness = ctl.flat_since_s = ctl.flat_seen_s = ctl.flap_since_s = None
             ctl.estimate_t_s = None
             if piece.state == PieceState.FLATTENING and piece.estimate is not None:
                 ctl.hold_pose = piece.estimate.pose.copy()
@@ -163,10 +164,15 @@ class FlowController:
         if piece.state == PieceState.FLATTENING:
             ctl.flap_since_s = (ctl.flap_since_s or now_s) if f is not None and f.flaps else None
             ctl.flat_since_s = (ctl.flat_since_s or now_s) if f is not None and f.flat else None
+            if ctl.flat_since_s is not None:
+                ctl.flat_seen_s = now_s
+            # Not flat for the whole timeout: since it began flattening, or since it last read flat (a flat
+            # piece waiting for its way may read not flat a frame or two; that is no reason to reject it).
+            unflat_s = now_s - max(piece.since_s, ctl.flat_seen_s or piece.since_s)
             if ctl.flap_since_s is not None and now_s - ctl.flap_since_s >= cfg.flap_for_s:
                 piece.enter(PieceState.REJECTED, now_s, "a corner is folded over")
-            elif in_state_s > cfg.flatten_timeout_s and ctl.flat_since_s is None:
-                piece.enter(PieceState.REJECTED, now_s, f"not flat after {cfg.flatten_timeout_s:g} s")
+            elif unflat_s > cfg.flatten_timeout_s:
+                piece.enter(PieceState.REJECTED, now_s, f"not flat for {cfg.flatten_timeout_s:g} s")
             elif self._flat_enough(ctl, now_s) and self._way_clear(
                 piece, pieces, self._reach_at_placement(piece)
             ):
