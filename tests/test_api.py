@@ -135,6 +135,10 @@ def test_token_guards_changes_but_not_reads() -> None:
     basic = c.post("/api/v1/estop", headers={"Authorization": f"Basic {TOKEN}"})
     assert basic.status_code == 401 and "must be Bearer" in basic.json()["detail"]
     assert c.post("/api/v1/estop", headers={"Authorization": f"Bearer {TOKEN}"}).status_code == 200
+    # The page asks whether it needs a token as it opens (a read: no token needed to ask).
+    assert c.get("/api/v1/access").json() == {"token_required": True}
+    open_app = TestClient(_app(), base_url=BASE)
+    assert open_app.get("/api/v1/access").json() == {"token_required": False}
 
 
 def test_binding_off_loopback_needs_a_token() -> None:

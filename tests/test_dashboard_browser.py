@@ -195,6 +195,8 @@ def test_a_move_halted_by_a_fault_says_why_and_when(page: Page, sim: Sim) -> Non
     httpx.post(f"{hwsim}/fault?code=2&module=7&text=stalled", timeout=5).raise_for_status()
     newest = "document.querySelector('#faults li').textContent"
     page.wait_for_function(f"{newest}.endsWith('module 7 · STALL: stalled')", timeout=10000)
+    httpx.post(f"{hwsim}/fault?code=3&module=4", timeout=5).raise_for_status()  # a fault without text
+    page.wait_for_function(f"{newest}.endsWith('module 4 · OVERTEMP')", timeout=10000)
     ARTIFACTS.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(ARTIFACTS / "dashboard_halt.png"))
     # A new setpoint clears the halt, and its banner.
@@ -310,9 +312,9 @@ def test_a_daemon_with_a_token_gets_one_from_the_page(
         wait(lambda: (s.status()["state"], s.status()["link"]["state"]) == READY, 60, "tracking, link up")
         pg = browser.new_page(viewport={"width": 1280, "height": 720})
         pg.goto(s.base + "/")
-        pg.click("#reset")
+        # Asked for as the page opens, before any button is pressed: the E-STOP needs it too.
         pg.wait_for_selector("#token-box:not([hidden])", timeout=5000)
-        assert "token" in (pg.text_content("#message") or "")
+        assert "E-STOP too" in (pg.text_content("#message") or "")
         pg.fill("#token", token)
         pg.click("#token-save")
         pg.click("#estop")

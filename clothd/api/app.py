@@ -29,7 +29,15 @@ from clothd.api.commands import Commands, describe_invalid
 from clothd.api.connections import StreamSlots
 from clothd.api.guard import GuardPolicy, RequestGuard
 from clothd.api.metrics import registry_for
-from clothd.api.schemas import CameraInfo, ErrorResponse, Ok, OutfeedPiece, RecordStart, SetpointRequest
+from clothd.api.schemas import (
+    AccessInfo,
+    CameraInfo,
+    ErrorResponse,
+    Ok,
+    OutfeedPiece,
+    RecordStart,
+    SetpointRequest,
+)
 from clothd.api.stream import StreamHub
 from clothd.config import ApiConfig
 from clothd.core.camera_model import CameraModel
@@ -111,6 +119,13 @@ def create_app(
         app.add_exception_handler(error, _detail_response(status_code))
 
     api = APIRouter(prefix="/api/v1")
+
+    @api.get("/access", response_model=AccessInfo)
+    async def access() -> AccessInfo:
+        """Whether changes, the e-stop among them, need the token: the dashboard asks for it as it opens,
+        not when the E-STOP is pressed."""
+        return AccessInfo(token_required=c.token is not None)
+
     _add_control_routes(api, cell, hub, commands)
     _add_view_routes(api, cell, hub, streams, camera_model, sim_truth_url)
     app.include_router(api)

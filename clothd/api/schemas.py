@@ -82,6 +82,10 @@ class CameraInfo(BaseModel):
     table_to_pixel: list[list[float]] = Field(description="3 x 3 homography: table [x_m, y_m, 1] to pixels")
 
 
+class AccessInfo(BaseModel):
+    token_required: bool = Field(description="every change (the e-stop too) needs Authorization: Bearer")
+
+
 class OutfeedPiece(BaseModel):
     """One piece hwsim's outfeed judged from its truth as it crossed the +x edge (hwsim/outfeed.py); hwsim
     may add keys."""

@@ -64,7 +64,8 @@ function showBanners(s) {
 function showFaults(faults) {
   const items = faults.slice(-FAULTS_SHOWN).reverse().map((f) => {
     const where = f.module === WHOLE_BOARD ? "whole board" : `module ${f.module}`;
-    return `${clock(f.t_unix_s)} · ${where} · ${FAULT_CODES[f.code] || `code ${f.code}`}: ${f.text}`;
+    const name = FAULT_CODES[f.code] || `code ${f.code}`;
+    return `${clock(f.t_unix_s)} · ${where} · ${name}${f.text ? `: ${f.text}` : ""}`;
   });
   $("faults").replaceChildren(...(items.length ? items : ["none"]).map((text) => {
     const li = document.createElement("li"); li.textContent = text; return li;
@@ -300,4 +301,11 @@ fetch("/api/v1/sim/truth").then((r) => { if (r.ok) $("truth-toggle").hidden = fa
 setInterval(drawTruth, 200);
 
 call("GET", "/api/v1/camera").then((c) => { tableToPixel = c.table_to_pixel; imageSize = [c.width, c.height]; });
+// A daemon with a token: asked for now, not found out when the E-STOP is pressed.
+call("GET", "/api/v1/access").then((a) => {
+  if (a.token_required && !token) {
+    $("token-box").hidden = false;
+    say("This daemon needs its API token for every change, the E-STOP too: enter it here.", true);
+  }
+});
 connect();
