@@ -136,7 +136,7 @@ def test_the_slots_are_documented_and_each_slot_has_every_variable() -> None:
     async def main() -> None:
         async with _served() as (_, folder, idx, _hub, _rest):
             names = {(await n.read_browse_name()).Name for n in await folder.get_children()}
-            assert names == {"PiecesIn", "PiecesOut", "PiecesRejected", "OnTable"} | {
+            assert names == {"PiecesIn", "PiecesOut", "PiecesRejected", "PiecesAbandoned", "OnTable"} | {
                 f"Slot{k}" for k in range(SLOTS)
             }
             for name, _, _ in SLOT_VARS:

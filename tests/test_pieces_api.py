@@ -129,6 +129,31 @@ def test_a_flow_no_scrape_saw_is_counted() -> None:
     assert _counts(_metrics(client)) == (60, 58, 2)
 
 
+def test_pieces_left_on_the_table_when_the_flow_ends_are_counted_abandoned() -> None:
+    """A flow halted with pieces on the table: those not rejected are abandoned; a new flow finds them
+    again and counts them in as pieces of its own, so in = out + rejected + abandoned + on the table."""
+    client, hub = _client()
+    table = [
+        piece(1, PieceState.FLATTENING, 0.1, found_s=10.0),
+        piece(2, PieceState.REJECTED, -0.1, reason=FLAP, found_s=12.0),
+        piece(0, PieceState.LEFT, 0.5, gone=True, found_s=8.0),
+    ]
+    publish(hub, table)
+    publish(hub, None, Mode.IDLE)  # halted
+    m = _metrics(client)
+    assert _counts(m) == (3, 1, 1) and m["clothd_pieces_abandoned_total"] == 1
+    publish(
+        hub,
+        [piece(0, PieceState.TRACKED, 0.1, found_s=50.0), piece(1, PieceState.TRACKED, -0.1, found_s=50.0)],
+    )
+    m = _metrics(client)
+    pieces_in, pieces_out, rejected = _counts(m)
+    on_table = 2
+    assert (
+        pieces_in == 5 and pieces_in == pieces_out + rejected + m["clothd_pieces_abandoned_total"] + on_table
+    )
+
+
 class _StubCell:
     """hwsim's cell as its HTTP handler sees it, its outfeed as hwsim/outfeed.py's judge writes it."""
 

@@ -114,6 +114,11 @@ class StatusCollector(Collector):
             "Pieces rejected (a flap, not flat or not placed in time)",
             value=c.rejected,
         )
+        yield CounterMetricFamily(
+            "clothd_pieces_abandoned",
+            "Pieces on the table, not rejected, when their flow ended (counted in again by a new flow)",
+            value=c.abandoned,
+        )
 
 
 def _cameras(s: Status) -> Iterator[Metric]:

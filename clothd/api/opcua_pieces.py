@@ -42,12 +42,13 @@ SLOT_VARS: tuple[tuple[str, ua.VariantType, Callable[[PieceStatus | None], Any]]
     ("Reason", S, lambda p: "" if p is None else p.reason or ""),
 )
 EVENT_FIELDS = (("PieceId", N), ("PieceState", S), ("Reason", S))
+COUNTERS = ("PiecesIn", "PiecesOut", "PiecesRejected", "PiecesAbandoned", "OnTable")
 
 
 def _values(counts: PieceCounts, s: Status) -> list[Any]:
     """Every variable's value, in the order PiecesNodes.build adds them."""
     pieces = on_table(s.pieces)
-    values: list[Any] = [counts.pieces_in, counts.pieces_out, counts.rejected, len(pieces)]
+    values: list[Any] = [counts.pieces_in, counts.pieces_out, counts.rejected, counts.abandoned, len(pieces)]
     for k in range(SLOTS):
         piece = pieces[k] if k < len(pieces) else None
         values += [get(piece) for _, _, get in SLOT_VARS]
@@ -55,7 +56,7 @@ def _values(counts: PieceCounts, s: Status) -> list[Any]:
 
 
 def _types() -> list[ua.VariantType]:
-    return [N] * 4 + [vtype for _ in range(SLOTS) for _, vtype, _ in SLOT_VARS]
+    return [N] * len(COUNTERS) + [vtype for _ in range(SLOTS) for _, vtype, _ in SLOT_VARS]
 
 
 async def _event_type(server: Server, idx: int) -> Node:
@@ -78,7 +79,7 @@ class PiecesNodes:
     async def build(cls, server: Server, cell: Node, idx: int, first: Status) -> PiecesNodes:
         folder = await cell.add_object(node_id("Cell.Pieces", idx), ua.QualifiedName("Pieces", idx))
         nodes = []
-        for name in ("PiecesIn", "PiecesOut", "PiecesRejected", "OnTable"):
+        for name in COUNTERS:
             nid = node_id(f"Cell.Pieces.{name}", idx)
             nodes.append(await folder.add_variable(nid, ua.QualifiedName(name, idx), ua.Variant(0, N)))
         for k in range(SLOTS):

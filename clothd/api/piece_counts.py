@@ -7,7 +7,9 @@ first seen left. A piece is known by its id and when it was first found, so a fl
 from 0 again) counts its pieces anew. Only the pieces of the last status are remembered: one that has
 dropped off the list never comes back.
 
-Counted so, in = out + rejected + the pieces on the table not rejected.
+A piece still on the table, not rejected, when its flow ends (mode flow left, or a flow started afresh)
+is counted abandoned: the operator takes it off, or a new flow finds it and counts it in again as a piece
+of its own. Counted so, in = out + rejected + abandoned + the pieces on the table not rejected.
 """
 
 from __future__ import annotations
@@ -37,11 +39,13 @@ class PieceCounts:
         self.pieces_in = 0
         self.pieces_out = 0
         self.rejected = 0
+        self.abandoned = 0
         self._marks: dict[tuple[int, float], set[str]] = {}  # the last status's pieces: what was counted
 
     def see(self, pieces: Sequence[PieceStatus] | None) -> list[PieceStatus]:
-        """Count what is new in this status's pieces (None outside mode flow); the pieces that have gone
-        (left or rejected, let go over the outfeed edge) since the last status, oldest first."""
+        """Count what is new in this status's pieces (None outside mode flow), and the pieces its flow
+        abandoned; the pieces that have gone (left or rejected, let go over the outfeed edge) since the last
+        status, oldest first."""
         marks: dict[tuple[int, float], set[str]] = {}
         gone = []
         for p in pieces or ():
@@ -58,5 +62,9 @@ class PieceCounts:
                     self.pieces_out += 1
                 seen.add("gone")
                 gone.append(p)
+        # Gone from the list neither left nor rejected: only a flow's end takes a piece off it so.
+        self.abandoned += sum(
+            not seen & {"gone", "rejected"} for k, seen in self._marks.items() if k not in marks
+        )
         self._marks = marks
         return gone
