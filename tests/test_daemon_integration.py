@@ -272,7 +272,7 @@ def test_the_controller_watchdog_stops_the_modules_after_kill_9(
         victim.stop()
 
 
-def test_systemd_hears_ready_after_the_first_good_tick_and_then_the_watchdog(
+def test_systemd_hears_ready_after_the_first_answered_tick_and_then_the_watchdog(
     cell: Cell, tmp_path: Path
 ) -> None:
     sock_path = tmp_path / "notify.sock"

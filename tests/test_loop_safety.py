@@ -10,6 +10,7 @@ import time
 from collections import deque
 from collections.abc import Awaitable, Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -153,6 +154,7 @@ def _run(
     module_calibration: ModuleCalibration | None = None,
     flow_ready: bool = False,
     camera_opening: bool = False,
+    notifier: Any = None,
 ) -> None:
     link, compute = FakeLink(), FakeCompute()
     if camera_opening:  # from the start, no frame: the camera's first opening under way
@@ -170,7 +172,7 @@ def _run(
         module_calibration=module_calibration,
         flow_ready=flow_ready,
     )
-    daemon = Daemon(settings, link, compute)  # type: ignore[arg-type]
+    daemon = Daemon(settings, link, compute, notifier)  # type: ignore[arg-type]
 
     async def main() -> None:
         loop_task = asyncio.create_task(daemon.run())
@@ -388,6 +390,44 @@ def test_a_cloth_at_the_workspace_edge_is_stopped_in_closed_loop(
     roomy.tick(TickRequest(move, stopped, reset=False, want_view=False))
     reply = roomy.tick(TickRequest(move, stopped, reset=False, want_view=False))
     assert reply.halt_reason is None and reply.commands.speed_m_s.any()
+
+
+class _Notes:
+    """systemd's notifications, as the daemon sends them."""
+
+    def __init__(self) -> None:
+        self.sent: list[str] = []
+
+    def ready(self) -> None:
+        self.sent.append("READY")
+
+    def watchdog(self) -> None:
+        self.sent.append("WATCHDOG")
+
+    def stopping(self) -> None:
+        self.sent.append("STOPPING")
+
+
+def test_systemd_hears_ready_and_the_watchdog_while_the_loop_and_compute_run_whatever_the_hardware() -> None:
+    """No cloth on the table, the camera lost, the link down: reported and retried by the daemon, who is
+    ready and alive all the same (a restart would cure none of it). A compute that stops answering feeds
+    the watchdog no more: that, a restart cures."""
+    notes = _Notes()
+
+    async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
+        assert notes.sent[0] == "READY"  # no frame yet, the camera still opening
+        link.state = "disconnected"
+        await _ticks(daemon, 2)
+        fed = notes.sent.count("WATCHDOG")
+        await _ticks(daemon, 150)  # over a second of ticks: the watchdog is fed once a second at most
+        assert notes.sent.count("READY") == 1 and notes.sent.count("WATCHDOG") > fed
+        compute.silent = True
+        await _ticks(daemon, 2)
+        fed = notes.sent.count("WATCHDOG")
+        await _ticks(daemon, 150)
+        assert notes.sent.count("WATCHDOG") == fed
+
+    _run(scenario, camera_opening=True, notifier=notes)
 
 
 def test_the_compute_is_told_what_went_out_after_every_tick() -> None:

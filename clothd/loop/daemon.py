@@ -390,7 +390,7 @@ class Daemon:
             self._halt(reply.halt_reason)
         self.camera, self.further = reply.camera, reply.cameras
         self.latest = reply
-        self._notify_systemd(time.monotonic(), reply)
+        self._notify_systemd(time.monotonic())
 
     def _starved(self, silent_ms: float) -> None:
         """Said, not halted: the fresh estimate comes from the same tick's frame, and a move goes on from
@@ -433,13 +433,14 @@ class Daemon:
         if self.on_status is not None:
             self.on_status(self.status)
 
-    def _notify_systemd(self, now_s: float, result: TickReply) -> None:
-        healthy = result.state == LoopState.TRACKING and self.link.connected
-        if healthy and not self._ready_sent:
+    def _notify_systemd(self, now_s: float) -> None:
+        """Ready, and alive, as long as the loop ticks and the compute answers: what only a restart cures.
+        A lost camera or link, an empty table, is the daemon's to report and retry, not a restart's: a
+        restart cures neither, and a cell started without a cloth would never be ready."""
+        if not self._ready_sent:
             self.notifier.ready()
             self._ready_sent = True
-        # The watchdog is fed only by a loop that is ticking, with the camera and the link alive.
-        if self.camera.healthy and self.link.connected and now_s - self._last_watchdog_s >= WATCHDOG_NOTIFY_S:
+        if now_s - self._last_watchdog_s >= WATCHDOG_NOTIFY_S:
             self.notifier.watchdog()
             self._last_watchdog_s = now_s
 
