@@ -313,8 +313,7 @@ class Daemon:
         )
         # A link that is down or e-stopped moves nothing: the controller's watchdog or e-stop holds them.
         self._in_force = self._commands if sent else ModuleCommands.all_stop(self.settings.n_modules)
-        # Only to a compute that has answered: one still at a request reads nothing, and a hung one would
-        # fill the pipe until this send blocked the tick (its next request carries what is in force).
+        # Only to a compute that has answered: a hung one would fill the pipe until this send blocked.
         if self._pending is None:
             try:
                 self.compute.tell_in_force(InForce(self._in_force))
@@ -434,9 +433,8 @@ class Daemon:
             self.on_status(self.status)
 
     def _notify_systemd(self, now_s: float) -> None:
-        """Ready, and alive, as long as the loop ticks and the compute answers: what only a restart cures.
-        A lost camera or link, an empty table, is the daemon's to report and retry, not a restart's: a
-        restart cures neither, and a cell started without a cloth would never be ready."""
+        """Ready and alive while the loop ticks and the compute answers (what a restart cures); a lost
+        camera or link, an empty table, the daemon reports and retries (docs/deploy.md)."""
         if not self._ready_sent:
             self.notifier.ready()
             self._ready_sent = True
