@@ -3,12 +3,17 @@
 Under systemd (JOURNAL_STREAM set) journald stamps every line itself, so we add no time of our own.
 Libraries that log every request at INFO (httpx, uvicorn's access log, asyncua) are kept to warnings.
 Every line is rate-limited by where it comes from (`RateLimit`): a peer that sends a thousand malformed
-messages must not write a thousand tracebacks, nor hold the GIL the tick needs while it does.
+messages must not write a thousand tracebacks, nor hold the GIL the tick needs while it does. Lines are
+written to stderr by a thread of their own (a `QueueListener`): a stderr that does not drain (a stalled
+journald, a full pipe) holds that thread, never the thread that logged, the tick's among them.
 """
 
+import atexit
 import logging
 import os
 import time
+from logging.handlers import QueueHandler, QueueListener
+from queue import SimpleQueue
 
 QUIET_LIBRARIES = ("httpx", "httpcore", "uvicorn.access", "asyncua")
 BURST = 5  # lines from one place let through per window
@@ -42,10 +47,24 @@ class RateLimit(logging.Filter):
 
 
 def configure_logging() -> None:
-    stamp = "" if os.environ.get("JOURNAL_STREAM") else "%(asctime)s "
-    logging.basicConfig(level=logging.INFO, format=stamp + "%(levelname)s %(name)s: %(message)s")
-    limit = RateLimit()
-    for handler in logging.getLogger().handlers:
-        handler.addFilter(limit)
+    """Once per process: INFO and up, rate-limited, written by a thread of its own. Where logging was set
+    up already (a test runner's handlers), those handlers are rate-limited instead."""
+    root = logging.getLogger()
     for name in QUIET_LIBRARIES:
         logging.getLogger(name).setLevel(logging.WARNING)
+    if root.handlers:
+        for handler in root.handlers:
+            if not any(isinstance(f, RateLimit) for f in handler.filters):
+                handler.addFilter(RateLimit())
+        return
+    stamp = "" if os.environ.get("JOURNAL_STREAM") else "%(asctime)s "
+    writer = logging.StreamHandler()
+    writer.setFormatter(logging.Formatter(stamp + "%(levelname)s %(name)s: %(message)s"))
+    queue: SimpleQueue[logging.LogRecord] = SimpleQueue()
+    handler = QueueHandler(queue)
+    handler.addFilter(RateLimit())  # before the record is formatted: a dropped one costs nothing more
+    root.addHandler(handler)
+    root.setLevel(logging.INFO)
+    listener = QueueListener(queue, writer)
+    listener.start()
+    atexit.register(listener.stop)  # what is queued is written before the process ends

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import os
+import select
 import subprocess
 import sys
 import time
@@ -83,3 +84,31 @@ def test_a_storm_of_errors_is_rate_limited_with_one_traceback_and_a_count(
     later = record("Exception raised while parsing")
     assert limit.filter(later) and later.getMessage().endswith("(17 more like this dropped)")
     assert later.exc_info is not None  # a new window's first keeps its traceback
+
+
+def test_logging_does_not_wait_for_a_stderr_nobody_reads() -> None:
+    """A stderr that does not drain (a stalled journald, a full pipe) holds the thread that writes the
+    lines, not the one that logged: 5,000 distinct warnings (far more than a pipe holds) are logged while
+    nothing reads them, and every one is written once the pipe is read."""
+    code = (
+        "import logging, sys\n"
+        "from clothd.logs import configure_logging\n"
+        "configure_logging()\n"
+        "for k in range(5000):\n"
+        "    logging.getLogger(f'clothd.test{k}').warning('line %d of a long log', k)\n"
+        "print('logged', flush=True)\n"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+    try:
+        assert proc.stdout is not None
+        ready, _, _ = select.select([proc.stdout], [], [], 60)  # a hang guard: blocked, it never comes
+        assert ready and proc.stdout.readline() == "logged\n", "logging waited for stderr to be read"
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    lines = err.splitlines()
+    assert len(lines) == 5000 and lines[-1].endswith("line 4999 of a long log")
