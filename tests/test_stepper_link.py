@@ -203,35 +203,58 @@ def test_wrong_module_count_is_a_clear_error(tmp_path: Path) -> None:
     _with_firmware(tmp_path, body)
 
 
-def test_a_controller_that_answers_garbage_gets_a_clear_error(tmp_path: Path) -> None:
+def _against_a_device(
+    tmp_path: Path, name: str, serve: Callable[[int], None], body: Callable[[Path], Awaitable[None]]
+) -> None:
+    """body(port) against a device on a fresh pty, its other end answered by serve(master) on a thread
+    (until the pty closes)."""
     master, slave = os.openpty()
     tty.setraw(slave)
-    port = tmp_path / "ttyGARBAGE"
+    port = tmp_path / name
     port.symlink_to(os.ttyname(slave))
-    stop = threading.Event()
+    threading.Thread(target=serve, args=(master,), daemon=True).start()
+    try:
+        asyncio.run(asyncio.wait_for(body(port), 20))
+    finally:
+        os.close(master)
+        os.close(slave)
+
+
+def _answering_hellos(answer: Callable[[int, int], None]) -> Callable[[int], None]:
+    """A device that calls answer(master, seq) for each HELLO it reads, and ignores everything else."""
+
+    def serve(master: int) -> None:
+        splitter = wire.FrameSplitter()
+        while True:
+            try:
+                data = os.read(master, 4096)
+            except OSError:
+                return
+            for packet in splitter.feed(data):
+                msg = wire.decode(packet)
+                if msg.type == wire.MsgType.HELLO:
+                    answer(master, msg.seq)
+
+    return serve
+
+
+def test_a_controller_that_answers_garbage_gets_a_clear_error(tmp_path: Path) -> None:
     rng = np.random.default_rng(3)
 
-    def babble() -> None:  # answers every read with noise, zeros included (frame delimiters)
-        while not stop.is_set():
+    def babble(master: int) -> None:  # answers every read with noise, zeros included (frame delimiters)
+        while True:
             try:
                 os.read(master, 4096)
                 os.write(master, rng.integers(0, 256, 64, dtype=np.uint8).tobytes())
             except OSError:
                 return
 
-    threading.Thread(target=babble, daemon=True).start()
-
-    async def body() -> None:
+    async def body(port: Path) -> None:
         async with _running(_link(port, handshake_timeout_s=0.1)) as link:
             await _until(lambda: "not in the clothd stepper protocol" in (link.last_error or ""))
             assert not link.connected
 
-    try:
-        asyncio.run(asyncio.wait_for(body(), 20))
-    finally:
-        stop.set()
-        os.close(master)
-        os.close(slave)
+    _against_a_device(tmp_path, "ttyGARBAGE", babble, body)
 
 
 @pytest.mark.parametrize("answer", ["ack", "short"], ids=["an-ack", "a-short-hello-ack"])
@@ -240,44 +263,21 @@ def test_a_controller_that_answers_hello_wrongly_gets_a_clear_error_and_is_tried
 ) -> None:
     """A HELLO answered by a plain ACK or a HELLO_ACK too short to read: said so, and tried again (the link
     task ended on it, unseen, leaving the link `starting` for good)."""
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    port = tmp_path / "ttyWRONG"
-    port.symlink_to(os.ttyname(slave))
-    stop = threading.Event()
     hellos: list[int] = []
 
-    def answer_wrongly() -> None:
-        splitter = wire.FrameSplitter()
-        while not stop.is_set():
-            try:
-                data = os.read(master, 4096)
-            except OSError:
-                return
-            for packet in splitter.feed(data):
-                msg = wire.decode(packet)
-                if msg.type == wire.MsgType.HELLO:
-                    hellos.append(msg.seq)
-                    kind, payload = (
-                        (wire.MsgType.ACK, b"\x00") if answer == "ack" else (wire.MsgType.HELLO_ACK, b"\x01")
-                    )
-                    os.write(master, wire.encode(kind, msg.seq, payload))
+    def answer_wrongly(master: int, seq: int) -> None:
+        hellos.append(seq)
+        kind, payload = (wire.MsgType.ACK, b"\x00") if answer == "ack" else (wire.MsgType.HELLO_ACK, b"\x01")
+        os.write(master, wire.encode(kind, seq, payload))
 
-    threading.Thread(target=answer_wrongly, daemon=True).start()
-
-    async def body() -> None:
+    async def body(port: Path) -> None:
         async with _running(_link(port)) as link:
             await _until(lambda: "answered HELLO wrongly" in (link.last_error or ""))
             first_tries = len(hellos)
             await _until(lambda: len(hellos) > first_tries)  # the link task lives on, and tries again
             assert not link.connected
 
-    try:
-        asyncio.run(asyncio.wait_for(body(), 20))
-    finally:
-        stop.set()
-        os.close(master)
-        os.close(slave)
+    _against_a_device(tmp_path, "ttyWRONG", _answering_hellos(answer_wrongly), body)
 
 
 # -- faults injected between the link and the controller (a pty relay) ---------------------------------
@@ -414,39 +414,20 @@ def test_a_hello_starts_a_new_session_whose_first_command_is_applied(tmp_path: P
 def test_a_fault_that_shares_the_hellos_seq_is_not_taken_for_its_answer(tmp_path: Path) -> None:
     """A controller's FAULT numbers from its own counter: one with the pending HELLO's seq, arriving
     first, must not stand in for the HELLO_ACK."""
-    master, slave = os.openpty()
-    tty.setraw(slave)
-    link_path = tmp_path / "ttyFAULTY"
-    link_path.symlink_to(os.ttyname(slave))
 
-    def controller() -> None:
-        splitter = wire.FrameSplitter()
-        while True:
-            try:
-                data = os.read(master, 4096)
-            except OSError:
-                return
-            for packet in splitter.feed(data):
-                msg = wire.decode(packet)
-                if msg.type == wire.MsgType.HELLO:
-                    fault = struct.pack("<BH", FAULT_WATCHDOG, 0xFFFF) + b"left over"
-                    hello = struct.pack("<BH", wire.PROTOCOL_VERSION, N) + b"faulty-fw"
-                    os.write(master, wire.encode(wire.MsgType.FAULT, msg.seq, fault))
-                    os.write(master, wire.encode(wire.MsgType.HELLO_ACK, msg.seq, hello))
+    def fault_first(master: int, seq: int) -> None:
+        fault = struct.pack("<BH", FAULT_WATCHDOG, 0xFFFF) + b"left over"
+        hello = struct.pack("<BH", wire.PROTOCOL_VERSION, N) + b"faulty-fw"
+        os.write(master, wire.encode(wire.MsgType.FAULT, seq, fault))
+        os.write(master, wire.encode(wire.MsgType.HELLO_ACK, seq, hello))
 
-    threading.Thread(target=controller, daemon=True).start()
-
-    async def body() -> None:
-        async with _running(_link(link_path)) as link:
+    async def body(port: Path) -> None:
+        async with _running(_link(port)) as link:
             await _until(lambda: link.connected)
             assert link.firmware == "faulty-fw"
             await link.stop()
 
-    try:
-        asyncio.run(asyncio.wait_for(body(), 10))
-    finally:
-        os.close(master)
-        os.close(slave)
+    _against_a_device(tmp_path, "ttyFAULTY", _answering_hellos(fault_first), body)
 
 
 def test_a_run_past_the_bound_is_noise_up_to_the_next_zero(tmp_path: Path) -> None:
