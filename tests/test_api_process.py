@@ -12,6 +12,7 @@ import signal
 import socket
 import subprocess
 import sys
+import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from dataclasses import replace
@@ -144,6 +145,24 @@ def test_the_estop_latches_on_the_daemons_loop() -> None:
     asyncio.run(body())
 
 
+def test_a_request_its_caller_gave_up_on_is_not_carried_out_but_a_late_estop_is() -> None:
+    """The API answers "the daemon did not answer" after its timeout; a call that reaches the daemon
+    after that (a loop held up) must not move the cloth behind the caller's back. An e-stop still stops."""
+    cfg = _config()
+
+    async def body() -> None:
+        async with _served(cfg) as (api, daemon, _):
+            late = time.monotonic() - 1.0
+            api._answer(1, "reset", (), late)  # as the daemon's end takes a call off the socket
+            assert not daemon._reset_requested
+            api._answer(2, "reset", (), time.monotonic() + 10.0)
+            assert daemon._reset_requested
+            api._answer(3, "estop", (), late)
+            assert daemon.link.estopped
+
+    asyncio.run(body())
+
+
 def test_a_published_status_reaches_get_status_the_health_check_and_a_websocket() -> None:
     cfg = _config()
 
@@ -207,7 +226,7 @@ def test_the_daemon_never_waits_for_an_api_process_that_stops_reading(
             published += 1
     assert api.dropped_statuses == 3 and caplog.text.count("the API process is not reading") == 1
     sent = published - api.dropped_statuses
-    api._answer(1, "reset", ())  # a call's reply with no room: kept, not dropped
+    api._answer(1, "reset", (), time.monotonic() + 10.0)  # a call's reply with no room: kept, not dropped
     assert api._replies
     reader = Channel(theirs)
     received = reader.receive()

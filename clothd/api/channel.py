@@ -7,7 +7,8 @@ The messages, by their first item:
 - daemon -> API: ("status", json bytes) each published status; ("view", jpeg bytes) each new annotated
   view while someone watches; ("reply", call id, True, answer) or ("reply", call id, False, (error class
   name, message)).
-- API -> daemon: ("ready",) once it serves; ("call", call id, name, args); ("watchers", n) as the number
+- API -> daemon: ("ready",) once it serves; ("call", call id, name, args, deadline on the monotonic
+  clock, past which the caller was told the daemon did not answer); ("watchers", n) as the number
   of views open changes; ("error", error class name, message, traceback or None) when it fails.
 """
 

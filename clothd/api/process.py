@@ -18,6 +18,7 @@ import contextlib
 import logging
 import multiprocessing
 import socket
+import time
 from collections import deque
 from contextlib import AbstractContextManager
 from typing import Any
@@ -136,10 +137,14 @@ class ApiProcess:
         elif kind == "error":
             self._failed(*message[1:])
 
-    def _answer(self, call_id: int, name: str, args: tuple[Any, ...]) -> None:
+    def _answer(self, call_id: int, name: str, args: tuple[Any, ...], deadline_mono_s: float) -> None:
         try:
             if name not in CALLS:
                 raise HardwareError(f"the API process called {name!r}, which is not a request")
+            # A request its caller has given up on is not carried out after all (a late move would surprise
+            # whoever was told it failed); a late e-stop still stops.
+            if name != "estop" and time.monotonic() > deadline_mono_s:
+                raise HardwareError(f"{name} came after its caller had given up on it: not carried out")
             reply: tuple[Any, ...] = ("reply", call_id, True, getattr(self.daemon, name)(*args))
         except ClothdError as err:
             reply = ("reply", call_id, False, (type(err).__name__, str(err)))

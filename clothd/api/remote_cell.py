@@ -14,6 +14,7 @@ import contextlib
 import itertools
 import logging
 import pickle
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -110,7 +111,8 @@ class RemoteCell:
             raise errors.HardwareError("the daemon is stopping")
         call_id = next(self._ids)
         answer = self._calls[call_id] = asyncio.get_running_loop().create_future()
-        self.send(("call", call_id, name, args))
+        # Past this the caller has been told the daemon did not answer: the daemon must not act on it later.
+        self.send(("call", call_id, name, args, time.monotonic() + CALL_TIMEOUT_S))
         try:
             return await asyncio.wait_for(answer, CALL_TIMEOUT_S)
         except TimeoutError:
