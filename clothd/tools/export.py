@@ -18,12 +18,12 @@ import foxglove
 import numpy as np
 from tqdm import tqdm
 
-from clothd.drivers.footage import CommandSchedule, open_footage, recorded_skews_s
+from clothd.drivers.footage import CommandSchedule, open_footage
 from clothd.errors import InputError
 from clothd.formats import read_camera, read_layout
 from clothd.outputs.foxglove_channels import CellChannels, encode_jpeg, residual_mean_px
 from clothd.outputs.view import draw_tracking
-from clothd.tools.offline import FurtherFrames
+from clothd.tools.offline import FurtherFrames, further_camera_dirs, further_frames
 
 
 @dataclass(frozen=True)
@@ -42,11 +42,7 @@ def export_mcap(recording: Path, out: Path, estimates_npz: Path | None = None) -
     )
     camera_model = read_camera(footage.camera_json) if footage.camera_json and est is not None else None
     ctx = foxglove.Context()  # this export's own channels, not the process-wide default
-    skews_s = recorded_skews_s(recording)
-    further = [
-        FurtherFrames(p, False, footage, skews_s.get(p.name, 0.0))
-        for p in sorted(p for p in (recording / "cameras").glob("*") if p.is_dir())
-    ]
+    further = further_frames(recording, further_camera_dirs(recording), footage, read_ahead=False)
     channels = CellChannels(ctx, annotated=camera_model is not None, further=[f.name for f in further])
     frames = 0
     out.parent.mkdir(parents=True, exist_ok=True)

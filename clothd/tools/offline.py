@@ -57,13 +57,11 @@ class OfflineTracking:
         self.layout = read_layout(table) if table else None
         commands = commands_csv or self.footage.commands_csv
         self.schedule = CommandSchedule(commands, self.layout.n_modules) if commands and self.layout else None
-        further = sorted(p for p in (source / "cameras").glob("*") if p.is_dir())
-        if cameras is not None and len(further) < cameras - 1:
-            raise InputError(f"{source}: {cameras} cameras asked for, the recording has {len(further) + 1}")
-        further = further if cameras is None else further[: cameras - 1]
-        self.cameras = len(further) + 1
-        skews_s = recorded_skews_s(source)
-        self._others = [FurtherFrames(p, read_ahead, self.footage, skews_s.get(p.name, 0.0)) for p in further]
+        available = further_camera_dirs(source)
+        if cameras is not None and len(available) < cameras - 1:
+            raise InputError(f"{source}: {cameras} cameras asked for, the recording has {len(available) + 1}")
+        further = available if cameras is None else available[: cameras - 1]
+        self._others = further_frames(source, further, self.footage, read_ahead)
         models = [read_camera(p / "camera.json") for p in further]
         self.tracker = Tracker(
             cfg, self.camera_model, self.layout, roi=roi, clock=clock, other_cameras=models
@@ -97,6 +95,20 @@ class OfflineTracking:
             commands = self.schedule.at(t_s) if self.schedule else None
             views = [other.view_of(self.footage.frame_index(k)) for other in self._others]
             yield t_s, image, self.tracker.step(image, t_s, commands, views)
+
+
+def further_camera_dirs(recording: Path) -> list[Path]:
+    """A recording's further cameras' directories (cameras/NAME/), in their names' order."""
+    return sorted(p for p in (recording / "cameras").glob("*") if p.is_dir())
+
+
+def further_frames(
+    recording: Path, dirs: list[Path], first: Footage, read_ahead: bool
+) -> list[FurtherFrames]:
+    """Each of those cameras' frames, paired with the first camera's `first` by frame index (an hwsim
+    recording's at its scenario's capture skew)."""
+    skews_s = recorded_skews_s(recording)
+    return [FurtherFrames(p, read_ahead, first, skews_s.get(p.name, 0.0)) for p in dirs]
 
 
 class FurtherFrames:
