@@ -272,13 +272,12 @@ def fit_height_field(
     shape = _grid_shape(footprint, pitch_m)
     gy, gx = shape
     w, idx = _grid_weights(footprint, pitch_m, shape, points_m[:, :2])
-    keep = np.ones(len(points_m), bool)
-    z = np.zeros(gy * gx)
-    for _ in range(2):
+    z = _solve_field(w, idx, points_m[:, 2], shape)
+    residual = (w * z[idx]).sum(axis=1) - points_m[:, 2]
+    spread = 1.4826 * float(np.median(np.abs(residual - np.median(residual))))
+    keep = np.abs(residual) < max(OUTLIER_SIGMA * spread, MIN_OUTLIER_M)
+    if not keep.all():  # the refit of the same points would only repeat the fit (the usual case)
         z = _solve_field(w[keep], idx[keep], points_m[keep, 2], shape)
-        residual = (w * z[idx]).sum(axis=1) - points_m[:, 2]
-        spread = 1.4826 * float(np.median(np.abs(residual[keep] - np.median(residual[keep]))))
-        keep = np.abs(residual) < max(OUTLIER_SIGMA * spread, MIN_OUTLIER_M)
     return HeightField(footprint, pitch_m, z.reshape(gy, gx))
 
 
