@@ -25,7 +25,7 @@ from clothd.core.anchors import AnchorFrames
 from clothd.core.camera_model import CameraModel
 from clothd.core.conveyor import BeltField, ConveyorLayout, ModuleModel
 from clothd.core.ekf import UpdateStats
-from clothd.core.estimators import Measurements, make_estimator
+from clothd.core.estimators import Measurements, StateEstimate, make_estimator
 from clothd.core.feature_set import FeatureSet
 from clothd.core.features import (
     FeatureEngine,
@@ -221,8 +221,9 @@ class Tracker:
         t4 = self.clock()
         meas = measured[keep]
         features.keep(keep, measured)
-        self.quad_height_m = self._heights_now(frame, frame_t_s, views)
-        estimate = self._estimate(frame_t_s, meas, stats, timing, image)
+        state = self.estimator.estimate()  # once: the heights and the estimate read the same belief
+        self.quad_height_m = self._heights_now(frame, frame_t_s, views, state.nodes_m)
+        estimate = self._estimate(frame_t_s, meas, stats, timing, image, state)
         if self._diverged(stats):
             self.reset()
             estimate = Estimate.lost(frame_t_s, timing)
@@ -317,18 +318,20 @@ class Tracker:
             self.anchors.adopt(frame, self.features)
         timing["tick"] = self.clock() - t0
         stats = UpdateStats(len(self.features), 0, 0.0)
-        return self._estimate(t_s, self.features.px.astype(np.float64), stats, timing, image)
+        return self._estimate(t_s, self.features.px.astype(np.float64), stats, timing, image, state)
 
     def _heights_now(
-        self, frame: GrayFrame, t_s: float, views: Sequence[PairedView | None] | None
+        self,
+        frame: GrayFrame,
+        t_s: float,
+        views: Sequence[PairedView | None] | None,
+        nodes: np.ndarray | None,
     ) -> np.ndarray | None:
         """Each mesh quad's highest point (ny-1, nx-1) measured this frame at the features that survived
-        it, where the rest shape was measured too (heights agree with its lengths only then); the last
-        frame's when this one's pair is missing, or is still to come (views None)."""
-        if self.flatness_basis != FlatnessBasis.MEASURED or self.features is None:
-            return None  # one view: no estimate to spend on it in the tick
-        nodes = self.estimator.estimate().nodes_m
-        if nodes is None:
+        it, the estimate's nodes (ny, nx, 3) placing them, where the rest shape was measured too (heights
+        agree with its lengths only then); the last frame's when this one's pair is missing, or is still
+        to come (views None)."""
+        if self.flatness_basis != FlatnessBasis.MEASURED or self.features is None or nodes is None:
             return None
         measured = self.second_view.heights_now(frame.gray, self.features, nodes, t_s, views)
         return self.quad_height_m if measured is None else measured
@@ -409,12 +412,17 @@ class Tracker:
         self._detected.append(Detections(ids, np.full(len(ids), t_s), new_px))
 
     def _estimate(
-        self, t_s: float, meas: np.ndarray, stats: UpdateStats, timing: dict[str, float], image: np.ndarray
+        self,
+        t_s: float,
+        meas: np.ndarray,
+        stats: UpdateStats,
+        timing: dict[str, float],
+        image: np.ndarray,
+        state: StateEstimate,
     ) -> Estimate:
         assert self.features is not None and self.mesh is not None
         detected = Detections.join(self._detected)
         self._detected = []
-        state = self.estimator.estimate()
         pred = self.estimator.feature_pixels(self.features)
         quad_seen = None
         if state.nodes_m is not None and self.colour is not None:
