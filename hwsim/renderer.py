@@ -17,7 +17,7 @@ of fixed capacity, their grids' sizes and fabrics being data, so a new piece com
 import numpy as np
 import taichi as ti
 
-from hwsim.belt_geometry import belt_at
+from hwsim.belt_geometry import belt_on_module, module_at
 from hwsim.camera import Camera
 from hwsim.cloth_grid import ClothGrid
 from hwsim.infeed import largest_specs
@@ -122,6 +122,10 @@ class Renderer:
         self.accum = ti.Vector.field(3, ti.f32, shape=(H, W))
         self.out = ti.Vector.field(3, ti.f32, shape=(camera.height, camera.width))
         self.table_xy = ti.Vector.field(2, ti.f32, shape=(H, W))
+        # What each pixel sees of the table that the belts' headings do not change (`_table_statics`).
+        self.table_module = ti.field(ti.i32, shape=(H, W))
+        self.table_rxy = ti.Vector.field(2, ti.f64, shape=(H, W))
+        self.deck_colour = ti.Vector.field(3, ti.f32, shape=(H, W))
         shape = (self.slots, *self.cap)
         self.slot_dims = ti.field(ti.i32, shape=(self.slots, 3))  # nx, ny, texture
         self.slot_spacing = ti.field(ti.f32, shape=(self.slots, 2))  # dx, dy
@@ -165,6 +169,7 @@ class Renderer:
             slopes.from_numpy(fabric.slopes)
         self.belt_tex.from_numpy(textures.belt)
         self.deck_tex.from_numpy(textures.deck)
+        self._table_statics()
         light = np.asarray(scenario.light.direction, dtype=float)
         self.light = light / np.linalg.norm(light)
         self.ambient = scenario.light.ambient
@@ -336,32 +341,38 @@ class Renderer:
         n = n.normalized()
         return albedo * (ambient + (1.0 - ambient) * ti.max(0.0, n.dot(light)))
 
+    @ti.kernel
+    def _table_statics(self):
+        """Per pixel, its module and where on it (`module_at`), and the deck's colour there: a frame's belts
+        then only turn and scroll."""
+        dt = ti.static(self.belt_texels_per_m)
+        off = ti.static(self.table_texel_offset)
+        for v, u in self.table_xy:
+            p = self.table_xy[v, u]
+            at = module_at(
+                p[0], p[1], self.table_spec.pitch_m, self.table_spec.modules_x, self.table_spec.modules_y
+            )
+            self.table_module[v, u] = ti.cast(at[0], ti.i32)
+            self.table_rxy[v, u] = ti.Vector([at[1], at[2]])
+            self.deck_colour[v, u] = _bilinear(
+                self.deck_tex, p[0] * dt - off, (p[1] % DECK_TILE_M) * dt - off, True
+            )
+
     @ti.func
     def _table_colour(self, v: ti.i32, u: ti.i32, flat_shade: ti.f32) -> vec3f:
-        p = self.table_xy[v, u]
         half_belt = ti.static(self.table_spec.module_size_m / 2.0)
-        hit = belt_at(
-            p[0],
-            p[1],
-            self.direction,
-            self.table_spec.pitch_m,
-            half_belt,
-            self.table_spec.modules_x,
-            self.table_spec.modules_y,
-        )
-        colour = vec3f(0.0, 0.0, 0.0)
-        if hit[3] > 0.0:
-            m = ti.cast(hit[0], ti.i32)
-            bt = ti.static(self.belt_texels_per_m)
-            off = ti.static(self.table_texel_offset)
-            # The surface runs along +heading, so its pattern sits at (along - travel).
-            along = ti.cast(hit[1], ti.f32) - self.travel[m]
-            across = ti.cast(hit[2], ti.f32) + half_belt
-            colour = _bilinear(self.belt_tex, along * bt - off, across * bt - off, True)
-        else:
-            dt = ti.static(self.belt_texels_per_m)
-            off = ti.static(self.table_texel_offset)
-            colour = _bilinear(self.deck_tex, p[0] * dt - off, (p[1] % DECK_TILE_M) * dt - off, True)
+        colour = self.deck_colour[v, u]
+        m = self.table_module[v, u]
+        if m >= 0:
+            r = self.table_rxy[v, u]
+            hit = belt_on_module(m, r[0], r[1], self.direction, half_belt)
+            if hit[3] > 0.0:
+                bt = ti.static(self.belt_texels_per_m)
+                off = ti.static(self.table_texel_offset)
+                # The surface runs along +heading, so its pattern sits at (along - travel).
+                along = ti.cast(hit[1], ti.f32) - self.travel[m]
+                across = ti.cast(hit[2], ti.f32) + half_belt
+                colour = _bilinear(self.belt_tex, along * bt - off, across * bt - off, True)
         return colour * flat_shade
 
     @ti.func
