@@ -185,11 +185,13 @@ class Renderer:
             self._clear()
             self._raster(len(state.cloths))
             self._shade(weight, len(state.arms), *self._lighting())
-        self._downsample()
+        if self.ss > 1:  # else the average is the image already
+            self._downsample()
         cloths = states[-1].cloths
         self._node_visibility(len(states[-1].arms), len(cloths))
         ny, nx = cloths[0].nodes_m.shape[:2] if cloths else (self.grid.ny, self.grid.nx)
-        return self.out.to_numpy(), self.visible.to_numpy()[0, :ny, :nx].astype(bool)
+        image = (self.out if self.ss > 1 else self.accum).to_numpy()
+        return image, self.visible.to_numpy()[0, :ny, :nx].astype(bool)
 
     def _lighting(self) -> tuple[float, float, float, float, float]:
         flat = self.ambient + (1.0 - self.ambient) * max(0.0, float(self.light[2]))
