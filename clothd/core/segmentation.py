@@ -232,5 +232,12 @@ def cloth_mask_from_outline(outline_px: np.ndarray, width: int, height: int, ero
     radius = math.ceil(erode_px)
     if radius <= 0:
         return mask
-    # Outside the frame counts as off the cloth: a patch cut by the frame's edge tracks no better.
-    return np.asarray(cv2.erode(mask, _disk(2 * radius + 1), borderType=cv2.BORDER_CONSTANT, borderValue=0))
+    # Outside the frame counts as off the cloth: a patch cut by the frame's edge tracks no better. Only
+    # the polygon's bounding box is eroded: around it the mask is 0, as the border the box is eroded with.
+    x, y, w, h = cv2.boundingRect(mask)
+    if w == 0:
+        return mask
+    box = np.ascontiguousarray(mask[y : y + h, x : x + w])
+    kernel = _disk(2 * radius + 1)
+    mask[y : y + h, x : x + w] = cv2.erode(box, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return mask
