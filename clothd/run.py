@@ -57,6 +57,7 @@ from clothd.loop.compute_process import ComputeProcess
 from clothd.loop.daemon import Daemon
 from clothd.loop.daemon_settings import DaemonSettings
 from clothd.loop.pairing import FurtherCamera
+from clothd.outputs.recorder import make_recording_place
 
 log = logging.getLogger(__name__)
 
@@ -330,7 +331,7 @@ async def serve(
     parts = build(cfg)
     daemon = parts.daemon
     if record_dir is not None:  # the operator's own choice, anywhere
-        daemon.start_recording(record_dir)
+        daemon.start_recording(make_recording_place(record_dir, cfg.recording.format))
     assert daemon.status is not None  # published once as it was built
     settings = CellSettings.of(daemon.settings)
     status_json = daemon.status.model_dump_json().encode()

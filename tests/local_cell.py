@@ -14,6 +14,7 @@ from clothd.api.cell import CellSettings
 from clothd.core.drive_script import DriveScript
 from clothd.core.modes import Mode
 from clothd.loop.daemon import Daemon
+from clothd.outputs.recorder import make_recording_place, remove_recording_place
 
 
 class LocalCell:
@@ -38,7 +39,13 @@ class LocalCell:
         self.daemon.reset()
 
     async def start_recording(self, out: Path) -> Path:
-        return self.daemon.start_recording(out)
+        out = make_recording_place(out, self.settings.recording_format)
+        try:
+            self.daemon.start_recording(out)
+        except Exception:
+            remove_recording_place(out)
+            raise
+        return out
 
     async def stop_recording(self) -> None:
         self.daemon.stop_recording()

@@ -121,6 +121,10 @@ def test_the_daemons_refusals_keep_their_http_status_across_the_process(tmp_path
             r = await client.post("/api/v1/record/start", json={"dir": "new"})
             assert r.status_code == 200 and str(tmp_path / "new") in r.json()["detail"]
             assert daemon._record_start == tmp_path / "new"  # the daemon's own request, as in-process
+            # The API process made the place; one the daemon refuses is removed again.
+            r = await client.post("/api/v1/record/start", json={"dir": "again"})
+            assert r.status_code == 409 and "is starting in" in r.json()["detail"]
+            assert not (tmp_path / "again").exists()
 
     asyncio.run(body())
 

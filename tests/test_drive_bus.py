@@ -77,7 +77,7 @@ def test_clothd_drives_a_table_through_the_firmware_process(tmp_path: Path) -> N
             await until(lambda: link.connected)
             await until(
                 lambda: (
-                    link.send_commands(ModuleCommands(np.full(n, 0.04), np.full(n, 0.5)))
+                    link.send_commands(ModuleCommands(np.full(n, 0.04), np.full(n, 0.5))).sent
                     and (abs(table.cmd_speed_m_s[0] - 0.04) < 1e-4)
                 )
             )

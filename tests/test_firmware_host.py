@@ -115,7 +115,7 @@ def test_link_comes_up_commands_are_acked_and_the_estop_latches_until_cleared(fi
         async with running(firmware_link, N) as link:
             assert link.firmware and link.firmware.startswith("clothd-fw")
             for _ in range(5):
-                assert link.send_commands(_forward(0.05))
+                assert link.send_commands(_forward(0.05)).sent
                 await asyncio.sleep(1 / 30)
             await until(lambda: link.counters.acked >= 5)
             assert link.counters.nacked == 0 and link.counters.invalid == 0
@@ -126,14 +126,14 @@ def test_link_comes_up_commands_are_acked_and_the_estop_latches_until_cleared(fi
             # The host holds back and PINGs each tick: the watchdog stays fed through a held e-stop.
             held_until = time.monotonic() + 1.5 * WATCHDOG_S
             while time.monotonic() < held_until:
-                assert not link.send_commands(_forward(0.05))
+                assert link.send_commands(_forward(0.05)).stopped
                 await asyncio.sleep(1 / 30)
             assert link.controller_estopped and not link.faults and link.counters.nacked == 0
 
             link.estop_clear()
             await until(lambda: not link.controller_estopped)
             acked = link.counters.acked
-            assert link.send_commands(_forward(0.03))
+            assert link.send_commands(_forward(0.03)).sent
             await until(lambda: link.counters.acked > acked)
             assert link.counters.nacked == 0 and link.counters.losses == 0
 

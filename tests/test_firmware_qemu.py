@@ -88,7 +88,7 @@ async def _commands_acked(link: StepperLink, count: int) -> float:
     for i in range(count):
         if i:
             await asyncio.sleep(1 / 30)
-        assert link.send_commands(_forward(0.05))
+        assert link.send_commands(_forward(0.05)).sent
         sent_s = time.monotonic()
     await until(lambda: link.counters.acked >= acked + count)
     return sent_s
@@ -103,7 +103,7 @@ def test_link_up_commands_acked_and_the_estop_latches_within_20_ms(firmware_port
                 await _commands_acked(link, 5)
                 link.estop()
                 latencies_s.append(await until(lambda: link.controller_estopped, poll_s=0.0005))
-                assert not link.send_commands(_forward(0.05))  # held back: a PING goes instead
+                assert link.send_commands(_forward(0.05)).stopped  # held back: a PING goes instead
                 link.estop_clear()
                 await until(lambda: not link.controller_estopped)
             assert link.counters.nacked == 0 and link.counters.invalid == 0 and not link.faults
@@ -161,7 +161,7 @@ def test_the_estop_input_pin_latches_the_estop_and_reports_a_fault(
             fault = link.faults[faults]
             assert (fault.code, fault.module) == (FAULT_ESTOP_INPUT, BOARD) and fault.text
             assert fw.read_u8("drivers_enabled") == 0 and fw.read_i32("estop_edges") == 1
-            assert link.send_commands(_forward(0.05))  # the host did not e-stop: it sends, and is refused
+            assert link.send_commands(_forward(0.05)).sent  # the host did not e-stop: it sends, is refused
             await until(lambda: link.counters.nacked > nacked)
             link.estop()  # what the daemon does on hearing of it: latch its own too, then clear both
             await until(lambda: link.controller_estopped)

@@ -108,10 +108,14 @@ def _commands(ctrl: RawController) -> int:
     return len({m.seq for _, m in ctrl.of_type(T.COMMAND)})
 
 
-async def _ticks_on_a_blocked_line(link: StepperLink) -> None:
+async def _ticks_on_a_blocked_line(link: StepperLink) -> int:
+    """The ticks whose command was dropped, the one before staying in force."""
+    kept = 0
     for k in range(TICKS):
-        link.send_commands(_speed(k + 1))
+        handover = link.send_commands(_speed(k + 1))
+        kept += not handover.fresh.any() and handover.running.all()
         await asyncio.sleep(0)  # the transport's writer gets its turn, as between two ticks
+    return kept
 
 
 def test_commands_wait_for_the_line_instead_of_queuing_stale() -> None:
@@ -119,12 +123,14 @@ def test_commands_wait_for_the_line_instead_of_queuing_stale() -> None:
         ctrl = RawController()
         try:
             async with _connected(ctrl) as link:
-                await _ticks_on_a_blocked_line(link)
-                # The line held what it could take; every later tick found it busy and wrote nothing.
+                kept = await _ticks_on_a_blocked_line(link)
+                # The line held what it could take; every later tick found it busy, wrote nothing, and
+                # said that the command before stays in force.
                 assert link.counters.sent < TICKS - 100
+                assert kept == TICKS - (link.counters.sent - 1)  # less the HELLO
                 await ctrl.read_until(lambda: _commands(ctrl) == link.counters.sent - 1)  # less the HELLO
                 # Free again: the next tick's command goes out, right behind what the line held.
-                assert link.send_commands(_speed(TICKS + 1))
+                assert link.send_commands(_speed(TICKS + 1)).sent
                 await ctrl.read_until(lambda: _speed_of(ctrl.of_type(T.COMMAND)[-1][1]) == TICKS + 1)
                 assert _commands(ctrl) == link.counters.sent - 1  # and nothing else was
         finally:

@@ -105,7 +105,7 @@ def test_each_controller_gets_its_modules_and_one_lost_stops_the_other(tmp_path:
     async def body() -> None:
         async with _group(tmp_path) as (group, firmwares):
             speeds = np.linspace(0.01, 0.08, N)
-            assert group.send_commands(ModuleCommands(speeds, np.zeros(N)))
+            assert group.send_commands(ModuleCommands(speeds, np.zeros(N))).sent
             await until(lambda: np.allclose(_speeds(firmwares), speeds, atol=1e-4), 5)
             assert all(c.link.connected for c in group.controllers)
             firmwares[1].unplug(2.0)
@@ -113,7 +113,7 @@ def test_each_controller_gets_its_modules_and_one_lost_stops_the_other(tmp_path:
             assert group.state == "disconnected"
             # Controller 0 was told all-stop as controller 1's link was lost, and is told so each tick after.
             await until(lambda: not np.any(_speeds(firmwares)[:4]), 5)
-            assert not group.send_commands(ModuleCommands(speeds, np.zeros(N)))
+            assert group.send_commands(ModuleCommands(speeds, np.zeros(N))).stopped
             assert not np.any(_speeds(firmwares)[:4])
             await until(lambda: group.connected, 10)
 

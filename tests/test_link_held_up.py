@@ -68,10 +68,10 @@ def test_an_answer_that_came_while_the_link_was_held_up_is_read_before_the_link_
             await until(lambda: link.connected)
             relay.delay_s = ANSWER_DELAY_S
             for _ in range(5):
-                assert link.send_commands(forward)
+                assert link.send_commands(forward).sent
                 await asyncio.sleep(1 / 30)
             selector.hold_s = HELD_UP_S
-            assert link.send_commands(forward)
+            assert link.send_commands(forward).sent
             await asyncio.sleep(HELD_UP_S + 0.2)
             assert link.counters.losses == 0 and link.connected, link.counters
             # The hold (past the link's 150 ms) came while the command's answer was still to be read.

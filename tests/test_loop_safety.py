@@ -24,7 +24,7 @@ from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.module_calibration import ModuleCalibration
 from clothd.core.module_check import ModuleCalibrationEntry
 from clothd.core.workspace import Workspace
-from clothd.drivers.ports import ControllerFault, FrameSourceHealth, LinkCounters
+from clothd.drivers.ports import ControllerFault, FrameSourceHealth, Handover, LinkCounters
 from clothd.errors import InvalidRequestError, RequestError, UnreachableTargetError
 from clothd.loop.compute_messages import InForce, TickReply, TickRequest
 from clothd.loop.daemon import Daemon
@@ -47,6 +47,7 @@ class FakeLink:
         self.faults: deque[ControllerFault] = deque()
         self.controller_estopped = False
         self.sent: list[ModuleCommands] = []
+        self.busy = np.zeros(N, dtype=bool)  # modules whose controller's line still holds the last command
         self._estopped = False
 
     @property
@@ -57,11 +58,11 @@ class FakeLink:
     def estopped(self) -> bool:
         return self._estopped
 
-    def send_commands(self, commands: ModuleCommands) -> bool:
+    def send_commands(self, commands: ModuleCommands) -> Handover:
         if not self.connected or self._estopped:
-            return False
+            return Handover.of(False, False, N)
         self.sent.append(commands)
-        return True
+        return Handover(np.ones(N, dtype=bool), ~self.busy)
 
     def estop(self) -> None:
         self._estopped = True
@@ -432,12 +433,24 @@ def test_systemd_hears_ready_and_the_watchdog_while_the_loop_and_compute_run_wha
 
 def test_the_compute_is_told_what_went_out_after_every_tick() -> None:
     """It tracks frames that arrive before the next request with these commands (compute.track_ahead):
-    what was sent, or all-stop while the link moves nothing."""
+    what was sent; the command before where a controller's line was still busy with it (the new one was
+    dropped); all-stop while the link moves nothing."""
 
     async def scenario(daemon: Daemon, link: FakeLink, compute: FakeCompute) -> None:
         _move(daemon)
         await _ticks(daemon, 3)
-        assert compute.in_force[-1] is link.sent[-1] and compute.in_force[-1].speed_m_s.any()
+        np.testing.assert_array_equal(compute.in_force[-1].speed_m_s, MOVING.speed_m_s)
+        link.busy[: N // 2] = True
+        daemon.set_setpoint("idle", None)
+        await _ticks(daemon, 2)
+        kept = compute.in_force[-1].speed_m_s
+        np.testing.assert_array_equal(kept[: N // 2], MOVING.speed_m_s[: N // 2])
+        assert not kept[N // 2 :].any()
+        link.busy[:] = False
+        await _ticks(daemon, 2)
+        assert not compute.in_force[-1].speed_m_s.any()
+        _move(daemon)
+        await _ticks(daemon, 2)
         link.estop()
         await _ticks(daemon, 2)
         assert not compute.in_force[-1].speed_m_s.any()

@@ -91,7 +91,7 @@ def test_commands_reach_the_modules_and_are_acknowledged(tmp_path: Path) -> None
             assert link.firmware and link.firmware.startswith("hwsim-fw")
             heading = np.linspace(-3, 3, N)
             for _ in range(5):
-                assert link.send_commands(ModuleCommands(np.full(N, 0.05), heading))
+                assert link.send_commands(ModuleCommands(np.full(N, 0.05), heading)).sent
                 await asyncio.sleep(0.02)
             await _until(lambda: link.counters.acked >= 5)
             np.testing.assert_allclose(table.cmd_speed_m_s, 0.05, atol=1e-4)
@@ -116,12 +116,12 @@ def test_estop_cuts_the_drives_and_refuses_commands_until_cleared(tmp_path: Path
             link.estop()
             await _until(lambda: link.controller_estopped)
             assert fw.estopped and not table.speed_m_s.any() and not table.cmd_speed_m_s.any()
-            assert not link.send_commands(_forward(0.1))  # the host holds back too
+            assert link.send_commands(_forward(0.1)).stopped  # the host holds back too
             link.estop_clear()
             await _until(lambda: not fw.estopped)
             await _until(
                 lambda: (
-                    link.send_commands(ModuleCommands(np.full(N, 0.03), np.zeros(N)))
+                    link.send_commands(ModuleCommands(np.full(N, 0.03), np.zeros(N))).sent
                     and table.cmd_speed_m_s[0] > 0
                 )
             )
@@ -143,7 +143,7 @@ def test_an_estop_cleared_while_the_link_is_down_is_cleared_on_the_controller_wh
             link.estop_clear()  # the operator clears it while the cable is out
             await _until(lambda: link.connected, timeout_s=5.0)
             await _until(lambda: not fw.estopped)
-            await _until(lambda: link.send_commands(_forward(0.03)) and table.cmd_speed_m_s[0] > 0)
+            await _until(lambda: link.send_commands(_forward(0.03)).sent and table.cmd_speed_m_s[0] > 0)
             await link.stop()
 
     _with_firmware(tmp_path, body)
@@ -468,13 +468,13 @@ def test_a_controller_latched_unknown_to_the_host_latches_the_host_too(tmp_path:
         link.on_fault = lambda fault: reported.append(fault.code)
         async with _running(link):
             await _until(lambda: link.connected)
-            assert link.send_commands(_forward(0.05))
+            assert link.send_commands(_forward(0.05)).sent
             await _until(lambda: table.cmd_speed_m_s[0] > 0)
             fw.estopped = True  # latched by its own input; the FAULT never reached the host
             link.send_commands(_forward(0.05))
             await _until(lambda: link.estopped)
             assert reported == [wire.FAULT_ESTOP_INPUT] and "e-stop input" in link.faults[-1].text
-            assert not link.send_commands(_forward(0.05))  # held back until the operator clears it
+            assert link.send_commands(_forward(0.05)).stopped  # held back until the operator clears it
             link.estop_clear()
             await _until(lambda: not fw.estopped)
             for _ in range(10):

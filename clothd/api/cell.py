@@ -52,7 +52,8 @@ class Cell(Protocol):
     async def reset(self) -> None: ...
 
     async def start_recording(self, out: Path) -> Path:
-        """Daemon.start_recording: where it records."""
+        """The recording's place made (`make_recording_place`), then Daemon.start_recording: where it
+        records."""
 
     async def stop_recording(self) -> None: ...
 

@@ -28,6 +28,7 @@ from clothd.api.channel import Channel, clothd_error
 from clothd.api.stream import StreamHub
 from clothd.core.drive_script import DriveScript
 from clothd.core.modes import Mode
+from clothd.outputs.recorder import make_recording_place, remove_recording_place
 from clothd.outputs.view import ViewBoard
 
 log = logging.getLogger(__name__)
@@ -88,7 +89,14 @@ class RemoteCell:
         await self._call("reset")
 
     async def start_recording(self, out: Path) -> Path:
-        return Path(await self._call("start_recording", out))
+        """The place is made here, off the daemon's loop; one the daemon refuses is removed again."""
+        out = await asyncio.to_thread(make_recording_place, out, self.settings.recording_format)
+        try:
+            await self._call("start_recording", out)
+        except BaseException:
+            await asyncio.to_thread(remove_recording_place, out)
+            raise
+        return out
 
     async def stop_recording(self) -> None:
         await self._call("stop_recording")

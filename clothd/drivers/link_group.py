@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from clothd.core.messages import ModuleCommands
-from clothd.drivers.ports import ControllerFault, LinkCounters
+from clothd.drivers.ports import ControllerFault, Handover, LinkCounters
 from clothd.drivers.stepper_link import FAULTS_KEPT, StepperLink
 
 WHOLE_BOARD = 0xFFFF  # a FAULT's module for the whole board
@@ -125,14 +125,19 @@ class LinkGroup:
 
     # -- commands -------------------------------------------------------------------------------------
 
-    def send_commands(self, commands: ModuleCommands) -> bool:
+    def send_commands(self, commands: ModuleCommands) -> Handover:
         """Each controller its modules' commands; with any link down, every connected one all-stop and
-        False (the lost one's watchdog stops its own)."""
+        nothing running (the lost one's watchdog stops its own)."""
         if not self.connected:
             self._stop_the_others()
-            return False
-        sent = [c.link.send_commands(c.part(commands)) for c in self.controllers]
-        return all(sent)
+            return Handover.of(False, False, self.n_modules)
+        running = np.zeros(self.n_modules, dtype=bool)
+        fresh = np.zeros(self.n_modules, dtype=bool)
+        for c in self.controllers:
+            handover = c.link.send_commands(c.part(commands))
+            running[c.modules] = handover.running
+            fresh[c.modules] = handover.fresh
+        return Handover(running, fresh)
 
     def estop(self) -> None:
         """Every controller's ESTOP written now, each repeated until acknowledged."""

@@ -89,6 +89,38 @@ class LinkCounters:
         }
 
 
+@dataclass(frozen=True)
+class Handover:
+    """What one tick's send left running on the modules, per module. Not `running`: its link is down or
+    e-stopped, and it stops (the controller's watchdog or e-stop holds it). Running but not `fresh`: it
+    keeps the last command it was sent (its controller's line was still busy with it: a fresh command is
+    dropped rather than queued behind it)."""
+
+    running: np.ndarray  # bool per module
+    fresh: np.ndarray  # bool per module: took this tick's command
+
+    @classmethod
+    def of(cls, running: bool, fresh: bool, n_modules: int) -> Handover:
+        return cls(np.full(n_modules, running), np.full(n_modules, running and fresh))
+
+    @property
+    def sent(self) -> bool:
+        """Every module took this tick's command."""
+        return bool(self.fresh.all())
+
+    @property
+    def stopped(self) -> bool:
+        """No module runs."""
+        return not self.running.any()
+
+    def in_force(self, commands: ModuleCommands, before: ModuleCommands) -> ModuleCommands:
+        """The commands the modules run after this send: `commands` where fresh, `before` where kept, and
+        stopped where not running."""
+        speed = np.where(self.fresh, commands.speed_m_s, before.speed_m_s)
+        heading = np.where(self.fresh, commands.heading_rad, before.heading_rad)
+        return ModuleCommands(np.where(self.running, speed, 0.0), np.where(self.running, heading, 0.0))
+
+
 class ModuleLink(Protocol):
     """The stepper controllers (one, or several as one: drivers/link_group.py). `run` is the connection
     task; every other method returns at once.
@@ -126,8 +158,8 @@ class ModuleLink(Protocol):
     def controller_estopped(self) -> bool:
         """The controller says its own e-stop is set."""
 
-    def send_commands(self, commands: ModuleCommands) -> bool:
-        """Send one tick's commands; False when they could not go out (down, or e-stopped)."""
+    def send_commands(self, commands: ModuleCommands) -> Handover:
+        """Send one tick's commands; what runs on the modules after it."""
 
     def estop(self) -> None: ...
 

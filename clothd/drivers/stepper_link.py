@@ -28,7 +28,7 @@ from clothd.config import StepperConfig
 from clothd.config.stepper import CELL_MODULES
 from clothd.core.messages import ModuleCommands
 from clothd.drivers import wire
-from clothd.drivers.ports import ControllerFault, LinkCounters
+from clothd.drivers.ports import ControllerFault, Handover, LinkCounters
 from clothd.errors import HardwareError
 
 log = logging.getLogger(__name__)
@@ -104,23 +104,24 @@ class StepperLink:
     def controller_estopped(self) -> bool:
         return bool(self.controller_flags & wire.FLAG_ESTOP)
 
-    def send_commands(self, commands: ModuleCommands) -> bool:
-        """Send this tick's module commands; False when they did not go out: the link is down (the
-        controller's watchdog then stops the modules) or the e-stop is latched, when a PING goes instead,
-        which keeps the controller's watchdog fed and the link's liveness measured."""
+    def send_commands(self, commands: ModuleCommands) -> Handover:
+        """Send this tick's module commands. Not running: the link is down (the controller's watchdog then
+        stops the modules) or the e-stop is latched, when a PING goes instead, which keeps the
+        controller's watchdog fed and the link's liveness measured. Not fresh: the line still holds what
+        went before, which stays in force."""
         if not self.connected:
-            return False
-        if self._line_busy():  # the previous tick's command is still going out, and stays in force
-            return not self._estop_latched
+            return Handover.of(False, False, self.n_modules)
+        if self._line_busy():
+            return Handover.of(not self._estop_latched, False, self.n_modules)
         if self._estop_latched:
             self._write(wire.encode(wire.MsgType.PING, self._next_seq()), expect_reply=True)
-            return False
+            return Handover.of(False, False, self.n_modules)
         seq = self._next_seq()
         payload = wire.command_payload(commands.speed_m_s, commands.heading_rad)
         packet = wire.encode(wire.MsgType.COMMAND, seq, payload)
         self._pending = _Pending(seq, packet, self.clock())
         self._write(packet, expect_reply=True)
-        return True
+        return Handover.of(True, True, self.n_modules)
 
     def estop(self) -> None:
         """Stop every module now: the commands not yet gone are discarded, so the ESTOP goes next on the

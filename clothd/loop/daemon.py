@@ -41,7 +41,6 @@ from clothd.loop.loop_stats import LoopStats
 from clothd.loop.pairing import CameraReport
 from clothd.loop.status import Status, build_status
 from clothd.notify import SystemdNotifier
-from clothd.outputs.recorder import make_recording_place
 from clothd.outputs.view import ViewBoard
 
 log = logging.getLogger(__name__)
@@ -195,20 +194,21 @@ class Daemon:
             f": {fault.text}" if fault.text else ""
         )
         stop = ModuleCommands.all_stop(self.settings.n_modules)
-        self._commands = self._in_force = stop
+        self._commands = stop
         if fault.code == wire.FAULT_ESTOP_INPUT:
-            self.link.estop()
+            self.link.estop()  # cuts every drive at once, whatever the line held
+            self._in_force = stop
             log.warning("emergency stop: the hardware e-stop chain opened (%s)", reason)
             self._halt(reason, idle_too=True)
         else:
-            self.link.send_commands(stop)
+            self._in_force = self.link.send_commands(stop).in_force(stop, self._in_force)
             self._halt(reason)
         self.publish()
 
-    def start_recording(self, out: Path) -> Path:
-        """Record from the next frame into `out`, a new directory, or with recording.format mcap a new
-        .mcap file (the suffix added when missing), made here and now: a place that cannot be written is
-        refused at once rather than found out by the compute later. Returns where it records."""
+    def start_recording(self, out: Path) -> None:
+        """Record from the next frame into `out`, a place already made (`make_recording_place`, off this
+        loop: a slow disk stalls no tick; a place that cannot be written is refused before it gets here
+        rather than found out by the compute later)."""
         rec = self.latest.recording if self.latest else None
         # A stop asked for, that no reply has shown done yet, goes first: the compute stops the old
         # recording before it starts the new one.
@@ -217,9 +217,7 @@ class Daemon:
             raise RequestError(f"already recording into {rec.dir}: stop it first")
         if self._recording_starting is not None:  # two requests at once: the first one wins
             raise RequestError(f"a recording is starting in {self._recording_starting}: stop it first")
-        out = make_recording_place(out, self.settings.recording_format)
         self._record_start = self._recording_starting = out
-        return out
 
     def stop_recording(self) -> None:
         rec = self.latest.recording if self.latest else None
@@ -308,11 +306,10 @@ class Daemon:
         if self.setpoint.mode == Mode.IDLE:  # a reply asked for before a halt never restarts the modules
             self._commands = ModuleCommands.all_stop(self.settings.n_modules)
         calibration = self.settings.module_calibration
-        sent = self.link.send_commands(
+        handover = self.link.send_commands(
             self._commands if calibration is None else calibration.to_send(self._commands)
         )
-        # A link that is down or e-stopped moves nothing: the controller's watchdog or e-stop holds them.
-        self._in_force = self._commands if sent else ModuleCommands.all_stop(self.settings.n_modules)
+        self._in_force = handover.in_force(self._commands, self._in_force)
         # Only to a compute that has answered: a hung one would fill the pipe until this send blocked.
         if self._pending is None:
             try:

@@ -23,6 +23,7 @@ loop goes on either way.
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import time
@@ -105,6 +106,15 @@ def make_recording_place(out: Path, form: RecordingFormat) -> Path:
         error = StorageError if err.errno in (errno.ENOSPC, errno.EDQUOT) else InvalidRequestError
         raise error(f"cannot create {out}: {err.strerror or err}") from None
     return out
+
+
+def remove_recording_place(out: Path) -> None:
+    """Remove a place `make_recording_place` made that no recording took (the request was refused)."""
+    with contextlib.suppress(OSError):  # a place something else has written to since stays
+        if out.is_dir():
+            out.rmdir()
+        elif out.stat().st_size == 0:
+            out.unlink()
 
 
 class _FurtherCamera:
