@@ -120,8 +120,20 @@ def test_a_measured_pleat_stands_on_its_feet_not_on_straight_edges() -> None:
     straight = fold_heights_m(xy, _rest(), 0.1)
     measured = fold_heights_m(xy, _rest(), 0.1, _quads_with_crest(crest, [3, 4, 5]))
     np.testing.assert_allclose(straight[:, [4, 5]], np.sqrt(L_M**2 - foot**2))  # 19.4 mm
-    np.testing.assert_allclose(measured[:, [4, 5]], L_M - foot)  # 15 mm, on the flank
+    # On the flank, as high as the slack before it: the run's 48 mm of slack spread over its three edges,
+    # 16 mm (the flank edges hold 15 mm each here, the crest edge 18).
+    np.testing.assert_allclose(measured[:, [4, 5]], slack / 3)
     assert np.all(np.delete(measured, [4, 5], axis=1) == 0.0)
+
+
+def test_a_measured_pleat_does_not_follow_its_unseen_flank_nodes_in_the_plane() -> None:
+    foot = 0.005
+    x = _pleat_row_x(foot)
+    x[5] += 0.003  # a flank node no camera sees, spread 3 mm out: its outer edge 3 mm shorter
+    crest = (3 * L_M - (2 * foot + 0.002)) / 2
+    rest, quads = _rest(), _quads_with_crest(crest, [3, 4, 5])
+    moved = fold_heights_m(_with_row_x(x), rest, 0.1, quads)
+    np.testing.assert_allclose(moved, fold_heights_m(_with_row_x(_pleat_row_x(foot)), rest, 0.1, quads))
 
 
 def test_a_measured_broad_ridge_rises_as_its_straight_edges() -> None:
@@ -153,4 +165,4 @@ def test_a_noisy_edge_row_takes_its_neighbours_fold_shape() -> None:
     xy[0, 5:, 0] += 0.004  # the edge row reads its flank 4 mm wider: less slack, a steeper rise per slack
     crest = (3 * L_M - (2 * foot + 0.002)) / 2
     z = fold_heights_m(xy, _rest(), 0.1, _quads_with_crest(crest, [3, 4, 5]))
-    np.testing.assert_allclose(z[0, 4], L_M - foot, atol=1e-9)  # as its neighbours' fold says
+    np.testing.assert_allclose(z[0, 4], 2 * crest / 3, atol=1e-9)  # as its neighbours' fold says
