@@ -58,6 +58,14 @@ class FoldedEdges:
     cols: np.ndarray
 
 
+def folds_across(folded: FoldedEdges) -> FoldedEdges:
+    """Where the fold lies: each edge folded as most of its chain and the ACROSS chains either side are
+    (an edge folded alone in its chain is noise, or a node dragged along the fold)."""
+    return FoldedEdges(
+        _median_across(folded.rows.astype(float)) > 0.5, _median_across(folded.cols.astype(float)) > 0.5
+    )
+
+
 def fold_heights_m(
     nodes_xy_m: np.ndarray,
     rest_xy_m: np.ndarray,

@@ -27,6 +27,8 @@ Why this structure (the measured costs are in docs/architecture.md and docs/benc
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.linalg as sla
 import scipy.sparse as sps
@@ -85,6 +87,17 @@ class InformationPattern:
         ab = np.zeros((self.band + 1, self.size))
         ab[self._band_rows, self._band_cols] = data[self._upper_slots]
         return np.asarray(sla.solveh_banded(ab, rhs, check_finite=False))
+
+
+@dataclass(frozen=True)
+class HeldEdges:
+    """Mesh edges (e, 2) whose in-plane length is held at a bound (e,) m, σ sigma_m: from above where upper
+    (e,) is True, from below where it is False."""
+
+    edges: np.ndarray
+    bound_m: np.ndarray
+    upper: np.ndarray
+    sigma_m: float
 
 
 def _quad_mean(quads: np.ndarray, residual_px: np.ndarray) -> np.ndarray:
@@ -244,6 +257,32 @@ class NodeBelief:
             np.bincount(self._shape_dofs.ravel(), vector.ravel(), minlength=pat.size),
         )
 
+    def _edge_priors(
+        self, shape_sigma_m: float, held: HeldEdges | None
+    ) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The shape prior and the held edges, those asked for, each in information form."""
+        out = [self._shape_information(shape_sigma_m)] if shape_sigma_m > 0.0 else []
+        return out if held is None else [*out, self._held_information(held)]
+
+    def _held_information(self, held: HeldEdges) -> tuple[np.ndarray, np.ndarray]:
+        """HeldEdges in information form, linearised at the prior mean: each edge past its bound (shorter
+        than a lower one, longer than an upper one) a pseudo-measurement of its length at the bound."""
+        d, pat, e = self.pattern.d, self.pattern, held.edges
+        diff = self.x[e[:, 0], :d] - self.x[e[:, 1], :d]
+        length = np.linalg.norm(diff, axis=1)
+        past = np.where(held.upper, length > held.bound_m, length < held.bound_m)
+        u = diff / np.maximum(length, 1e-12)[:, None]
+        h = np.where(past[:, None], np.concatenate([u, -u], axis=1), 0.0) / held.sigma_m
+        info = np.einsum("ea,eb->eab", h, h).reshape(len(e), -1)
+        vector = h * ((held.bound_m - length) / held.sigma_m)[:, None]
+        dofs = np.concatenate([d * e[:, :1] + np.arange(d), d * e[:, 1:] + np.arange(d)], axis=1)
+        w = 2 * d
+        slots = pat.slots(np.repeat(dofs, w, axis=1).ravel(), np.tile(dofs, (1, w)).ravel())
+        return (
+            np.bincount(slots, info.ravel(), minlength=pat.nnz),
+            np.bincount(dofs.ravel(), vector.ravel(), minlength=pat.size),
+        )
+
     def correct(
         self,
         quads: np.ndarray,
@@ -254,6 +293,7 @@ class NodeBelief:
         gate_chi2: float,
         smoothness_m: float | None = None,
         shape_sigma_m: float = 0.0,
+        held: HeldEdges | None = None,
     ) -> tuple[UpdateStats, np.ndarray]:
         """Gate, then correct with the accepted features. quads (k,) each feature's quad, nodes (k, 4) its
         corner nodes, J (k, 4, 2, 3) ∂h/∂p blocks, residual ν = z − h(x⁻) (k, 2). Returns the statistics
@@ -264,6 +304,8 @@ class NodeBelief:
         the spatial correlation a cloth has; this puts a sparse part of it back, in information form,
         so that a node no feature reaches (at the cloth's edge, in a fold, under an arm) is corrected
         with its neighbours instead of not at all.
+
+        held: edges whose in-plane length is held to a bound (`HeldEdges`), like the shape prior.
 
         shape_sigma_m: how closely each edge keeps its rest length (_shape_information; 0: not held). On a
         periodic weave the features measure across its stripes only: along them, nothing but this and the
@@ -304,10 +346,9 @@ class NodeBelief:
             np.einsum("kia,ki->ka", Ja, residual_px[accepted]).ravel() / R_px2,
             minlength=d * n,
         )
-        if shape_sigma_m > 0.0:
-            shape_data, shape_vector = self._shape_information(shape_sigma_m)
-            data += shape_data
-            g += shape_vector
+        for prior_data, prior_vector in self._edge_priors(shape_sigma_m, held):
+            data += prior_data
+            g += prior_vector
         dp = pat.solve(data, g).reshape(n, d)
         dv = np.einsum("nij,njk,nk->ni", self.P[:, 3:, :d], Ppp_inv, dp)
         self.x = self.x + np.concatenate([dp, np.zeros((n, 3 - d)), dv], axis=1)

@@ -19,10 +19,13 @@ from clothd.core.conveyor import BeltField
 from clothd.core.ekf import UpdateStats
 from clothd.core.estimators.base import Measurements, StateEstimate, boundary, uncorrected
 from clothd.core.feature_set import FeatureSet
-from clothd.core.folds import FoldedEdges, fold_heights_m, fold_reading
+from clothd.core.folds import FoldedEdges, fold_heights_m, fold_reading, folds_across
 from clothd.core.mesh import QuadMesh, blend, measurement_jacobian
-from clothd.core.mesh_ekf import NodeBelief
+from clothd.core.mesh_ekf import HeldEdges, NodeBelief
 from clothd.core.physics import CONTACT_HEIGHT_M, MassSpring
+
+# How closely an edge at a fold keeps its length in the plane (`MeshEstimator._held_edges`).
+HELD_EDGE_SIGMA_M = 0.001
 
 
 class MeshEstimator:
@@ -126,14 +129,54 @@ class MeshEstimator:
             # information Jᵀ R⁻¹ J, Jᵀ R⁻¹ ν and the gate's Mahalanobis distance are then exactly R_i's.
             residual = np.einsum("kab,kb->ka", whiten, residual)
             J = np.einsum("kab,kcbd->kcad", whiten, J)
+        held = None if m.quad_height_m is None else self._held_edges()
         stats, inside = belief.correct(
-            quads, nodes, J, residual, e.meas_sigma_px**2, e.gate_chi2, e.smoothness_sigma_m, m.shape_sigma_m
+            quads,
+            nodes,
+            J,
+            residual,
+            e.meas_sigma_px**2,
+            e.gate_chi2,
+            e.smoothness_sigma_m,
+            m.shape_sigma_m,
+            held,
         )
         inside = inside[: len(idx)]
         accepted[idx[~inside]] = False
         self._lift_folds()
         self._quad_height_m = m.quad_height_m
         return stats, accepted
+
+    def _held_edges(self) -> HeldEdges | None:
+        """The mesh edges with a node up in a fold, held in the plane: no longer than their rest length in
+        3-D (the cloth does not stretch), and, where the fold does not lie across them (`folds_across`),
+        no shorter than it (the cloth along a fold stands as long as it lies). The model's springs leave
+        both loose in a fold, and neither camera sees a fold's flanks: on compress the springs from a node
+        lifted beside one not yet lifted dragged an edge row's node 7 mm along the fold in one tick, and
+        the features on a dying fold's flank pulled its node 3 mm into the crest, its outer edge 5 % over
+        length, so that it read unfolded and 5.4 mm low. None while nothing is up."""
+        mesh, belief = self._started()
+        z = belief.x[:, 2].reshape(mesh.ny, mesh.nx)
+        if self._folded is None or not (z > 0.0).any():
+            return None
+        idx = np.arange(mesh.n_nodes).reshape(mesh.ny, mesh.nx)
+        rest = mesh.rest_nodes_m()
+        across = folds_across(self._folded)
+        edges, bounds, upper = [], [], []
+        for sl_a, sl_b, folded in (
+            ((slice(None), slice(None, -1)), (slice(None), slice(1, None)), across.rows),
+            ((slice(None, -1), slice(None)), (slice(1, None), slice(None)), across.cols.T),
+        ):
+            at_fold = (z[sl_a] > 0.0) | (z[sl_b] > 0.0)
+            pairs = np.stack([idx[sl_a][at_fold], idx[sl_b][at_fold]], axis=1)
+            length = np.linalg.norm(rest[sl_a] - rest[sl_b], axis=-1)[at_fold]
+            rise = (z[sl_a] - z[sl_b])[at_fold]
+            along = ~folded[at_fold]
+            edges += [pairs, pairs[along]]
+            bounds += [np.sqrt(np.maximum(length**2 - rise**2, 0.0)), length[along]]
+            upper += [np.ones(len(pairs), bool), np.zeros(int(along.sum()), bool)]
+        cat = np.concatenate
+        return HeldEdges(cat(edges), cat(bounds), cat(upper), HELD_EDGE_SIGMA_M)
 
     def _seen_positions_m(self) -> np.ndarray:
         """Node positions (n, 3) as the frame shows them: where they were in the middle of the exposure,
