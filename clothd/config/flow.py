@@ -8,10 +8,13 @@ The placement must be the one the next station expects; in the simulated cell it
 from __future__ import annotations
 
 import math
+from typing import Annotated
 
 from pydantic import Field
 
 from clothd.config.strict import Strict
+
+_Side = Annotated[float, Field(gt=0.01, le=5.0)]
 
 
 class PlacementConfig(Strict):
@@ -51,4 +54,9 @@ class FlowConfig(Strict):
     )
     exit_gain_1_s: float = Field(
         2.0, ge=0, le=20, description="how fast a leaving piece's drift from the placement is corrected"
+    )
+    piece_max_m: tuple[_Side, _Side] = Field(
+        (0.35, 0.26),
+        description="the largest piece the line lays (long side, short side): a region larger is pieces "
+        "touching, rejected rather than tracked as one",
     )

@@ -32,6 +32,7 @@ from clothd.core.camera_model import CameraModel
 from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands, PairedView
 from clothd.core.modes import PieceState
+from clothd.core.piece_regions import larger_than, outside_tracked, tracked_mask
 from clothd.core.segmentation import ClothRegion, find_cloths, full_frame_region
 from clothd.core.workspace import Workspace
 
@@ -47,6 +48,7 @@ MATCH_M = 0.08  # an untracked piece is the region seen this near where it was l
 # that it claims no modules (what it claimed was stopped, and a piece beside it could not be placed).
 MISSED_LOOKS = 2
 LOST_FROM_VIEW = "lost from view"
+TOUCHING = "pieces touching"  # a region larger than one piece: its reason begins so
 
 
 @dataclass
@@ -67,6 +69,7 @@ class Piece:
     still: bool = False  # the last two looks saw it in the same place
     driven_out: bool = False  # the flow drives it out over the outfeed (core/flow.py): it leaves the view
     tracked_since_s: float | None = None  # when its tracking last began: what the controller knew is stale
+    beside: bool = False  # touching a tracked piece at the last look: held, its tracking not started
     region: ClothRegion | None = field(default=None, repr=False)  # what its tracker starts on
 
     @property
@@ -242,10 +245,11 @@ class PieceTracking:
     def _look(self, regions: list[ClothRegion], frame_shape: tuple[int, ...], t_s: float) -> None:
         h, w = frame_shape[:2]
         seen: set[int] = set()
-        for region in regions:
+        merged: list[np.ndarray] = []  # the untracked pieces' regions this look
+        for region, beside in self._apart_from_tracked(regions):
             outline = self.camera_model.backproject_to_plane(region.corners_px.astype(np.float64))[:, :2]
             centre = outline.mean(axis=0)
-            piece = self._owner(centre, seen)
+            piece = self._owner(centre, seen, outline)
             if piece is None:
                 if outline[:, 0].max() > self.workspace.x_max_m or len(self.pieces) >= self.max_pieces:
                     continue  # the rest of a piece that has left, going over the outfeed edge
@@ -258,17 +262,47 @@ class PieceTracking:
             moved = np.inf if piece.last_centre_m is None else np.linalg.norm(centre - piece.last_centre_m)
             piece.still = bool(moved * 1e3 < self.cfg.still_mm)
             piece.outline_m, piece.last_centre_m, piece.missed_looks = outline, centre, 0
+            piece.beside = beside
+            merged.append(outline)
             inside = self.workspace.leaves(outline) is None and not _touches_border(region.corners_px, w, h)
-            if inside and piece.still and self._free_slot_for(piece):
-                piece.region = region
+            if inside and piece.still and not beside:
+                self._start(piece, region, outline, t_s)
         for piece in list(self.pieces):
-            # Beside a tracked piece, its region may have merged into the tracked one's: not missed.
-            if piece.slot is None and piece.id not in seen and not self._beside_a_tracked(piece):
+            if piece.slot is not None or piece.id in seen:
+                continue
+            if not piece.driven_out and any(contains(o, piece.centre_m) for o in merged):
+                self.pieces.remove(piece)  # merged into another untracked piece's region: one piece now
+                continue
+            # Beside a tracked piece, its region may have merged into the tracked one's: not missed, held.
+            piece.beside = self._beside_a_tracked(piece)
+            if not piece.beside:
                 piece.missed_looks += 1
                 if piece.missed_looks >= MISSED_LOOKS and not piece.driven_out:
                     if piece.state != PieceState.REJECTED:  # a reject waiting for its way keeps its reason
                         piece.enter(PieceState.REJECTED, t_s, LOST_FROM_VIEW)
                     self.leave(piece, t_s)
+
+    def _apart_from_tracked(self, regions: list[ClothRegion]) -> list[tuple[ClothRegion, bool]]:
+        """Each region with what of it is a tracked piece's taken out (pieces touching come as one region):
+        (region, whether it touched a tracked piece)."""
+        tracked = tracked_mask([p.outline_m for p in self.pieces if p.tracking], self.camera_model)
+        apart: list[tuple[ClothRegion, bool]] = []
+        for region in regions:
+            parts = outside_tracked(region, tracked)
+            apart += [(region, False)] if parts is None else [(part, True) for part in parts]
+        return apart
+
+    def _start(self, piece: Piece, region: ClothRegion, outline_m: np.ndarray, t_s: float) -> None:
+        """Start its tracking on the region, unless the region is larger than one piece: pieces touching,
+        which no tracker can tell apart, are rejected (and driven out as they are)."""
+        size = larger_than(outline_m, self.cfg.piece_max_m)
+        if size is None:
+            if self._free_slot_for(piece):
+                piece.region = region
+        elif piece.state != PieceState.REJECTED:
+            long_mm, short_mm = (round(v * 1e3) for v in size)
+            reason = f"{TOUCHING}: {long_mm} x {short_mm} mm, more than one piece"
+            piece.enter(PieceState.REJECTED, t_s, reason)
 
     def _beside_a_tracked(self, piece: Piece) -> bool:
         """Its last outline touches a tracked piece's (their convex hulls overlap)."""
@@ -279,7 +313,9 @@ class PieceTracking:
             if other is not piece and other.tracking
         )
 
-    def _owner(self, centre_m: np.ndarray, taken: set[int]) -> Piece | None:
+    def _owner(self, centre_m: np.ndarray, taken: set[int], outline_m: np.ndarray) -> Piece | None:
+        """The tracked piece whose outline holds the region's centre, else the nearest untracked piece
+        within MATCH_M, or whose last centre the region holds (pieces touching merge and part again)."""
         for piece in self.pieces:
             if piece.slot is not None and piece.id not in taken and contains(piece.outline_m, centre_m):
                 return piece
@@ -291,7 +327,8 @@ class PieceTracking:
         if not near:
             return None
         distance, k = min(near)
-        return self.pieces[k] if distance < MATCH_M else None
+        piece = self.pieces[k]
+        return piece if distance < MATCH_M or contains(outline_m, piece.centre_m) else None
 
     def _free_slot_for(self, piece: Piece) -> bool:
         """Give the piece a tracker, started on its region in this frame; False when none is free."""
