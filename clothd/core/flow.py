@@ -124,6 +124,9 @@ class FlowController:
         if piece.state == PieceState.ENTERING:
             return self._enter(piece, ctl)
         if not piece.tracking:
+            if piece.state == PieceState.REJECTED and piece.tracked_since_s is None and not ctl.driving_out:
+                # Rejected before any tracking (pieces touching, core/pieces.py): out as it is, when clear.
+                ctl.driving_out = self._way_clear(piece, pieces, float(piece.outline_m[:, 0].max()))
             return self._blind(piece, ctl)
         est = piece.estimate
         assert est is not None and est.outline_m is not None
@@ -235,16 +238,22 @@ class FlowController:
         if piece.state not in DRIVEN_OUT or not (ctl.driving_out or piece.state == PieceState.LEAVING):
             return np.zeros((self.layout.n_modules, 2)), ctl.cell.pose.modules_under(piece.outline_m)
         under = self._touched(ctl, piece.outline_m)
+        # A reject never tracked starts from rest.
+        ctl.out_speed_m_s = min(
+            self.cfg.exit_speed_m_s, ctl.out_speed_m_s + self.control.max_accel_m_s2 * self.period_s
+        )
         piece.outline_m = piece.outline_m + np.array([ctl.out_speed_m_s * self.period_s, 0.0])
         v = np.zeros((self.layout.n_modules, 2))
         v[:, 0] = ctl.out_speed_m_s
         return v, under
 
     def _enter(self, piece: Piece, ctl: _PieceControl) -> tuple[np.ndarray, np.ndarray]:
-        """The intake: +x under what is in view, until all of it is in; the outline moves on with it."""
+        """The intake: +x under what is in view, until all of it is in; the outline moves on with it. A
+        piece touching a tracked one is held: pulled on, it would be pushed into (or over) that piece."""
         under = ctl.cell.pose.modules_under(piece.outline_m)
         v = np.zeros((self.layout.n_modules, 2))
-        if self.workspace.leaves(piece.outline_m) is not None and piece.slot is None:
+        pulled = self.workspace.leaves(piece.outline_m) is not None and piece.slot is None
+        if pulled and not piece.beside:
             v[:, 0] = self.cfg.intake_speed_m_s
             piece.outline_m = piece.outline_m + np.array([self.cfg.intake_speed_m_s * self.period_s, 0.0])
         return v, under
