@@ -5,7 +5,8 @@ Finding pieces costs a whole-frame segmentation (12-20 ms on a 960 x 480 frame),
 `flow.search_every` frames, beside the frame's tracking; tracking runs every frame, a tracker per piece.
 A piece is known by where it lies on the table: a region found in a frame is the tracked piece whose
 estimated outline holds its centre, else the untracked piece last seen nearest it, else a new piece.
-Pieces lie apart, so a region's centre lies inside one outline only, however close their edges come.
+Pieces apart have a region each; pieces touching come as one region, from which a tracked piece's
+outline is taken out, and one larger than a piece is rejected (core/piece_regions.py).
 
 A tracker starts on a piece only when the piece lies inside the workspace and has not moved between two
 looks: tracking begins on a cloth at rest, as the single-piece tracker's does. It starts after that
