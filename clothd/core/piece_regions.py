@@ -10,6 +10,7 @@ neither is tracked, nothing tells where one ends: a region larger than the large
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -25,43 +26,62 @@ _OPEN_PX = 9
 _MIN_AREA_FRACTION = 0.005
 
 
-def tracked_mask(outlines_m: Sequence[np.ndarray], model: CameraModel) -> np.ndarray | None:
-    """uint8 (h, w), 255 where a tracked piece lies (its outline widened by the margin); None if none."""
-    if not outlines_m:
-        return None
-    mask = np.zeros((model.height, model.width), np.uint8)
-    for outline in outlines_m:
-        pts = np.column_stack([outline, np.zeros(len(outline))])
-        px = model.project(pts)
-        cv2.fillPoly(mask, [np.round(px).astype(np.int32).reshape(-1, 1, 2)], 255)
-    centre = np.array([[0.0, 0.0, 0.0], [TRACKED_MARGIN_M, 0.0, 0.0]])
-    margin_px = float(np.linalg.norm(np.diff(model.project(centre), axis=0)))
-    size = 2 * max(1, round(margin_px)) + 1
-    return cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size)))
+@dataclass(frozen=True)
+class Tracked:
+    """The tracked pieces' outlines in the frame, pixels, and the margin around them, pixels."""
+
+    outlines_px: list[np.ndarray]  # each (k, 1, 2) int32
+    margin_px: int
+
+    @classmethod
+    def of(cls, outlines_m: Sequence[np.ndarray], model: CameraModel) -> Tracked:
+        px = [model.project(np.column_stack([o, np.zeros(len(o))])) for o in outlines_m]
+        ends = model.project(np.array([[0.0, 0.0, 0.0], [TRACKED_MARGIN_M, 0.0, 0.0]]))
+        margin = max(1, round(float(np.linalg.norm(ends[1] - ends[0]))))
+        return cls([np.round(p).astype(np.int32).reshape(-1, 1, 2) for p in px], margin)
 
 
-def outside_tracked(region: ClothRegion, tracked: np.ndarray | None) -> list[ClothRegion] | None:
+def outside_tracked(region: ClothRegion, tracked: Tracked) -> list[ClothRegion] | None:
     """What of the region lies off the tracked pieces, a region per part (none: all of it is theirs); None
-    when the region touches no tracked piece."""
-    if tracked is None or not cv2.countNonZero(cv2.bitwise_and(region.mask, tracked)):
+    when the region touches no tracked piece. Worked in the region's box (0.5 ms a look; the whole frame
+    and connected components cost 4.5)."""
+    h, w = region.mask.shape
+    x, y, bw, bh = cv2.boundingRect(region.corners_px.reshape(-1, 1, 2))
+    m = tracked.margin_px
+    x0, y0, x1, y1 = max(x - m, 0), max(y - m, 0), min(x + bw + m, w), min(y + bh + m, h)
+    near = [o - np.array([x0, y0], np.int32) for o in tracked.outlines_px if _overlap(o, (x0, y0, x1, y1))]
+    if not near:
         return None
-    rest = cv2.bitwise_and(region.mask, cv2.bitwise_not(tracked))
+    theirs = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    cv2.fillPoly(theirs, near, 255)
+    theirs = cv2.dilate(theirs, _disk(2 * m + 1))
+    box = region.mask[y0:y1, x0:x1]
+    if not cv2.countNonZero(cv2.bitwise_and(box, theirs)):
+        return None
     # A strip along the tracked piece's edge (where its estimate fell short by more than the margin) is
     # not a piece: opened away.
-    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (_OPEN_PX, _OPEN_PX))
-    rest = cv2.morphologyEx(rest, cv2.MORPH_OPEN, k)
-    n, labels, stats, _ = cv2.connectedComponentsWithStats(rest, connectivity=8)
-    min_area = _MIN_AREA_FRACTION * rest.shape[0] * rest.shape[1]
+    rest = cv2.morphologyEx(cv2.bitwise_and(box, cv2.bitwise_not(theirs)), cv2.MORPH_OPEN, _disk(_OPEN_PX))
+    contours, _ = cv2.findContours(rest, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE, offset=(x0, y0))
     parts = []
-    for label in range(1, n):
-        if stats[label, cv2.CC_STAT_AREA] < min_area:
+    for outline in contours:
+        if cv2.contourArea(outline) < _MIN_AREA_FRACTION * h * w:
             continue
-        mask = np.where(labels == label, np.uint8(255), np.uint8(0))
-        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-        points = np.concatenate(contours).astype(np.float32)
-        corners = np.asarray(cv2.boxPoints(cv2.minAreaRect(points)), np.float32)
-        parts.append(ClothRegion(mask, corners, int(stats[label, cv2.CC_STAT_AREA]), region.colour))
+        mask = np.zeros((h, w), np.uint8)
+        cv2.drawContours(mask, [outline], -1, 255, thickness=cv2.FILLED)
+        corners = cv2.boxPoints(cv2.minAreaRect(outline.astype(np.float32)))
+        parts.append(
+            ClothRegion(mask, np.asarray(corners, np.float32), cv2.countNonZero(mask), region.colour)
+        )
     return parts
+
+
+def _overlap(outline_px: np.ndarray, box: tuple[int, int, int, int]) -> bool:
+    x, y, w, h = cv2.boundingRect(outline_px)
+    return x < box[2] and x + w > box[0] and y < box[3] and y + h > box[1]
+
+
+def _disk(diameter_px: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (diameter_px, diameter_px))
 
 
 def larger_than(outline_m: np.ndarray, max_m: tuple[float, float]) -> tuple[float, float] | None:

@@ -33,7 +33,7 @@ from clothd.core.camera_model import CameraModel
 from clothd.core.flatness import Flatness
 from clothd.core.messages import Estimate, ModuleCommands, PairedView
 from clothd.core.modes import PieceState
-from clothd.core.piece_regions import larger_than, outside_tracked, tracked_mask
+from clothd.core.piece_regions import Tracked, larger_than, outside_tracked
 from clothd.core.segmentation import ClothRegion, find_cloths, full_frame_region
 from clothd.core.workspace import Workspace
 
@@ -286,10 +286,10 @@ class PieceTracking:
     def _apart_from_tracked(self, regions: list[ClothRegion]) -> list[tuple[ClothRegion, bool]]:
         """Each region with what of it is a tracked piece's taken out (pieces touching come as one region):
         (region, whether it touched a tracked piece)."""
-        tracked = tracked_mask([p.outline_m for p in self.pieces if p.tracking], self.camera_model)
+        tracked = Tracked.of([p.outline_m for p in self.pieces if p.tracking], self.camera_model)
         apart: list[tuple[ClothRegion, bool]] = []
         for region in regions:
-            parts = outside_tracked(region, tracked)
+            parts = outside_tracked(region, tracked) if tracked.outlines_px else None
             apart += [(region, False)] if parts is None else [(part, True) for part in parts]
         return apart
 
