@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 from test_flow_controller import _controller, _tracked
-from test_pieces import _flat_piece
+from test_pieces import GAP_M, _flat_piece
 
 from clothd.config import load_config
 from clothd.core.conveyor import ConveyorLayout
@@ -30,19 +30,30 @@ LONG_M = 0.25  # test_pieces' pieces: 0.25 x 0.20, their long side along x
 CENTRES_M = (-LONG_M / 2, LONG_M / 2)  # edge to edge at x = 0
 
 
+def _render(world: World, sensor: object, spacing_m: float, centres_m: tuple[float, float]) -> np.ndarray:
+    cloths = tuple(SceneCloth(_flat_piece(x, spacing_m), (spacing_m, spacing_m)) for x in centres_m)
+    image, _ = sensor.renderer.render([dataclasses.replace(world.scene_state(), cloths=cloths)])  # type: ignore[attr-defined]
+    return np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
+
 @pytest.fixture(scope="module")
-def touching() -> tuple[np.ndarray, object, object]:
-    """The flow table's top camera's frame of two pieces edge to edge, the configuration and the model."""
+def frames() -> tuple[np.ndarray, np.ndarray, object, object]:
+    """The flow table's top camera's frames of two pieces edge to edge and GAP_M apart, the configuration
+    and the camera's model."""
     cfg = load_config(None)
     start_taichi(cfg.taichi.arch)
     sc = flow_scenario(6.0, 0)
     world = World(sc, log_commands=False)
     sensors, models = scenario_cameras(sc, world, 1)
-    spacing = sc.cloth.spacing_m
-    cloths = tuple(SceneCloth(_flat_piece(x, spacing), (spacing, spacing)) for x in CENTRES_M)
-    image, _ = sensors[0].renderer.render([dataclasses.replace(world.scene_state(), cloths=cloths)])
-    bgr = np.clip(image * 255.0 + 0.5, 0, 255).astype(np.uint8)
-    return bgr, config_for(cfg, sc), models[0]
+    apart = (CENTRES_M[0] - GAP_M / 2, CENTRES_M[1] + GAP_M / 2)
+    together = _render(world, sensors[0], sc.cloth.spacing_m, CENTRES_M)
+    return together, _render(world, sensors[0], sc.cloth.spacing_m, apart), config_for(cfg, sc), models[0]
+
+
+@pytest.fixture(scope="module")
+def touching(frames: tuple) -> tuple[np.ndarray, object, object]:
+    together, _, cfg, model = frames
+    return together, cfg, model
 
 
 def test_two_pieces_touching_come_as_one_region(touching: tuple) -> None:
@@ -83,6 +94,20 @@ def test_two_untracked_pieces_touching_are_rejected_not_tracked_as_one(touching:
     assert piece.slot is None and not piece.tracking
     assert piece.state == PieceState.REJECTED
     assert piece.reason is not None and piece.reason.startswith(TOUCHING)
+
+
+def test_pieces_that_come_together_are_one_piece_counted_once(frames: tuple) -> None:
+    """Seen apart, then as one region (laid edge to edge): one is let go as merged, the other stands for
+    both and, larger than a piece, is rejected once still; no piece is left to be lost from view."""
+    together, apart, cfg, model = frames
+    tracking = PieceTracking(cfg.flow, model, Workspace.of_cell(cfg.cell), lambda: None)  # type: ignore[arg-type, return-value]
+    tracking._look(find_cloths(apart), apart.shape, 0.0)
+    assert len(tracking.pieces) == 2
+    for k in range(3):
+        tracking._look(find_cloths(together), together.shape, 1.0 + k)
+    assert [(p.id, p.state) for p in tracking.pieces] == [(0, PieceState.REJECTED)]
+    assert tracking.pieces[0].reason is not None and tracking.pieces[0].reason.startswith(TOUCHING)
+    assert [(p.id, p.reason) for p in tracking.gone] == [(1, f"{TOUCHING}: merged into piece 0")]
 
 
 def test_an_entering_piece_beside_a_tracked_one_gets_no_intake() -> None:

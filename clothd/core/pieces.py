@@ -246,7 +246,7 @@ class PieceTracking:
     def _look(self, regions: list[ClothRegion], frame_shape: tuple[int, ...], t_s: float) -> None:
         h, w = frame_shape[:2]
         seen: set[int] = set()
-        merged: list[np.ndarray] = []  # the untracked pieces' regions this look
+        untracked: list[tuple[np.ndarray, int]] = []  # the untracked pieces' regions this look, and whose
         for region, beside in self._apart_from_tracked(regions):
             outline = self.camera_model.backproject_to_plane(region.corners_px.astype(np.float64))[:, :2]
             centre = outline.mean(axis=0)
@@ -264,15 +264,20 @@ class PieceTracking:
             piece.still = bool(moved * 1e3 < self.cfg.still_mm)
             piece.outline_m, piece.last_centre_m, piece.missed_looks = outline, centre, 0
             piece.beside = beside
-            merged.append(outline)
+            untracked.append((outline, piece.id))
             inside = self.workspace.leaves(outline) is None and not _touches_border(region.corners_px, w, h)
             if inside and piece.still and not beside:
                 self._start(piece, region, outline, t_s)
         for piece in list(self.pieces):
             if piece.slot is not None or piece.id in seen:
                 continue
-            if not piece.driven_out and any(contains(o, piece.centre_m) for o in merged):
-                self.pieces.remove(piece)  # merged into another untracked piece's region: one piece now
+            into = next((k for o, k in untracked if contains(o, piece.centre_m)), None)
+            if into is not None and not piece.driven_out:
+                # Its region merged into another untracked piece's (pieces touching): one piece now, and
+                # this one let go as such, so that it is counted once (rejected), not missed.
+                if piece.state != PieceState.REJECTED:
+                    piece.enter(PieceState.REJECTED, t_s, f"{TOUCHING}: merged into piece {into}")
+                self.leave(piece, t_s)
                 continue
             # Beside a tracked piece, its region may have merged into the tracked one's: not missed, held.
             piece.beside = self._beside_a_tracked(piece)
