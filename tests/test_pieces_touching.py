@@ -9,7 +9,7 @@ import dataclasses
 import numpy as np
 import pytest
 from test_flow_controller import _controller, _tracked
-from test_pieces import GAP_M, _flat_piece
+from test_pieces import GAP_M, SIZE_M, _flat_piece
 
 from clothd.config import load_config
 from clothd.core.conveyor import ConveyorLayout
@@ -20,7 +20,11 @@ from clothd.core.tracker import Tracker
 from clothd.core.workspace import Workspace
 from clothd.taichi_runtime import start_taichi
 from clothd.tools.lockstep import scenario_cameras
-from clothd.tools.lockstep_flow import config_for, flow_scenario
+from clothd.tools.lockstep_flow import LockstepFlow, config_for, flow_scenario
+from hwsim import scenario as scenarios
+from hwsim.infeed import fabric_spec
+from hwsim.pieces import Piece as HwPiece
+from hwsim.scenario import Pose
 from hwsim.scene import SceneCloth
 from hwsim.world import World
 
@@ -135,3 +139,26 @@ def test_a_reject_never_tracked_is_driven_out_as_it_is_once_its_way_is_clear() -
         speeds.append(float(commands.speed_m_s.max()))
     assert touching.driven_out and speeds[0] > 0.0 and speeds == sorted(speeds)
     assert touching.outline_m[:, 0].min() > -0.3
+
+
+@pytest.mark.slow
+def test_two_pieces_laid_touching_go_out_together_as_a_reject_in_lockstep() -> None:
+    """hwsim's flow table with a second piece laid by hand edge to edge behind piece 0, both partly over
+    the infeed edge: the cell rejects them as touching and drives them out together; before, it tracked
+    one mesh over both, placed it, and let it go with the second piece left lying at the outfeed edge."""
+    cfg = load_config(None)
+    data = flow_scenario(6.0, 0).model_dump()
+    data["infeed"]["first_s"] = 3000.0  # no infeed piece: only the two laid here
+    sc = scenarios.parse(data, "flow")
+    run = LockstepFlow(cfg, sc, cameras=1)
+    world = run.world
+    x_min = float(world.pieces[0].cloth.positions_m()[..., 0].min())
+    spec = fabric_spec(sc.cloth, "denim", SIZE_M)
+    pose = Pose(x_m=x_min - SIZE_M[0] / 2, y_m=0.0, theta_rad=0.0)
+    cloth = world.pool.take(spec, pose, 7, world.table.heading_rad)
+    world.pieces.append(HwPiece(1, cloth, "denim", 1, world.t_s))
+    run.run(16.0)
+    assert world.pieces == [] and len(world.outfeed) == 2  # both taken off over the outfeed edge
+    let_go = list(run.cell.tracking.gone)
+    assert let_go and all(p.reason is not None and p.reason.startswith(TOUCHING) for p in let_go)
+    assert all(p.tracked_since_s is None for p in let_go)  # never tracked as one piece
