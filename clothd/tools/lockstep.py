@@ -5,10 +5,10 @@ No clock, no threads, no sleeps: time is the world's, and it advances one tick o
 time. Each tick the controller's last commands reach the drives (hwsim's firmware semantics), the world
 steps, the camera delivers a frame when one is due (rendered, sensor noise and JPEG, as `hwsim serve`
 streams it), the tracker tracks it with the commands that were in force, and the cell controller
-answers. The same seed gives the same run on any machine under any load. What it leaves out is the
-real-time path (the stepper link, the video stream, the compute process, the tick's timing), which the
-integration tests and `clothd bench loop` cover. The files between them are the real ones: hwsim
-writes camera.json and clothd reads it.
+answers. The same seed gives the same run under any load (on one kind of processor: floating point
+differs across instruction sets). What it leaves out is the real-time path (the stepper link, the video
+stream, the compute process, the tick's timing), which the integration tests and `clothd bench loop`
+cover. The files between them are the real ones: hwsim writes camera.json and clothd reads it.
 
 The daemon's own rules for a setpoint are kept to what the benches use: hold and flatten hold the pose
 the cloth has when they are set, a move needs the cloth tracked, and a fault (a halt reason) drops the
