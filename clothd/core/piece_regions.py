@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from clothd.core.camera_model import CameraModel
-from clothd.core.segmentation import ClothRegion
+from clothd.core.segmentation import ClothRegion, disk
 
 # A tracked outline is within ~2 mm of the piece's edge, the segmentation's edge within a pixel (~1 mm):
 # 6 mm leaves no strip of the tracked piece to pass for a piece of its own.
@@ -54,13 +54,13 @@ def outside_tracked(region: ClothRegion, tracked: Tracked) -> list[ClothRegion] 
         return None
     theirs = np.zeros((y1 - y0, x1 - x0), np.uint8)
     cv2.fillPoly(theirs, near, 255)
-    theirs = cv2.dilate(theirs, _disk(2 * m + 1))
+    theirs = cv2.dilate(theirs, disk(2 * m + 1))
     box = region.mask[y0:y1, x0:x1]
     if not cv2.countNonZero(cv2.bitwise_and(box, theirs)):
         return None
     # A strip along the tracked piece's edge (where its estimate fell short by more than the margin) is
     # not a piece: opened away.
-    rest = cv2.morphologyEx(cv2.bitwise_and(box, cv2.bitwise_not(theirs)), cv2.MORPH_OPEN, _disk(_OPEN_PX))
+    rest = cv2.morphologyEx(cv2.bitwise_and(box, cv2.bitwise_not(theirs)), cv2.MORPH_OPEN, disk(_OPEN_PX))
     contours, _ = cv2.findContours(rest, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE, offset=(x0, y0))
     parts = []
     for outline in contours:
@@ -78,10 +78,6 @@ def outside_tracked(region: ClothRegion, tracked: Tracked) -> list[ClothRegion] 
 def _overlap(outline_px: np.ndarray, box: tuple[int, int, int, int]) -> bool:
     x, y, w, h = cv2.boundingRect(outline_px)
     return x < box[2] and x + w > box[0] and y < box[3] and y + h > box[1]
-
-
-def _disk(diameter_px: int) -> np.ndarray:
-    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (diameter_px, diameter_px))
 
 
 def larger_than(outline_m: np.ndarray, max_m: tuple[float, float]) -> tuple[float, float] | None:

@@ -98,7 +98,8 @@ class ClothRegion:
         return np.asarray(max(contours, key=cv2.contourArea).reshape(-1, 2), dtype=np.float64)
 
 
-def _disk(diameter_px: int) -> np.ndarray:
+def disk(diameter_px: int) -> np.ndarray:
+    """A round structuring element that wide."""
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (diameter_px, diameter_px))
 
 
@@ -175,7 +176,7 @@ def find_cloths(image_bgr: np.ndarray) -> list[ClothRegion]:
     bg_level = _median_u8(scaled, rest) if rest.any() else 0.0
     level = max(0.5 * (_median_u8(scaled, core) + bg_level), _MIN_CHROMA * _CHROMA_SCALE)
     above = np.where(textured & (scaled > level), np.uint8(255), np.uint8(0))
-    mask = cv2.morphologyEx(above, cv2.MORPH_OPEN, _disk(_OPEN_PX))
+    mask = cv2.morphologyEx(above, cv2.MORPH_OPEN, disk(_OPEN_PX))
     _, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
     colour = ClothColour((a0, b0), level / _CHROMA_SCALE)
     background_chroma = math.hypot(a0 - 128.0, b0 - 128.0)
@@ -202,7 +203,7 @@ def _closed_component(labels: np.ndarray, label: int, box: np.ndarray, colour: C
     x0, y0 = max(x - _CLOSE_PX, 0), max(y - _CLOSE_PX, 0)
     x1, y1 = min(x + bw + _CLOSE_PX, w), min(y + bh + _CLOSE_PX, h)
     component = np.where(labels[y0:y1, x0:x1] == label, np.uint8(255), np.uint8(0))
-    component = cv2.morphologyEx(component, cv2.MORPH_CLOSE, _disk(_CLOSE_PX))
+    component = cv2.morphologyEx(component, cv2.MORPH_CLOSE, disk(_CLOSE_PX))
     contours, _ = cv2.findContours(component, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE, offset=(x0, y0))
     outline = max(contours, key=cv2.contourArea)
     filled = np.zeros((h, w), np.uint8)
@@ -238,6 +239,6 @@ def cloth_mask_from_outline(outline_px: np.ndarray, width: int, height: int, ero
     if w == 0:
         return mask
     box = np.ascontiguousarray(mask[y : y + h, x : x + w])
-    kernel = _disk(2 * radius + 1)
+    kernel = disk(2 * radius + 1)
     mask[y : y + h, x : x + w] = cv2.erode(box, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
     return mask
