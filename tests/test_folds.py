@@ -3,7 +3,13 @@
 import numpy as np
 import pytest
 
-from clothd.core.folds import HELD_TOLERANCE_FRACTION, fold_heights_m, fold_reading
+from clothd.core.folds import (
+    HELD_TOLERANCE_FRACTION,
+    even_slack_lengths_m,
+    fold_heights_m,
+    fold_reading,
+    within_reach_m,
+)
 
 pytestmark = pytest.mark.clock_free
 
@@ -120,20 +126,39 @@ def test_a_measured_pleat_stands_on_its_feet_not_on_straight_edges() -> None:
     straight = fold_heights_m(xy, _rest(), 0.1)
     measured = fold_heights_m(xy, _rest(), 0.1, _quads_with_crest(crest, [3, 4, 5]))
     np.testing.assert_allclose(straight[:, [4, 5]], np.sqrt(L_M**2 - foot**2))  # 19.4 mm
-    # On the flank, as high as the slack before it: the run's 48 mm of slack spread over its three edges,
-    # 16 mm (the flank edges hold 15 mm each here, the crest edge 18).
-    np.testing.assert_allclose(measured[:, [4, 5]], slack / 3)
+    # On the flank, as high as the slack before it: 15 mm, each flank edge's own (the crest edge holds 18).
+    np.testing.assert_allclose(measured[:, [4, 5]], L_M - foot)
     assert np.all(np.delete(measured, [4, 5], axis=1) == 0.0)
 
 
-def test_a_measured_pleat_does_not_follow_its_unseen_flank_nodes_in_the_plane() -> None:
+def test_a_measured_pleat_holds_its_unseen_flank_nodes_to_an_even_share_of_its_slack() -> None:
     foot = 0.005
     x = _pleat_row_x(foot)
     x[5] += 0.003  # a flank node no camera sees, spread 3 mm out: its outer edge 3 mm shorter
     crest = (3 * L_M - (2 * foot + 0.002)) / 2
-    rest, quads = _rest(), _quads_with_crest(crest, [3, 4, 5])
-    moved = fold_heights_m(_with_row_x(x), rest, 0.1, quads)
-    np.testing.assert_allclose(moved, fold_heights_m(_with_row_x(_pleat_row_x(foot)), rest, 0.1, quads))
+    target = even_slack_lengths_m(_with_row_x(x), _rest(), _quads_with_crest(crest, [3, 4, 5]))
+    share = (3 * L_M - (2 * foot + 0.002)) / 3  # the run's 48 mm of slack over its three edges
+    np.testing.assert_allclose(target.rows[:, 3:6], L_M - share)
+    assert np.all(np.isnan(np.delete(target.rows, [3, 4, 5], axis=1)))
+    assert np.all(np.isnan(target.cols))  # along the pleat the cloth keeps its length: no run holds slack
+
+
+def test_a_rise_measured_without_slack_to_share_holds_nothing() -> None:
+    target = even_slack_lengths_m(_rest(), _rest(), _quads_with_crest(0.004, [3, 4, 5]))
+    assert np.all(np.isnan(target.rows)) and np.all(np.isnan(target.cols))
+
+
+def test_a_quad_higher_than_the_cloth_can_reach_was_something_else() -> None:
+    x = list(np.arange(NX) * L_M)
+    x[5] -= 0.0008  # 1.6 mm of slack in every row: no point of a row reaches 0.5 sqrt(180² - 178.4²) = 12 mm
+    x[6:] = [v - 0.0016 for v in x[6:]]
+    xy = _with_row_x(x)
+    arm = _quads_with_crest(0.25, [4, 5])  # an arm over the cloth, 250 mm up
+    np.testing.assert_array_equal(within_reach_m(xy, _rest(), arm), np.where(arm > 0.1, 0.0, arm))
+    assert np.all(fold_heights_m(xy, _rest(), 0.1, arm) == 0.0)  # not the cloth risen: no fold
+    low = _quads_with_crest(0.004, [4, 5])
+    np.testing.assert_array_equal(within_reach_m(xy, _rest(), low), low)
+    assert fold_heights_m(xy, _rest(), 0.1, low)[:, 5].min() > 0.0
 
 
 def test_a_measured_broad_ridge_rises_as_its_straight_edges() -> None:
@@ -165,4 +190,5 @@ def test_a_noisy_edge_row_takes_its_neighbours_fold_shape() -> None:
     xy[0, 5:, 0] += 0.004  # the edge row reads its flank 4 mm wider: less slack, a steeper rise per slack
     crest = (3 * L_M - (2 * foot + 0.002)) / 2
     z = fold_heights_m(xy, _rest(), 0.1, _quads_with_crest(crest, [3, 4, 5]))
-    np.testing.assert_allclose(z[0, 4], 2 * crest / 3, atol=1e-9)  # as its neighbours' fold says
+    # Its flank edge's slack at its neighbours' rise per slack (1: vertical), not its own steeper one.
+    np.testing.assert_allclose(z[0, 4], L_M - foot, atol=1e-9)

@@ -20,12 +20,16 @@ Where a second view measures the quads' heights, two things are known that lengt
   `RAISED_TOLERANCE_STRAIN`, not only past the tolerance that keeps tracking noise on a flat cloth flat.
 - How steep the fold's flanks are. A fold holding slack S (the sum of L - d over its run of folded
   edges) under a measured crest H is a tent whose flanks rise 2H / S per unit of slack (cot(θ/2) for
-  flank angle θ): an edge rises by (L - d)·2H / S, never more than straight, with L - d its run's mean
-  (the feet are seen, the nodes up in the fold are not: `_spread`). A broad ridge (H large
+  flank angle θ): an edge rises by (L - d)·2H / S, never more than straight. A broad ridge (H large
   against S) rises nearly straight; a pleat as tall as half its slack stands vertical, each edge rising
   by its slack. Straight edges read compress's pleat nodes 3-6 mm above the truth: the cloth lies on the
   table up to the pleat's foot and climbs its flank, while a straight edge leaves the table at the node.
   More slack than a vertical pleat of that height holds (S > 2H) has fallen over: 1 per unit of slack.
+  How a run's slack splits between its edges depends on where the nodes up in the fold stand, which no
+  camera sees; the filter holds them to share it evenly (`even_slack_lengths_m`), as a prior the features
+  can overrule, and the heights read the slack the filter left.
+- Which quads it saw something else in: a quad measured higher than the cloth across it can reach
+  (`within_reach_m`) is taken as flat.
 """
 
 from __future__ import annotations
@@ -88,6 +92,8 @@ def fold_reading(
 ) -> tuple[np.ndarray, FoldedEdges]:
     """`fold_heights_m`, and which edges have folded. held: which had at the last reading of the same
     cloth (None: none); those stay folded down to HELD_TOLERANCE_FRACTION of the tolerance."""
+    if quad_height_m is not None:
+        quad_height_m = within_reach_m(nodes_xy_m, rest_xy_m, quad_height_m)
     q_cols = None if quad_height_m is None else quad_height_m.T
     rows, folded_rows = _chain_heights(
         nodes_xy_m,
@@ -138,7 +144,7 @@ def _chain_heights(
         # A fold's slack is the same in the rows it crosses, but not its noise (a node 3 mm off on an
         # edge row read that row's fold 30 % short): each edge takes the median of its chains' folds.
         per_slack = np.where(folded, _median_across(_rise_per_slack(folded, slack, edge_height_m)), np.nan)
-        rise = np.where(np.isnan(per_slack), rise, np.minimum(rise, _spread(folded, slack) * per_slack))
+        rise = np.where(np.isnan(per_slack), rise, np.minimum(rise, slack * per_slack))
     rise = _median_across(rise)
     flat = np.pad(rise == 0.0, ((0, 0), (1, 1)), constant_values=True)
     on_table = flat[:, :-1] & flat[:, 1:]
@@ -167,17 +173,6 @@ def _rise_per_slack(folded: np.ndarray, slack_m: np.ndarray, edge_height_m: np.n
     return per_slack
 
 
-def _spread(folded: np.ndarray, slack_m: np.ndarray) -> np.ndarray:
-    """(c, k-1): each folded edge's slack as its run's mean (a run of folded edges along a chain). Its feet
-    lie on the table, seen, and hold the run's slack; how the slack splits between the edges inside
-    depends on where the nodes up in the fold stand, which no camera sees: compress's pleat spread a far
-    flank node 3 mm out in the plane, its outer edge read 3.4 mm short, and the node 6 mm high."""
-    out = slack_m.copy()
-    for c, k0, k1 in _runs(folded):
-        out[c, k0:k1] = slack_m[c, k0:k1].mean()
-    return out
-
-
 def _runs(mask: np.ndarray) -> list[tuple[int, int, int]]:
     """(chain, first, end) of every run of True along axis 1 of (c, k) mask."""
     edges = np.diff(np.pad(mask.astype(np.int8), ((0, 0), (1, 1))), axis=1)
@@ -203,3 +198,56 @@ def _climb(rise: np.ndarray, on_table: np.ndarray) -> np.ndarray:
     # total never decreases, so the running maximum over the nodes on the table is the last one's.
     since = np.maximum.accumulate(np.where(on_table, total, 0.0), axis=1)
     return np.asarray(total - since)
+
+
+def even_slack_lengths_m(
+    nodes_xy_m: np.ndarray, rest_xy_m: np.ndarray, quad_height_m: np.ndarray
+) -> FoldedEdges:
+    """In-plane lengths to hold the edges of a measured fold at, rows (ny, nx-1) and columns (nx, ny-1), NaN
+    where none: along each chain, a run of edges beside quads measured risen that holds slack shares its
+    slack evenly (each edge its rest length less the run's mean slack). The feet of a fold are seen, its
+    nodes up in the fold are not: on compress the features on a dying fold's flank pulled its top node 2 mm
+    into the crest, its outer edge read 3 % over length, the node on the table, 5.4 mm low (two cameras'
+    worst node, 5.82 mm; held to an even share, σ 1 mm, 4.51). A run holding no more slack
+    than the noise (RAISED_TOLERANCE_STRAIN) is the cloth along a fold, not across it: left alone."""
+    quad_height_m = within_reach_m(nodes_xy_m, rest_xy_m, quad_height_m)
+    rows = _even_slack(nodes_xy_m, rest_xy_m, _edge_heights(quad_height_m))
+    cols = _even_slack(
+        nodes_xy_m.transpose(1, 0, 2), rest_xy_m.transpose(1, 0, 2), _edge_heights(quad_height_m.T)
+    )
+    return FoldedEdges(rows, cols)
+
+
+def _even_slack(xy: np.ndarray, rest: np.ndarray, edge_height_m: np.ndarray | None) -> np.ndarray:
+    """`even_slack_lengths_m` along c chains of k nodes (c, k, 2): (c, k-1), NaN where none."""
+    rest_length = np.linalg.norm(np.diff(rest, axis=1), axis=2)
+    length = np.linalg.norm(np.diff(xy, axis=1), axis=2)
+    out = np.full(length.shape, np.nan)
+    assert edge_height_m is not None
+    for c, k0, k1 in _runs(edge_height_m > CREST_ABOVE_M):
+        if k1 - k0 < 2:
+            continue
+        slack = float((rest_length[c, k0:k1] - length[c, k0:k1]).mean())
+        if slack > RAISED_TOLERANCE_STRAIN * float(rest_length[c, k0:k1].mean()):
+            out[c, k0:k1] = rest_length[c, k0:k1] - slack
+    return out
+
+
+def within_reach_m(nodes_xy_m: np.ndarray, rest_xy_m: np.ndarray, quad_height_m: np.ndarray) -> np.ndarray:
+    """The quads' measured heights (ny-1, nx-1), 0 where a quad reads higher than the cloth across it can
+    reach: a chain of nodes whose ends lie on the table (as this module's heights always put them) spans
+    D on the table and is Λ long at rest, so no point of it stands higher than a tent of two straight
+    flanks, sqrt(Λ² - D²) / 2. A quad is bounded by the higher of its two rows' and two columns' reach;
+    past it, the further view saw something else there (an arm over the cloth read 246 mm high on occlude,
+    where the cloth around it lay flat)."""
+    rows = _reach_m(nodes_xy_m, rest_xy_m)  # (ny,)
+    cols = _reach_m(nodes_xy_m.transpose(1, 0, 2), rest_xy_m.transpose(1, 0, 2))  # (nx,)
+    reach = np.maximum(np.maximum(rows[:-1], rows[1:])[:, None], np.maximum(cols[:-1], cols[1:])[None, :])
+    return np.asarray(np.where(quad_height_m > reach, 0.0, quad_height_m))
+
+
+def _reach_m(xy: np.ndarray, rest: np.ndarray) -> np.ndarray:
+    """(c,): how high a point of each of c chains along axis 1 can stand, its ends on the table."""
+    rest_length = np.linalg.norm(np.diff(rest, axis=1), axis=2).sum(axis=1)
+    span = np.linalg.norm(xy[:, -1] - xy[:, 0], axis=1)
+    return np.asarray(0.5 * np.sqrt(np.maximum(rest_length**2 - span**2, 0.0)))

@@ -19,13 +19,25 @@ from clothd.core.conveyor import BeltField
 from clothd.core.ekf import UpdateStats
 from clothd.core.estimators.base import Measurements, StateEstimate, boundary, uncorrected
 from clothd.core.feature_set import FeatureSet
-from clothd.core.folds import FoldedEdges, fold_heights_m, fold_reading, folds_across
+from clothd.core.folds import FoldedEdges, even_slack_lengths_m, fold_heights_m, fold_reading, folds_across
 from clothd.core.mesh import QuadMesh, blend, measurement_jacobian
 from clothd.core.mesh_ekf import HeldEdges, NodeBelief
 from clothd.core.physics import CONTACT_HEIGHT_M, MassSpring
 
 # How closely an edge at a fold keeps its length in the plane (`MeshEstimator._held_edges`).
 HELD_EDGE_SIGMA_M = 0.001
+
+
+def _joined(a: HeldEdges | None, b: HeldEdges | None) -> HeldEdges | None:
+    """Both sets of held edges as one (None: neither)."""
+    if a is None or b is None:
+        return a if b is None else b
+    return HeldEdges(
+        np.concatenate([a.edges, b.edges]),
+        np.concatenate([a.bound_m, b.bound_m]),
+        np.concatenate([a.upper, b.upper]),
+        np.concatenate([np.broadcast_to(h.sigma_m, (len(h.edges),)) for h in (a, b)]),
+    )
 
 
 class MeshEstimator:
@@ -129,7 +141,9 @@ class MeshEstimator:
             # information Jᵀ R⁻¹ J, Jᵀ R⁻¹ ν and the gate's Mahalanobis distance are then exactly R_i's.
             residual = np.einsum("kab,kb->ka", whiten, residual)
             J = np.einsum("kab,kcbd->kcad", whiten, J)
-        held = None if m.quad_height_m is None else self._held_edges()
+        held = None
+        if m.quad_height_m is not None:
+            held = _joined(self._held_edges(), self._even_slack_edges(m.quad_height_m))
         stats, inside = belief.correct(
             quads,
             nodes,
@@ -177,6 +191,24 @@ class MeshEstimator:
             upper += [np.ones(len(pairs), bool), np.zeros(int(along.sum()), bool)]
         cat = np.concatenate
         return HeldEdges(cat(edges), cat(bounds), cat(upper), HELD_EDGE_SIGMA_M)
+
+    def _even_slack_edges(self, quad_height_m: np.ndarray) -> HeldEdges | None:
+        """The edges of each measured fold's run held, from both sides, at an even share of its slack
+        (folds.even_slack_lengths_m), σ HELD_EDGE_SIGMA_M; None where no run holds slack."""
+        mesh, belief = self._started()
+        xy = belief.positions_m[:, :2].reshape(mesh.ny, mesh.nx, 2)
+        target = even_slack_lengths_m(xy, mesh.rest_nodes_m(), quad_height_m)
+        idx = np.arange(mesh.n_nodes).reshape(mesh.ny, mesh.nx)
+        edges, bounds = [], []
+        for a, b, t in ((idx[:, :-1], idx[:, 1:], target.rows), (idx[:-1].T, idx[1:].T, target.cols)):
+            on = ~np.isnan(t)
+            edges.append(np.stack([a[on], b[on]], axis=1))
+            bounds.append(t[on])
+        e, bound = np.concatenate(edges), np.concatenate(bounds)
+        if not len(e):
+            return None
+        both = np.repeat([True, False], len(e))
+        return HeldEdges(np.concatenate([e, e]), np.concatenate([bound, bound]), both, HELD_EDGE_SIGMA_M)
 
     def _seen_positions_m(self) -> np.ndarray:
         """Node positions (n, 3) as the frame shows them: where they were in the middle of the exposure,
