@@ -46,6 +46,7 @@ from clothd.core.segmentation import (
     find_cloth,
     full_frame_region,
 )
+from clothd.core.texture_atlas import NewFeatureBinding
 from clothd.core.unfold import unfold
 
 Clock = Callable[[], float]
@@ -85,8 +86,7 @@ class Tracker:
         # Where the cloth is in the first frame: several pieces' trackers each take theirs (core/pieces.py).
         self.find_region: Callable[[np.ndarray], ClothRegion | None] = find_cloth
         self._engine_default = FeatureEngine(cfg.features)
-        # A periodic weave's stripes need a wider LK window to hold some texture across them, and its
-        # measurements count across the stripes only.
+        # A periodic weave's stripes need a wider LK window, and its measurements count across them only.
         f = cfg.features
         periodic = {
             "lk_window_px": f.periodic_lk_window_px,
@@ -279,8 +279,7 @@ class Tracker:
         if region is None or self.second_view.awaits_pair(t_s, views):
             return Estimate.lost(t_s, timing)
         f = self.cfg.features
-        # Features on the cloth seen, not on whatever its rectangle holds besides (a folded-over corner's
-        # place shows the belts).
+        # Features on the cloth seen, not on all its rectangle holds (a folded-over corner's place: belts).
         outline_mask = cloth_mask_from_outline(region.corners_px, w, h, int(f.edge_margin_px))
         mask = cv2.bitwise_and(outline_mask, region.mask)
         px = self.engine.detect(frame, mask, f.max_features).astype(np.float64)
@@ -293,6 +292,7 @@ class Tracker:
         self.estimator.start(self.mesh, np.array([*self.mesh.centre_m, self.mesh.theta_rad]), nodes_m)
         self.features = FeatureSet(self.mesh, self._next_feature_id)
         self.prev, self.prev_t_s = frame, t_s
+        self.new_features = NewFeatureBinding(self.estimator, self.mesh, frame.gray)  # texture_atlas.py
         self.colour = region.colour
         self.periodic, self.repetitive = classify_texture(frame.gray, px, f)
         if self.periodic or self.repetitive:
@@ -400,7 +400,7 @@ class Tracker:
         target = mask if short else cv2.bitwise_and(mask, holes)
         px = self.engine.detect(frame, target, room, avoid_px=features.px).astype(np.float64)
         if len(px):  # in the upkeep of the last tracked frame, self.prev
-            self._add_features(px, *self.estimator.cloth_coordinates(px), self.prev_t_s)
+            self._add_features(px, *self.new_features.bind(frame.gray, px, features), self.prev_t_s)
 
     def _add_features(self, px: np.ndarray, cloth_st: np.ndarray, on_cloth: np.ndarray, t_s: float) -> None:
         """FeatureSet.add, noting where and when the features it takes were detected for the estimate."""

@@ -243,6 +243,13 @@ class MeshEstimator:
         # px were found in this frame: bind them through the nodes as the frame shows them.
         return cloth_coordinates(mesh, self.camera_model.project(self._seen_positions_m()), px)
 
+    def nodes_px(self) -> tuple[np.ndarray, np.ndarray]:
+        """Where the nodes lie in the frame (n, 2) (as it shows them, as `cloth_coordinates` binds), and
+        their heights (n,), metres."""
+        _, belief = self._started()
+        seen = self._seen_positions_m()
+        return self.camera_model.project(seen), np.asarray(belief.positions_m[:, 2])
+
     def outline_px(self) -> np.ndarray | None:
         mesh, belief = self._started()
         return boundary(self.camera_model.project(belief.positions_m).reshape(mesh.ny, mesh.nx, 2))
