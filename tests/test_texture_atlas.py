@@ -7,10 +7,14 @@ import cv2
 import numpy as np
 import pytest
 
+from clothd.config import MeshConfig, TrackerConfig
 from clothd.core.binding import cloth_coordinates
 from clothd.core.camera_model import CameraModel
+from clothd.core.estimators import make_estimator
+from clothd.core.feature_set import FeatureSet
 from clothd.core.mesh import QuadMesh
-from clothd.core.texture_atlas import TextureAtlas, atlas_holds
+from clothd.core.texture_atlas import MAX_PLACED_PER_UPKEEP, NewFeatureBinding, TextureAtlas, atlas_holds
+from clothd.taichi_runtime import start_taichi
 
 pytestmark = pytest.mark.clock_free
 
@@ -103,3 +107,25 @@ def test_a_fold_is_not_judged() -> None:
     placed, unlike = atlas.relocate(frame, nodes_px, np.zeros(mesh.n_nodes, bool), material)
     assert not unlike.any()
     np.testing.assert_array_equal(placed, material)
+
+
+def test_a_frame_places_at_most_its_share_of_new_features_the_strongest_first() -> None:
+    start_taichi()
+    camera, texture, mesh, _, _ = _setup()
+    estimator = make_estimator(TrackerConfig(mesh=MeshConfig(nodes_x=9, nodes_y=7)), camera)
+    rest = mesh.rest_nodes_m()
+    estimator.start(
+        mesh,
+        np.array([*mesh.centre_m, mesh.theta_rad]),
+        np.column_stack([rest.reshape(-1, 2), np.zeros(mesh.n_nodes)]),
+    )
+    frame = _render(camera, texture, np.zeros(2))
+    binding = NewFeatureBinding(estimator, mesh, frame)
+    s, t = np.meshgrid(np.linspace(-0.07, 0.07, 12), np.linspace(-0.05, 0.05, 10))
+    material = np.stack([s.ravel(), t.ravel()], axis=1)  # 120 points, more than a frame places
+    px = camera.project(np.column_stack([material, np.zeros(len(material))]))
+    held = FeatureSet(mesh)
+    held.add(px[:40], material[:40], np.ones(40, bool))
+    _, taken = binding.bind(frame, px, held)
+    assert taken.sum() == MAX_PLACED_PER_UPKEEP < len(px)
+    assert taken[:MAX_PLACED_PER_UPKEEP].all()  # in the detector's order, the strongest corners first
