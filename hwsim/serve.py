@@ -49,6 +49,10 @@ from hwsim.taichi_runtime import ensure_taichi
 from hwsim.world import World
 
 MAX_CATCH_UP_S = 1.0  # further behind, the world gives up the time rather than run ever faster
+# Between its step and each camera's frame the world gives up its core this long: the cloth and the camera
+# take no core of a real cell's PC, and a kernel worker waiting behind a long run of them (a serial port's
+# bytes) held the daemon's link answers up (docs/benchmarks.md, "A loaded PC").
+CORE_BREAK_S = 0.0005
 
 
 @dataclass
@@ -205,6 +209,7 @@ class Cell:
                     firmware.bus.apply_to(self.world.table, firmware.modules)
                 self.world.step()
                 self._update_truth(counters)
+            time.sleep(CORE_BREAK_S)
             behind_s = time.monotonic() - next_t
             if any(self.world.frame_index % s.every == 0 for s in self.streams):
                 dropped_last = behind_s >= dt and not dropped_last
@@ -260,6 +265,8 @@ class Cell:
                 stream.frame = None  # a client that comes waits for a fresh frame, not an old one
                 continue
             k = self.world.frame_index // stream.every
+            if rendered:
+                time.sleep(CORE_BREAK_S)
             rendered.append(
                 (
                     stream,
