@@ -257,7 +257,7 @@ class Cell:
         other than the first renders only while a client streams it. The frames of one instant go out
         together, as two cameras exposing at once deliver theirs: published one by one, the second camera's
         frame left a render and an encode after the first's, a skew no real pair of that instant has."""
-        rendered = []
+        rendered: list[tuple[Stream, VideoFrame]] = []
         for i, stream in enumerate(self.streams):
             if not force and self.world.frame_index % stream.every != 0:
                 continue
