@@ -91,13 +91,13 @@ class InformationPattern:
 
 @dataclass(frozen=True)
 class HeldEdges:
-    """Mesh edges (e, 2) whose in-plane length is held at a bound (e,) m, σ sigma_m (one for all, or each
-    edge's (e,)): from above where upper (e,) is True, from below where it is False."""
+    """Mesh edges (e, 2) whose in-plane length is held at a bound (e,) m, σ sigma_m: from above where upper
+    (e,) is True, from below where it is False."""
 
     edges: np.ndarray
     bound_m: np.ndarray
     upper: np.ndarray
-    sigma_m: float | np.ndarray
+    sigma_m: float
 
 
 def _quad_mean(quads: np.ndarray, residual_px: np.ndarray) -> np.ndarray:
@@ -272,10 +272,9 @@ class NodeBelief:
         length = np.linalg.norm(diff, axis=1)
         past = np.where(held.upper, length > held.bound_m, length < held.bound_m)
         u = diff / np.maximum(length, 1e-12)[:, None]
-        sigma = np.broadcast_to(held.sigma_m, (len(e),))
-        h = np.where(past[:, None], np.concatenate([u, -u], axis=1), 0.0) / sigma[:, None]
+        h = np.where(past[:, None], np.concatenate([u, -u], axis=1), 0.0) / held.sigma_m
         info = np.einsum("ea,eb->eab", h, h).reshape(len(e), -1)
-        vector = h * ((held.bound_m - length) / sigma)[:, None]
+        vector = h * ((held.bound_m - length) / held.sigma_m)[:, None]
         dofs = np.concatenate([d * e[:, :1] + np.arange(d), d * e[:, 1:] + np.arange(d)], axis=1)
         w = 2 * d
         slots = pat.slots(np.repeat(dofs, w, axis=1).ravel(), np.tile(dofs, (1, w)).ravel())

@@ -29,14 +29,12 @@ HELD_EDGE_SIGMA_M = 0.001
 
 
 def _joined(a: HeldEdges | None, b: HeldEdges | None) -> HeldEdges | None:
-    """Both sets of held edges as one (None: neither)."""
+    """Both sets of held edges as one (None: neither); both are held at HELD_EDGE_SIGMA_M."""
     if a is None or b is None:
         return a if b is None else b
+    cat = np.concatenate
     return HeldEdges(
-        np.concatenate([a.edges, b.edges]),
-        np.concatenate([a.bound_m, b.bound_m]),
-        np.concatenate([a.upper, b.upper]),
-        np.concatenate([np.broadcast_to(h.sigma_m, (len(h.edges),)) for h in (a, b)]),
+        cat([a.edges, b.edges]), cat([a.bound_m, b.bound_m]), cat([a.upper, b.upper]), HELD_EDGE_SIGMA_M
     )
 
 
