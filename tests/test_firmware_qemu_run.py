@@ -35,6 +35,8 @@ pytestmark = pytest.mark.slow
 N = 48  # BOARD_MODULES, and hwsim's cell
 WATCHDOG_S = 0.25  # docs/serial-protocol.md
 FAULT_WATCHDOG = 1
+QUIET_S = 10.0  # no frame from a killed daemon this long after its last: that one was the last
+KILL_ATTEMPTS = 3
 T = wire.MsgType
 
 
@@ -196,13 +198,27 @@ def _move(daemon: Daemon, tap: WireTap, firmware: QemuFirmware) -> Seen:
     return command
 
 
-def _last_frame_and_its_watchdog_fault(tap: WireTap) -> tuple[Seen, Seen]:
-    """The daemon's last frame and the watchdog's FAULT after it. What the killed daemon wrote may still
-    be on its way through the tap: the last frame is the last one once the FAULT after its ACK is there
-    and no later frame has come (a later one would have re-armed the watchdog)."""
+def _followed(tap: WireTap, frame: Seen) -> bool:
+    """Whether a later frame to the firmware comes within QUIET_S."""
+    try:
+        tap.first(frame.t_s, lambda f: f.to_firmware and f is not frame, "a later frame", QUIET_S)
+    except AssertionError:
+        return False
+    return True
+
+
+def _last_frame_and_its_watchdog_fault(tap: WireTap) -> tuple[Seen, Seen] | None:
+    """The daemon's last frame and the watchdog's FAULT after it; None when that frame is no COMMAND (the
+    daemon was killed as its link reconnected: nothing was driven, so nothing for the watchdog to time).
+    What the killed daemon wrote may still be on its way through the tap: the last frame is the last one
+    once the FAULT after its ACK is there, or QUIET_S has passed, and no later frame has come (a later one
+    would have re-armed the watchdog)."""
     while True:
         last = [f for f in tap.since(0.0) if f.to_firmware][-1]  # in the order read
-        assert last.msg.type == T.COMMAND, last  # a moving daemon sends a COMMAND each tick
+        if last.msg.type != T.COMMAND:
+            if _followed(tap, last):
+                continue
+            return None
         # The last COMMAND's ACK: a FAULT after it on the line was sent after the COMMAND re-armed the
         # watchdog (a stalled daemon on a loaded machine may have tripped it just before).
         ack = _acked(tap, last)
@@ -216,7 +232,10 @@ def _last_frame_and_its_watchdog_fault(tap: WireTap) -> tuple[Seen, Seen]:
 
 
 def _start(hwsim_cell: Cell, tap: WireTap, tmp_path: Path) -> Daemon:
-    return start_daemon(hwsim_cell, tmp_path, config={"stepper": {"port": tap.path}})
+    # QEMU's emulated USART on a loaded machine pauses for longer than a controller answers (150 ms by
+    # default): the link waits up to a second before it takes the emulator for lost and says HELLO again.
+    link = {"port": tap.path, "ack_timeout_s": 0.2, "max_retransmits": 4}
+    return start_daemon(hwsim_cell, tmp_path, config={"stepper": link})
 
 
 def test_clothd_run_drives_the_qemu_firmware_and_its_estop_latches(
@@ -284,23 +303,31 @@ def test_clothd_run_drives_the_qemu_firmware_and_its_estop_latches(
 def test_killing_clothd_run_stops_the_qemu_firmware_through_its_watchdog(
     hwsim_cell: Cell, tap: WireTap, firmware: QemuFirmware, tmp_path: Path
 ) -> None:
-    daemon = _start(hwsim_cell, tap, tmp_path)
-    try:
-        _move(daemon, tap, firmware)
-        os.kill(daemon.proc.pid, signal.SIGKILL)
-        daemon.proc.wait()
-        last, fault = _last_frame_and_its_watchdog_fault(tap)
-        took_s = fault.t_s - last.t_s
-        print(
-            f"\nclothd run killed -> QEMU watchdog FAULT {took_s * 1e3:.1f} ms "
-            "after the last frame on the wire"
-        )
-        # The firmware times from when the last frame arrived, after the tap passed it on: never sooner.
-        assert took_s >= WATCHDOG_S
-        wait(lambda: not any(_rates(firmware)), 60, "every module ramped to a stop")
-        assert firmware.read_u8("drivers_enabled") == 1  # a controlled stop, not a cut
-        still = _positions(firmware)
-        time.sleep(0.1)
-        assert _positions(firmware) == still
-    finally:
-        daemon.stop()
+    for attempt in range(KILL_ATTEMPTS):
+        (workdir := tmp_path / f"attempt{attempt}").mkdir()
+        daemon = _start(hwsim_cell, tap, workdir)
+        try:
+            _move(daemon, tap, firmware)
+            # Killed while commanding: right after a fresh COMMAND's ACK (the move may be over by now).
+            _acked(tap, tap.first(time.monotonic(), _is(T.COMMAND, to_firmware=True), "a COMMAND"))
+            os.kill(daemon.proc.pid, signal.SIGKILL)
+            daemon.proc.wait()
+            judged = _last_frame_and_its_watchdog_fault(tap)
+        finally:
+            daemon.stop()
+        if judged is not None:
+            break
+        # A loaded machine starves the emulator past the link's deadline now and then.
+        print(f"\nattempt {attempt + 1}: killed as its link reconnected (no COMMAND last); again")
+    else:
+        pytest.fail(f"in {KILL_ATTEMPTS} attempts, every kill came as the link reconnected")
+    last, fault = judged
+    took_s = fault.t_s - last.t_s
+    print(f"\nclothd run killed -> QEMU watchdog FAULT {took_s * 1e3:.1f} ms after its last frame")
+    # The firmware times from when the last frame arrived, after the tap passed it on: never sooner.
+    assert took_s >= WATCHDOG_S
+    wait(lambda: not any(_rates(firmware)), 60, "every module ramped to a stop")
+    assert firmware.read_u8("drivers_enabled") == 1  # a controlled stop, not a cut
+    still = _positions(firmware)
+    time.sleep(0.1)
+    assert _positions(firmware) == still

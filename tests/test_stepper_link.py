@@ -20,7 +20,7 @@ import pytest
 from clothd.config import StepperConfig
 from clothd.core.messages import ModuleCommands
 from clothd.drivers import wire
-from clothd.drivers.stepper_link import StepperLink
+from clothd.drivers.stepper_link import ESTOP_REPEAT_S, StepperLink
 from clothd.tools.pty_relay import PtyRelay
 from hwsim.firmware import FAULT_WATCHDOG, WATCHDOG_S, Firmware, TableDrives
 from hwsim.scenario import TableSpec
@@ -368,6 +368,80 @@ def test_a_held_estop_keeps_the_link_alive_without_false_faults(tmp_path: Path) 
         await _tick(link, _forward(0.05), lambda: time.monotonic() > held_until)
         assert fw.estopped and not fw.watchdog_tripped
         assert link.connected and not link.faults and link.counters.losses == 0
+
+    _with_relay(tmp_path, body)
+
+
+def test_an_estop_waiting_on_a_late_controller_is_repeated_at_its_pace_not_flooded(tmp_path: Path) -> None:
+    """Answers late (past the ack timeout, inside the deadline) when the e-stop comes: with no command
+    left to retransmit, the link used to wake on every pass of its loop for the overdue retransmit and
+    repeat the ESTOP each time, thousands a second, burying the controller's answers under them."""
+
+    async def body(fw: Firmware, table: Table, relay: PtyRelay, link: StepperLink) -> None:
+        await _tick(link, _forward(0.05), lambda: table.cmd_speed_m_s[0] > 0.04)
+        relay.drop_replies = True  # the controller hears; its answers are late
+        sent_before = link.counters.sent
+        link.estop()
+        held_s = 0.15  # the ack timeout (50 ms) passes, the deadline (300 ms here) does not
+        await asyncio.sleep(held_s)
+        repeats = link.counters.sent - sent_before - 1
+        relay.drop_replies = False
+        # One each ESTOP_REPEAT_S; a loaded machine wakes the link less often, never more.
+        assert 0 < repeats <= held_s / ESTOP_REPEAT_S + 2, repeats
+        await _until(lambda: link.controller_estopped)
+        assert fw.estopped and not table.cmd_speed_m_s.any()
+
+    _with_relay(tmp_path, body, max_retransmits=5)
+
+
+def test_answers_from_before_a_clear_made_while_the_link_was_down_do_not_latch_it_again(
+    tmp_path: Path,
+) -> None:
+    """The operator clears while the controller cannot be heard; the answers that were on their way (a
+    backlog on a slow line, showing the old latch) arrive as the link comes back, before the clear goes.
+    They used to latch the host again, and the clear was never sent."""
+
+    async def body(fw: Firmware, table: Table, relay: PtyRelay, link: StepperLink) -> None:
+        link.estop()
+        await _until(lambda: fw.estopped and link.controller_estopped)
+        relay.drop_replies = True
+        await _tick(link, _forward(0.03), lambda: not link.connected)
+        link.estop_clear()
+        acked_before = link.counters.acked
+        stale = wire.DELIMITER + wire.encode(wire.MsgType.ACK, 999, bytes([wire.FLAG_ESTOP]))
+        # Read while the link is not up: a port being opened drops what waited in it, so sent until read.
+        deadline = time.monotonic() + 3.0
+        while link.counters.acked == acked_before:
+            assert time.monotonic() < deadline, "the stale answer was never read"
+            relay.inject(stale)
+            await asyncio.sleep(0.1)
+        assert not link.connected
+        relay.drop_replies = False
+        await _tick(
+            link, _forward(0.03), lambda: not fw.estopped and table.cmd_speed_m_s[0] > 0.02, timeout_s=5.0
+        )
+        assert not link.estopped and not link.faults, (link.state, link.faults, link.counters)
+
+    _with_relay(tmp_path, body)
+
+
+def test_a_clear_lost_with_the_link_is_sent_again_when_it_is_back(tmp_path: Path) -> None:
+    """A clear written as the link went down may never have reached the controller, which then refuses
+    every command; the refusals answer messages sent after the clear, so they used to count for nothing,
+    and the host and the controller stayed apart for good."""
+
+    async def body(fw: Firmware, table: Table, relay: PtyRelay, link: StepperLink) -> None:
+        link.estop()
+        await _until(lambda: fw.estopped and link.controller_estopped)
+        relay.drop_commands = True
+        link.estop_clear()  # written, never heard
+        await _tick(link, _forward(0.03), lambda: not link.connected)
+        assert fw.estopped
+        relay.drop_commands = False
+        await _tick(
+            link, _forward(0.03), lambda: not fw.estopped and table.cmd_speed_m_s[0] > 0.02, timeout_s=5.0
+        )
+        assert not link.estopped
 
     _with_relay(tmp_path, body)
 

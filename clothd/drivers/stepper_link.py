@@ -307,6 +307,8 @@ class StepperLink:
         latched before this link came up, or it refused a clear while its input stays open): the host
         latches too and reports it as that input's FAULT, so no setpoint waits to run on a clear. An
         answer to a message sent before the last clear still shows the old latch, and counts for nothing."""
+        if self._clear_on_connect:
+            return  # a clear waits for the link to come up: every answer until then predates it
         if self._clear_seq is not None:
             if seq != self._clear_seq:
                 return
@@ -329,12 +331,18 @@ class StepperLink:
         min_wait_s = 0.0
         while True:
             # Wake for the next retransmit or the deadline exactly, not on a coarse grid: the deadline is
-            # a safety figure.
-            wait_s = ESTOP_REPEAT_S
-            if self._unanswered_since_s is not None:
-                due_s = self._unanswered_since_s + cfg.ack_timeout_s * (self._retries + 1)
-                wait_s = min(wait_s, max(due_s - self.clock(), min_wait_s))
-            wake_s = self.clock() + wait_s
+            # a safety figure. With nothing to retransmit (an e-stop drops the pending command) the next
+            # wake is the deadline: a retransmit's time long past would wake the loop on every pass, and
+            # each pass repeats the ESTOP, a flood that buries the controller's answers.
+            now_s = self.clock()
+            wake_s = now_s + ESTOP_REPEAT_S
+            since = self._unanswered_since_s
+            if since is not None:
+                wake_s = min(wake_s, since + lost_after_s)
+                if self._pending is not None:
+                    wake_s = min(wake_s, since + cfg.ack_timeout_s * (self._retries + 1))
+            wait_s = max(wake_s - now_s, min_wait_s)
+            wake_s = now_s + wait_s
             await asyncio.sleep(wait_s)
             held_up = self.clock() - wake_s > HELD_UP_S
             min_wait_s = 0.0
@@ -428,6 +436,9 @@ class StepperLink:
 
     def _close(self) -> None:
         self._down("disconnected")
+        if self._clear_seq is not None:  # a clear not answered may never have left: sent again on connect
+            self._clear_seq = None
+            self._clear_on_connect = True
         self._pending = None
         self._unanswered_since_s = None
         self._retries = 0
