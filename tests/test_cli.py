@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from clothd.cli import build_parser
+from clothd.errors import InvalidRequestError
 from clothd.tools.bench_speed import STAGES, Row, format_rows, plot, read_rows, rows_json
 
 pytestmark = pytest.mark.clock_free
@@ -53,3 +54,22 @@ def test_bench_speed_plots_its_rows_beside_a_baseline_read_back_from_json(tmp_pa
     assert "clothd before" in format_rows(rows + before)
     plot(rows, tmp_path / "p.png", before)
     assert (tmp_path / "p.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize("bad", ["-1", "101", "ten"])
+def test_bench_flatten_refuses_a_skew_outside_what_hwsim_renders(
+    bad: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as done:
+        build_parser().parse_args(["bench", "flatten", "--lockstep", "--skew-ms", bad])
+    assert done.value.code == 2 and "milliseconds, 0 to 100" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    ("extra", "reason"),
+    [([], "needs --lockstep"), (["--lockstep", "--cameras", "1"], "needs a second camera")],
+)
+def test_bench_flatten_takes_a_skew_only_where_it_can_render_one(extra: list[str], reason: str) -> None:
+    args = build_parser().parse_args(["bench", "flatten", "--skew-ms", "10", *extra])
+    with pytest.raises(InvalidRequestError, match=reason):
+        args.func(args)

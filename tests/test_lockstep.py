@@ -9,7 +9,9 @@ import pytest
 
 from clothd.config import load_config
 from clothd.tools.bench_flatten import FLAT_AREA_RATIO, FLAT_HEIGHT_M, PUSH_REACH_M, PUSH_S
-from clothd.tools.lockstep import LockstepCell
+from clothd.tools.lockstep import LockstepCell, scenario_cameras
+from hwsim import scenario as scenarios
+from hwsim.world import World
 
 pytestmark = pytest.mark.clock_free
 
@@ -82,3 +84,12 @@ def test_a_folded_corner_is_reported_as_a_flap_and_not_pulled(cell: LockstepCell
     assert fastest_m_s < 0.005  # only the pose hold's trims: nothing pulls
     assert cell.truth()["folded_ratio"] >= 0.95 * folded
     assert cell.status()["flatness"]["flaps"]
+
+
+def test_a_skew_given_delays_every_further_camera_and_never_the_first() -> None:
+    sc = scenarios.load("cell")
+    world = World(sc, log_commands=False)
+    as_set = [c.capture_skew_s for c in sc.camera_specs]
+    assert [s.skew_s for s in scenario_cameras(sc, world, None)[0]] == as_set
+    sensors, models = scenario_cameras(sc, world, None, 0.01)
+    assert len(sensors) == len(models) == 2 and [s.skew_s for s in sensors] == [0.0, 0.01]

@@ -9,7 +9,15 @@ from clothd.config import load_config, with_overrides
 from clothd.errors import InvalidRequestError
 from clothd.tools.bench_cli_flow import add_flow
 from clothd.tools.bench_estop import add_estop
-from clothd.tools.cli_args import TUNE_TRIALS, Subparsers, add_cameras, dist, mesh_size, positive_int
+from clothd.tools.cli_args import (
+    TUNE_TRIALS,
+    Subparsers,
+    add_cameras,
+    dist,
+    mesh_size,
+    positive_int,
+    skew_ms,
+)
 
 
 def _cmd_bench_loop(args: argparse.Namespace) -> int:
@@ -32,6 +40,10 @@ def _cmd_bench_loop(args: argparse.Namespace) -> int:
 def _cmd_bench_flatten(args: argparse.Namespace) -> int:
     from clothd.tools.bench_flatten import format_result, run_bench, write_json
 
+    if args.skew_ms is not None and not args.lockstep:
+        raise InvalidRequestError("--skew-ms needs --lockstep: hwsim serve takes its skew from its scenario")
+    if args.skew_ms is not None and args.cameras == 1:
+        raise InvalidRequestError("--skew-ms needs a second camera: leave out --cameras 1")
     result = run_bench(
         starts=args.starts,
         seed=args.seed,
@@ -39,6 +51,7 @@ def _cmd_bench_flatten(args: argparse.Namespace) -> int:
         lockstep=args.lockstep,
         start=args.start,
         cameras=args.cameras,
+        skew_s=None if args.skew_ms is None else args.skew_ms * 1e-3,
     )
     print(format_result(result))
     if args.json:
@@ -334,6 +347,11 @@ def _add_flatten(bsub: Subparsers) -> None:
         "--lockstep",
         action="store_true",
         help="hwsim and the tracker and controller in one process, tick by tick, as fast as the CPU allows",
+    )
+    bfl.add_argument(
+        "--skew-ms",
+        type=skew_ms,
+        help="with --lockstep: every further camera captures this long after the first (0-100 ms)",
     )
     bfl.add_argument("--json", type=Path, help="also write the figures and every run as JSON")
     bfl.set_defaults(func=_cmd_bench_flatten)

@@ -323,19 +323,21 @@ def run_bench(
     lockstep: bool = False,
     start: str = "pushed",
     cameras: int | None = None,
+    skew_s: float | None = None,
 ) -> dict[str, Any]:
     """Each controller runs the same seeded sequence of starts until `starts` of them were wrinkled (or
     MAX_DRAWS_PER_START x starts were drawn). In lockstep every start runs on a cell built afresh, and
     `realtime_factor` is the simulated seconds per wall second over both controllers. start: "pushed" or
-    "laid"; cameras: the cell's first this many (None: all)."""
+    "laid"; cameras: the cell's first this many (None: all); skew_s: lockstep only, every further camera's
+    capture this long after the first's (None: as the cell sets it)."""
     plan = [draw_start(np.random.default_rng([seed, k])) for k in range(MAX_DRAWS_PER_START * starts)]
     if start == "laid":  # the same lines, laid: the pushed plan's draws stay as they are
         for k, drawn in enumerate(plan):
             drawn["laid"] = laid_ridges(drawn, np.random.default_rng([seed, k, 1]))
-    result: dict[str, Any] = {"starts": plan}
+    result: dict[str, Any] = {"starts": plan, "skew_s": skew_s}
     if lockstep:
         t_wall = time.perf_counter()
-        per_variant, simulated_s = _lockstep_rows(plan, starts, flatten_s, move_s, cameras)
+        per_variant, simulated_s = _lockstep_rows(plan, starts, flatten_s, move_s, (cameras, skew_s))
         for (variant, _, _), variant_rows in zip(VARIANTS, per_variant, strict=True):
             result[variant] = {"summary": _summary(variant_rows, flatten_s), "runs": variant_rows}
         result["realtime_factor"] = simulated_s / (time.perf_counter() - t_wall)
@@ -355,7 +357,7 @@ def run_bench(
 
 
 def _lockstep_rows(
-    plan: list[dict[str, Any]], starts: int, flatten_s: float, move_s: float, cameras: int | None
+    plan: list[dict[str, Any]], starts: int, flatten_s: float, move_s: float, views: Views
 ) -> tuple[list[list[dict[str, Any]]], float]:
     """Each controller's rows over the plan's first draws until `starts` were wrinkled, in lockstep, and
     the simulated seconds. Every (controller, start) runs on a cell built afresh, so they share nothing
@@ -376,7 +378,7 @@ def _lockstep_rows(
         while len(results) < len(plan) and wrinkled() < starts:
             draws = plan[len(results) : len(results) + starts - wrinkled()]
             jobs = [
-                [pool.submit(_lockstep_start, k, drawn, flatten_s, move_s, cameras) for k in range(n)]
+                [pool.submit(_lockstep_start, k, drawn, flatten_s, move_s, views) for k in range(n)]
                 for drawn in draws
             ]
             for job in (j for per_draw in jobs for j in per_draw):
@@ -391,18 +393,19 @@ def _one_thread_each() -> None:
     cv2.setNumThreads(1)
 
 
-_cells: dict[tuple[int, int | None], LockstepCell] = {}  # a pool worker's cells, by controller and cameras
+Views = tuple[int | None, float | None]  # the cell's cameras and skew, as run_bench's
+_cells: dict[tuple[int, Views], LockstepCell] = {}  # a pool worker's cells, by controller and views
 
 
 def _lockstep_start(
-    k: int, start: dict[str, Any], flatten_s: float, move_s: float, cameras: int | None
+    k: int, start: dict[str, Any], flatten_s: float, move_s: float, views: Views
 ) -> tuple[dict[str, Any], float]:
     """One start for VARIANTS[k] in lockstep, in this process: its row and the simulated seconds."""
     _, mode, flatten = VARIANTS[k]
-    twin = _cells.get((k, cameras))
+    twin = _cells.get((k, views))
     if twin is None:
         cfg = with_overrides(load_config(None), {"control": {"flatten": flatten}})
-        twin = _cells[(k, cameras)] = LockstepCell(cfg, cameras=cameras)
+        twin = _cells[(k, views)] = LockstepCell(cfg, cameras=views[0], skew_s=views[1])
     else:
         twin.restart()
     begun_s = twin.simulated_s
@@ -430,6 +433,8 @@ def format_result(result: dict[str, Any]) -> str:
                 f"(p50), {s['height_error_at_start_mm_max']:.2f} mm (max); laid ridges found "
                 f"{s['ridges_found_pct']:.0f} %"
             )
+    if result.get("skew_s"):
+        lines.append(f"(every further camera captured {result['skew_s'] * 1e3:g} ms after the first)")
     return "\n".join(lines)
 
 

@@ -27,6 +27,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def skew_ms(text: str) -> float:
+    """A capture skew in milliseconds, 0-100 (hwsim's scenarios allow up to 0.1 s)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = -1.0
+    if not 0.0 <= value <= 100.0:
+        raise argparse.ArgumentTypeError(f"{text!r}: milliseconds, 0 to 100")
+    return value
+
+
 def numbers(text: str, count: int) -> tuple[float, ...]:
     try:
         values = tuple(float(v) for v in text.split(","))

@@ -49,17 +49,19 @@ CAMERA_FPS = 15.0  # as `hwsim serve` streams it
 
 
 def scenario_cameras(
-    sc: scenarios.Scenario, world: World, cameras: int | None
+    sc: scenarios.Scenario, world: World, cameras: int | None, skew_s: float | None = None
 ) -> tuple[list[Sensor], list[CameraModel]]:
     """hwsim's sensors of the scenario's first `cameras` cameras (None: all), and clothd's models of them
-    read from the camera.json hwsim writes: the interface between them, as live."""
+    read from the camera.json hwsim writes: the interface between them, as live. skew_s: every further
+    camera's capture this long after the first's (None: as the scenario sets it)."""
     sensors, models = [], []
     with tempfile.TemporaryDirectory(prefix="clothd-lockstep-") as tmp:
         for index, spec in enumerate(sc.camera_specs[:cameras]):
             camera = Camera.from_spec(spec)
             camera.save(Path(tmp) / f"camera{index}.json")
             models.append(read_camera(Path(tmp) / f"camera{index}.json"))
-            sensors.append(Sensor(sc, camera, world.cloth.grid, index, spec.capture_skew_s))
+            skew = spec.capture_skew_s if skew_s is None or index == 0 else skew_s
+            sensors.append(Sensor(sc, camera, world.cloth.grid, index, skew))
     return sensors, models
 
 
@@ -89,8 +91,10 @@ def frames_of(world: World, sensors: list[Sensor], k: int) -> tuple[np.ndarray, 
 class LockstepCell:
     """hwsim's scenario and clothd's loop, advanced together by `sleep`."""
 
-    def __init__(self, cfg: Config, scenario: str = "cell", cameras: int | None = None) -> None:
-        """cameras: the scenario's first this many (None: all of them)."""
+    def __init__(
+        self, cfg: Config, scenario: str = "cell", cameras: int | None = None, skew_s: float | None = None
+    ) -> None:
+        """cameras: the scenario's first this many (None: all of them); skew_s: as scenario_cameras'."""
         start_taichi(cfg.taichi.arch)
         sc = self.scenario = scenarios.load(scenario)
         self.world = World(sc, log_commands=False)
@@ -98,7 +102,7 @@ class LockstepCell:
         self.period_s = cfg.loop.period_s
         if not math.isclose(self.world.dt_s, self.period_s):
             raise ValueError(f"lockstep needs the world's step ({self.world.dt_s:g} s) to be the tick")
-        self.sensors, models = scenario_cameras(sc, self.world, cameras)
+        self.sensors, models = scenario_cameras(sc, self.world, cameras, skew_s)
         self.camera_every = max(1, round(sc.fps / CAMERA_FPS))
         layout = ConveyorLayout.of_cell(cfg.cell)
         self.tracker = Tracker(cfg.tracker, models[0], layout, other_cameras=models[1:])
