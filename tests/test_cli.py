@@ -73,3 +73,9 @@ def test_bench_flatten_takes_a_skew_only_where_it_can_render_one(extra: list[str
     args = build_parser().parse_args(["bench", "flatten", "--skew-ms", "10", *extra])
     with pytest.raises(InvalidRequestError, match=reason):
         args.func(args)
+
+
+def test_bench_accuracy_takes_a_skew_only_beside_a_second_camera() -> None:
+    args = build_parser().parse_args(["bench", "accuracy", "--skew-ms", "10"])
+    with pytest.raises(InvalidRequestError, match="needs a second camera"):
+        args.func(args)

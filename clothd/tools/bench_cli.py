@@ -105,12 +105,15 @@ def _cmd_bench_accuracy(args: argparse.Namespace) -> int:
     from clothd.tools.bench_accuracy import MODES, format_table, grade, plot, rows_json
     from clothd.tools.recordings import scenario_recording
 
+    if args.skew_ms is not None and args.cameras < 2:
+        raise InvalidRequestError("--skew-ms needs a second camera: add --cameras 2")
     cfg = load_config(args.config)
     start_taichi(cfg.taichi.arch)
     args.out.mkdir(parents=True, exist_ok=True)
     rows = []
     for scenario in args.scenarios:
-        rec = scenario_recording(args.cache, scenario, args.duration, args.cameras)
+        skew_s = None if args.skew_ms is None else args.skew_ms * 1e-3
+        rec = scenario_recording(args.cache, scenario, args.duration, args.cameras, skew_s)
         graded = {}
         oracles = (False, True) if args.oracle else (False,)
         for (label, model, use_input), oracle in itertools.product(MODES, oracles):
@@ -284,6 +287,9 @@ def _add_accuracy(bsub: Subparsers) -> None:
     ba.add_argument("--out", type=Path, default=Path("out/bench/accuracy"), help="where the plots go")
     ba.add_argument("--oracle", action="store_true", help="each mode again, features at their true pixels")
     add_cameras(ba, 1, "2: the recordings' second camera too (hwsim's cell's oblique one)")
+    ba.add_argument(
+        "--skew-ms", type=skew_ms, help="with --cameras 2: the second captures this long after the first"
+    )
     ba.add_argument("--config", type=Path)
     ba.add_argument("--json", type=Path)
     ba.set_defaults(func=_cmd_bench_accuracy)

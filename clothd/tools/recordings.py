@@ -11,17 +11,25 @@ from hwsim import scenario as scenarios
 from hwsim.recording import record
 
 
-def scenario_recording(cache: Path, scenario: str, duration_s: float | None = None, cameras: int = 1) -> Path:
+def scenario_recording(
+    cache: Path, scenario: str, duration_s: float | None = None, cameras: int = 1, skew_s: float | None = None
+) -> Path:
     """The recording of a shipped scenario (recorded into `cache` the first time). cameras: 2 records it
-    through the live cell's second camera too (hwsim/scenarios/cell.yaml) where it has only one."""
+    through the live cell's second camera too (hwsim/scenarios/cell.yaml) where it has only one. skew_s:
+    every further camera captures this long after the first (None: as the scenario and the cell set it)."""
     name = scenario if duration_s is None else f"{scenario}-{duration_s:g}s"
-    out = cache / (name if cameras == 1 else f"{name}-{cameras}cam")
+    name = name if cameras == 1 else f"{name}-{cameras}cam"
+    out = cache / (name if skew_s is None else f"{name}-skew{skew_s * 1e3:g}ms")
     if not (out / "truth.npz").exists():
         print(f"recording {scenario} into {out} ...", flush=True)
         sc = scenarios.load(scenario, duration_s=duration_s)
         if len(sc.camera_specs) < cameras:
             further = scenarios.load("cell").camera_specs[len(sc.camera_specs) : cameras]
             sc = sc.model_copy(update={"cameras": [*sc.camera_specs, *further]})
+        if skew_s is not None:
+            specs = sc.camera_specs[:cameras]
+            skewed = [specs[0], *(s.model_copy(update={"capture_skew_s": skew_s}) for s in specs[1:])]
+            sc = sc.model_copy(update={"cameras": skewed})
         record(sc, out)
     return out
 
