@@ -37,6 +37,7 @@ WATCHDOG_S = 0.25  # docs/serial-protocol.md
 FAULT_WATCHDOG = 1
 QUIET_S = 10.0  # no frame from a killed daemon this long after its last: that one was the last
 KILL_ATTEMPTS = 3
+MOVE_OVER_S = 5.0  # no COMMAND with a speed this long: the move is over
 T = wire.MsgType
 
 
@@ -198,25 +199,39 @@ def _move(daemon: Daemon, tap: WireTap, firmware: QemuFirmware) -> Seen:
     return command
 
 
-def _followed(tap: WireTap, frame: Seen) -> bool:
-    """Whether a later frame to the firmware comes within QUIET_S."""
+def _next_moving_command(tap: WireTap) -> Seen | None:
+    """The next COMMAND with a speed to the firmware; None when none comes within MOVE_OVER_S."""
     try:
-        tap.first(frame.t_s, lambda f: f.to_firmware and f is not frame, "a later frame", QUIET_S)
+        return tap.first(time.monotonic(), _moving_command, "a COMMAND with a speed", MOVE_OVER_S)
     except AssertionError:
-        return False
+        return None
+
+
+def _sent(tap: WireTap) -> list[Seen]:
+    return [f for f in tap.since(0.0) if f.to_firmware]  # in the order read
+
+
+def _followed(tap: WireTap, count: int) -> bool:
+    """Whether more than `count` frames have gone to the firmware within QUIET_S."""
+    deadline = time.monotonic() + QUIET_S
+    while len(_sent(tap)) <= count:
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.1)
     return True
 
 
 def _last_frame_and_its_watchdog_fault(tap: WireTap) -> tuple[Seen, Seen] | None:
-    """The daemon's last frame and the watchdog's FAULT after it; None when that frame is no COMMAND (the
-    daemon was killed as its link reconnected: nothing was driven, so nothing for the watchdog to time).
-    What the killed daemon wrote may still be on its way through the tap: the last frame is the last one
-    once the FAULT after its ACK is there, or QUIET_S has passed, and no later frame has come (a later one
-    would have re-armed the watchdog)."""
+    """The daemon's last frame and the watchdog's FAULT after it; None when that frame is no COMMAND with
+    a speed (killed as its link reconnected, or after the move: no move for the watchdog to stop). What
+    the killed daemon wrote may still be on its way through the tap: the last frame is the last one once
+    the FAULT after its ACK is there, or QUIET_S has passed, and no later frame has come (a later one would
+    have re-armed the watchdog)."""
     while True:
-        last = [f for f in tap.since(0.0) if f.to_firmware][-1]  # in the order read
-        if last.msg.type != T.COMMAND:
-            if _followed(tap, last):
+        sent = _sent(tap)
+        last = sent[-1]
+        if not _moving_command(last):
+            if _followed(tap, len(sent)):
                 continue
             return None
         # The last COMMAND's ACK: a FAULT after it on the line was sent after the COMMAND re-armed the
@@ -227,7 +242,7 @@ def _last_frame_and_its_watchdog_fault(tap: WireTap) -> tuple[Seen, Seen] | None
             lambda f: f.msg.type == T.FAULT and not f.to_firmware and f.msg.payload[0] == FAULT_WATCHDOG,
             "the watchdog's FAULT",
         )
-        if [f for f in tap.since(0.0) if f.to_firmware][-1] is last:
+        if _sent(tap)[-1] is last:
             return last, fault
 
 
@@ -308,19 +323,23 @@ def test_killing_clothd_run_stops_the_qemu_firmware_through_its_watchdog(
         daemon = _start(hwsim_cell, tap, workdir)
         try:
             _move(daemon, tap, firmware)
-            # Killed while commanding: right after a fresh COMMAND's ACK (the move may be over by now).
-            _acked(tap, tap.first(time.monotonic(), _is(T.COMMAND, to_firmware=True), "a COMMAND"))
-            os.kill(daemon.proc.pid, signal.SIGKILL)
-            daemon.proc.wait()
-            judged = _last_frame_and_its_watchdog_fault(tap)
+            # Killed mid-move: right after a fresh COMMAND's ACK, not after the qtest reads above (on a
+            # loaded machine the move may be over by then: a move is asked for again).
+            judged = None
+            moving = _next_moving_command(tap)
+            if moving is not None:
+                _acked(tap, moving)
+                os.kill(daemon.proc.pid, signal.SIGKILL)
+                daemon.proc.wait()
+                judged = _last_frame_and_its_watchdog_fault(tap)
         finally:
             daemon.stop()
         if judged is not None:
             break
-        # A loaded machine starves the emulator past the link's deadline now and then.
-        print(f"\nattempt {attempt + 1}: killed as its link reconnected (no COMMAND last); again")
+        # A loaded machine starves the emulator past the link's deadline now and then, or the move ends.
+        print(f"\nattempt {attempt + 1}: killed as its link reconnected or after the move; again")
     else:
-        pytest.fail(f"in {KILL_ATTEMPTS} attempts, every kill came as the link reconnected")
+        pytest.fail(f"in {KILL_ATTEMPTS} attempts, no kill came mid-move")
     last, fault = judged
     took_s = fault.t_s - last.t_s
     print(f"\nclothd run killed -> QEMU watchdog FAULT {took_s * 1e3:.1f} ms after its last frame")

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import yaml
 
 from clothd.config import load_config
 from clothd.tools.bench_flatten import FLAT_AREA_RATIO, FLAT_HEIGHT_M, PUSH_REACH_M, PUSH_S
 from clothd.tools.lockstep import LockstepCell, scenario_cameras
+from clothd.tools.recordings import with_cameras
 from hwsim import scenario as scenarios
 from hwsim.world import World
 
@@ -93,3 +95,16 @@ def test_a_skew_given_delays_every_further_camera_and_never_the_first() -> None:
     assert [s.skew_s for s in scenario_cameras(sc, world, None)[0]] == as_set
     sensors, models = scenario_cameras(sc, world, None, 0.01)
     assert len(sensors) == len(models) == 2 and [s.skew_s for s in sensors] == [0.0, 0.01]
+
+
+def test_a_recording_takes_the_cells_second_camera_skewed_and_its_scenario_reads_back() -> None:
+    seen = with_cameras(scenarios.load("translate"), 2, 0.01)
+    assert [s.capture_skew_s for s in seen.camera_specs] == [0.0, 0.01]
+    assert seen.camera_specs[1] == scenarios.load("cell").camera_specs[1].model_copy(
+        update={"capture_skew_s": 0.01}
+    )
+    again = scenarios.parse(yaml.safe_load(yaml.safe_dump(seen.model_dump(mode="json"))))
+    assert again.camera_specs == seen.camera_specs
+    assert (
+        with_cameras(scenarios.load("translate"), 1).camera_specs == scenarios.load("translate").camera_specs
+    )

@@ -446,6 +446,27 @@ def test_a_clear_lost_with_the_link_is_sent_again_when_it_is_back(tmp_path: Path
     _with_relay(tmp_path, body)
 
 
+def test_a_clear_lost_on_a_live_line_is_settled_by_the_next_answer(tmp_path: Path) -> None:
+    """The ESTOP_CLEAR never reaches the controller, the link stays up: the answers to what went after it
+    show the latch. Waiting for the clear's own answer, which never comes, the host used to count them for
+    nothing, and sent commands the controller refused, for good, with no fault reported."""
+
+    async def body(fw: Firmware, table: Table, relay: PtyRelay, link: StepperLink) -> None:
+        reported: list[int] = []
+        link.on_fault = lambda fault: reported.append(fault.code)
+        link.estop()
+        await _until(lambda: fw.estopped and link.controller_estopped)
+        relay.drop_commands = True
+        link.estop_clear()
+        await _until(lambda: relay.dropped_bytes["commands"] > 0)
+        relay.drop_commands = False
+        await _tick(link, _forward(0.03), lambda: link.estopped)
+        assert fw.estopped and not table.cmd_speed_m_s.any()
+        assert reported == [wire.FAULT_ESTOP_INPUT] and link.connected
+
+    _with_relay(tmp_path, body)
+
+
 def test_overlong_frames_count_as_invalid(tmp_path: Path) -> None:
     async def body(fw: Firmware, table: Table, relay: PtyRelay, link: StepperLink) -> None:
         before = link.counters.invalid

@@ -17,6 +17,7 @@ import asyncio
 import contextlib
 import itertools
 import logging
+import math
 import time
 from collections import deque
 from collections.abc import Callable
@@ -29,11 +30,13 @@ from clothd.config.stepper import CELL_MODULES
 from clothd.core.messages import ModuleCommands
 from clothd.drivers import wire
 from clothd.drivers.ports import ControllerFault, Handover, LinkCounters
+from clothd.drivers.serial_transport import discard_unsent, line_busy
 from clothd.errors import HardwareError
 
 log = logging.getLogger(__name__)
 
 ESTOP_REPEAT_S = 0.02
+CLOCK_SLACK_S = 0.001  # a wake this much before its time counts as on time (the loop's clock granularity)
 # Woken this much later than asked, the link's thread was held up, not the controller silent.
 HELD_UP_S = 0.01
 REREAD_S = 0.002  # then wait this long, through one wait for the port, before judging the silence
@@ -70,10 +73,9 @@ class StepperLink:
         self.firmware: str | None = None
         self.controller_flags = 0
         self._estop_latched = False
-        self._clear_seq: int | None = (
-            None  # an ESTOP_CLEAR not answered yet: earlier answers still show the latch
-        )
+        self._clear_seq: int | None = None  # an ESTOP_CLEAR not answered: earlier answers show the latch
         self._clear_on_connect = False  # an e-stop cleared while the link was down: the controller is told
+        self._estop_sent_s = -math.inf  # when an ESTOP was last written: it is repeated ESTOP_REPEAT_S apart
         self._writer: asyncio.StreamWriter | None = None
         self._seqs = itertools.count(1)
         self._pending: _Pending | None = None  # the newest unacknowledged COMMAND
@@ -111,7 +113,7 @@ class StepperLink:
         went before, which stays in force."""
         if not self.connected:
             return Handover.of(False, False, self.n_modules)
-        if self._line_busy():
+        if line_busy(self._writer):
             return Handover.of(not self._estop_latched, False, self.n_modules)
         if self._estop_latched:
             self._write(wire.encode(wire.MsgType.PING, self._next_seq()), expect_reply=True)
@@ -131,8 +133,9 @@ class StepperLink:
         self._clear_seq = None
         self._pending = None
         if self.connected:  # (while connecting, what waits is the HELLO, and the handshake sends ESTOP)
-            self._discard_unsent()
+            discard_unsent(self._writer)
         self._write(wire.DELIMITER + wire.encode(wire.MsgType.ESTOP, self._next_seq()))
+        self._estop_sent_s = self.clock()
 
     def estop_clear(self) -> None:
         """Release the e-stop; while the link is down, as soon as it is up again (the controller keeps its
@@ -310,8 +313,10 @@ class StepperLink:
         if self._clear_on_connect:
             return  # a clear waits for the link to come up: every answer until then predates it
         if self._clear_seq is not None:
-            if seq != self._clear_seq:
+            if wire.seq_before(seq, self._clear_seq):
                 return
+            # The clear's answer, or (it was lost on the line) one to a message after it: the controller
+            # answers in order, so this shows the latch as the clear left it.
             self._clear_seq = None
         if not controller_latched or self._estop_latched:
             return
@@ -330,12 +335,12 @@ class StepperLink:
         lost_after_s = cfg.ack_timeout_s * (cfg.max_retransmits + 1)
         min_wait_s = 0.0
         while True:
-            # Wake for the next retransmit or the deadline exactly, not on a coarse grid: the deadline is
-            # a safety figure. With nothing to retransmit (an e-stop drops the pending command) the next
-            # wake is the deadline: a retransmit's time long past would wake the loop on every pass, and
-            # each pass repeats the ESTOP, a flood that buries the controller's answers.
+            # Wake for the next retransmit, ESTOP or the deadline exactly, not on a coarse grid: the
+            # deadline is a safety figure. (An ESTOP on every pass had flooded the controller's answers.)
             now_s = self.clock()
             wake_s = now_s + ESTOP_REPEAT_S
+            if self._estop_latched and not self.controller_estopped:
+                wake_s = min(wake_s, self._estop_sent_s + ESTOP_REPEAT_S)
             since = self._unanswered_since_s
             if since is not None:
                 wake_s = min(wake_s, since + lost_after_s)
@@ -346,8 +351,10 @@ class StepperLink:
             await asyncio.sleep(wait_s)
             held_up = self.clock() - wake_s > HELD_UP_S
             min_wait_s = 0.0
-            if self._estop_latched and not self.controller_estopped:
+            repeat_at_s = self._estop_sent_s + ESTOP_REPEAT_S - CLOCK_SLACK_S
+            if self._estop_latched and not self.controller_estopped and self.clock() >= repeat_at_s:
                 self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()), expect_reply=True)
+                self._estop_sent_s = self.clock()
             since = self._unanswered_since_s
             if since is None:
                 continue
@@ -384,24 +391,6 @@ class StepperLink:
             self.counters.sent += 1
         if expect_reply and self._unanswered_since_s is None:
             self._unanswered_since_s = self.clock()
-
-    def _line_busy(self) -> bool:
-        """The transport still holds bytes the port has not taken."""
-        transport = self._writer.transport if self._writer is not None else None
-        return transport is not None and transport.get_write_buffer_size() > 0
-
-    def _discard_unsent(self) -> None:
-        """Drop the bytes not yet on the line: the transport's buffer (serial_asyncio_fast's flush()) and
-        the port driver's output queue (tcflush; on a pty, what the other end has not read). What they
-        cut midway, the next delimiter ends."""
-        transport = self._writer.transport if self._writer is not None else None
-        if transport is None:
-            return
-        with contextlib.suppress(Exception):
-            transport.flush()  # type: ignore[attr-defined]
-        port = transport.get_extra_info("serial")
-        with contextlib.suppress(Exception):
-            port.reset_output_buffer()
 
     def _next_seq(self) -> int:
         return next(self._seqs) & 0xFFFF

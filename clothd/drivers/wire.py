@@ -59,6 +59,11 @@ def crc16(data: bytes) -> int:
     return binascii.crc_hqx(data, 0xFFFF)
 
 
+def seq_before(seq: int, other: int) -> bool:
+    """Whether message seq was sent before message other: sequence numbers count up modulo 2^16."""
+    return 0 < (other - seq) & 0xFFFF < 0x8000
+
+
 def encode(msg_type: int, seq: int, payload: bytes = b"") -> bytes:
     body = struct.pack("<BH", msg_type, seq & 0xFFFF) + payload
     return cobs.encode(body + struct.pack("<H", crc16(body))) + DELIMITER

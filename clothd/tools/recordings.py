@@ -22,16 +22,20 @@ def scenario_recording(
     out = cache / (name if skew_s is None else f"{name}-skew{skew_s * 1e3:g}ms")
     if not (out / "truth.npz").exists():
         print(f"recording {scenario} into {out} ...", flush=True)
-        sc = scenarios.load(scenario, duration_s=duration_s)
-        if len(sc.camera_specs) < cameras:
-            further = scenarios.load("cell").camera_specs[len(sc.camera_specs) : cameras]
-            sc = sc.model_copy(update={"cameras": [*sc.camera_specs, *further]})
-        if skew_s is not None:
-            specs = sc.camera_specs[:cameras]
-            skewed = [specs[0], *(s.model_copy(update={"capture_skew_s": skew_s}) for s in specs[1:])]
-            sc = sc.model_copy(update={"cameras": skewed})
-        record(sc, out)
+        record(with_cameras(scenarios.load(scenario, duration_s=duration_s), cameras, skew_s), out)
     return out
+
+
+def with_cameras(sc: scenarios.Scenario, cameras: int, skew_s: float | None = None) -> scenarios.Scenario:
+    """The scenario seen by at least `cameras` cameras: the live cell's further ones (hwsim/scenarios/
+    cell.yaml) where it has fewer; skew_s: every further camera captures this long after the first (None:
+    as set). Validated afresh, as its scenario.yaml will be read back."""
+    specs = sc.camera_specs
+    specs = [*specs, *scenarios.load("cell").camera_specs[len(specs) : cameras]]
+    if skew_s is not None:
+        specs = [specs[0], *(s.model_copy(update={"capture_skew_s": skew_s}) for s in specs[1:])]
+    data = sc.model_dump(mode="json", exclude={"camera"})
+    return scenarios.parse({**data, "cameras": [s.model_dump(mode="json") for s in specs]}, sc.name)
 
 
 def recorded_exposure_s(recording: Path) -> float:
