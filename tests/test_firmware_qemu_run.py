@@ -177,32 +177,40 @@ def _acked(tap: WireTap, command: Seen) -> Seen:
 
 def _move(daemon: Daemon, tap: WireTap, firmware: QemuFirmware) -> Seen:
     """A move: its COMMANDs with speeds on the wire, ACKed, and the firmware's rates set from them."""
-    t0 = time.monotonic()
     refusals: list[str] = []
+    command = None
 
-    def accepted() -> bool:
-        # On a loaded machine the link may be reconnecting, or tracking starting again, for a moment.
+    def started() -> bool:
+        # On a loaded machine the link may be reconnecting, or tracking starting again, for a moment; or
+        # a FAULT that was on its way (the watchdog's, after a stall at the start) drops the move.
+        nonlocal command
+        t0 = time.monotonic()
         try:
             daemon.put_setpoint({"mode": "move", "x_m": 0.05, "y_m": 0.03, "theta_rad": 0.25})
         except httpx.HTTPStatusError as err:
             refusals.append(err.response.text)
             return False
-        return True
+        command = _next_moving_command(tap, t0)
+        if command is None:
+            refusals.append(f"accepted, then dropped: {daemon.status()['halt_reason']}")
+        return command is not None
 
-    wait(accepted, 90, "a move accepted", every_s=0.5)
+    wait(started, 90, "a move under way", every_s=0.5)
     if refusals:
         print(f"\nmove refused {len(refusals)} time(s) first: {refusals[-1]}")
-    command = tap.first(t0, _moving_command, "a COMMAND with a speed")
+    assert command is not None
     ack = _acked(tap, command)
     assert wire.parse_ack(ack.msg.payload) == 0
     wait(lambda: any(_rates(firmware)), 60, "the firmware stepping from the host's COMMANDs")
     return command
 
 
-def _next_moving_command(tap: WireTap) -> Seen | None:
-    """The next COMMAND with a speed to the firmware; None when none comes within MOVE_OVER_S."""
+def _next_moving_command(tap: WireTap, t_s: float | None = None) -> Seen | None:
+    """The first COMMAND with a speed to the firmware from t_s (None: now); None when none comes within
+    MOVE_OVER_S."""
+    start_s = time.monotonic() if t_s is None else t_s
     try:
-        return tap.first(time.monotonic(), _moving_command, "a COMMAND with a speed", MOVE_OVER_S)
+        return tap.first(start_s, _moving_command, "a COMMAND with a speed", MOVE_OVER_S)
     except AssertionError:
         return None
 
