@@ -7,6 +7,7 @@ from pathlib import Path
 
 from clothd.config import load_config, with_overrides
 from clothd.errors import InvalidRequestError
+from clothd.tools.bench_cli_flatten import add_flatten
 from clothd.tools.bench_cli_flow import add_flow
 from clothd.tools.bench_estop import add_estop
 from clothd.tools.cli_args import (
@@ -32,28 +33,6 @@ def _cmd_bench_loop(args: argparse.Namespace) -> int:
             args.config, args.run_seconds, args.load_seconds, opcua=args.opcua, cameras=args.cameras
         )
         print(format_result(result))
-    if args.json:
-        write_json(result, args.json)
-    return 0
-
-
-def _cmd_bench_flatten(args: argparse.Namespace) -> int:
-    from clothd.tools.bench_flatten import format_result, run_bench, write_json
-
-    if args.skew_ms is not None and not args.lockstep:
-        raise InvalidRequestError("--skew-ms needs --lockstep: hwsim serve takes its skew from its scenario")
-    if args.skew_ms is not None and args.cameras == 1:
-        raise InvalidRequestError("--skew-ms needs a second camera: leave out --cameras 1")
-    result = run_bench(
-        starts=args.starts,
-        seed=args.seed,
-        flatten_s=args.flatten_seconds,
-        lockstep=args.lockstep,
-        start=args.start,
-        cameras=args.cameras,
-        skew_s=None if args.skew_ms is None else args.skew_ms * 1e-3,
-    )
-    print(format_result(result))
     if args.json:
         write_json(result, args.json)
     return 0
@@ -335,34 +314,6 @@ def _add_loop(bsub: Subparsers) -> None:
     bl.set_defaults(func=_cmd_bench_loop)
 
 
-def _add_flatten(bsub: Subparsers) -> None:
-    bfl = bsub.add_parser("flatten", help="the closed loop flattens wrinkled cloth, judged by hwsim's truth")
-    bfl.add_argument(
-        "--start",
-        choices=["pushed", "laid"],
-        default="pushed",
-        help="ridges pushed in while tracking (pushed) or laid before it begins, as a piece arrives (laid)",
-    )
-    add_cameras(bfl, None, "the simulated cell's first N cameras (default: all)")
-    bfl.add_argument("--starts", type=int, default=20, help="seeded starting states")
-    bfl.add_argument("--seed", type=int, default=0)
-    bfl.add_argument(
-        "--flatten-seconds", type=float, default=10.0, help="a start succeeds when flat within this"
-    )
-    bfl.add_argument(
-        "--lockstep",
-        action="store_true",
-        help="hwsim and the tracker and controller in one process, tick by tick, as fast as the CPU allows",
-    )
-    bfl.add_argument(
-        "--skew-ms",
-        type=skew_ms,
-        help="with --lockstep: every further camera captures this long after the first (0-100 ms)",
-    )
-    bfl.add_argument("--json", type=Path, help="also write the figures and every run as JSON")
-    bfl.set_defaults(func=_cmd_bench_flatten)
-
-
 def _add_drift(bsub: Subparsers) -> None:
     bdr = bsub.add_parser(
         "drift", help="the live tracker over a shift: pose and residual at rest, node error after moves"
@@ -466,7 +417,7 @@ def _add_abuse(bsub: Subparsers) -> None:
 def add_commands(sub: Subparsers) -> None:
     b = sub.add_parser("bench", help="benchmarks against hwsim")
     bsub = b.add_subparsers(dest="bench", required=True)
-    for add in (_add_speed, _add_accuracy, _add_robustness, _add_loop, _add_flatten, add_flow, _add_drift):
+    for add in (_add_speed, _add_accuracy, _add_robustness, _add_loop, add_flatten, add_flow, _add_drift):
         add(bsub)
     for add in (_add_faults, _add_calibrate, _add_tune, _add_abuse, add_estop):
         add(bsub)
