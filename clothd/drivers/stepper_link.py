@@ -134,8 +134,7 @@ class StepperLink:
         self._pending = None
         if self.connected:  # (while connecting, what waits is the HELLO, and the handshake sends ESTOP)
             discard_unsent(self._writer)
-        self._write(wire.DELIMITER + wire.encode(wire.MsgType.ESTOP, self._next_seq()))
-        self._estop_sent_s = self.clock()
+        self._send_estop(lead=wire.DELIMITER)
 
     def estop_clear(self) -> None:
         """Release the e-stop; while the link is down, as soon as it is up again (the controller keeps its
@@ -145,6 +144,10 @@ class StepperLink:
             self._send_clear()
         else:
             self._clear_on_connect = True
+
+    def _send_estop(self, lead: bytes = b"", expect_reply: bool = False) -> None:
+        self._write(lead + wire.encode(wire.MsgType.ESTOP, self._next_seq()), expect_reply=expect_reply)
+        self._estop_sent_s = self.clock()
 
     def _send_clear(self) -> None:
         self._clear_seq = self._next_seq()
@@ -243,7 +246,7 @@ class StepperLink:
                 )
             self.firmware = hello.firmware
             if self._estop_latched:
-                self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()))
+                self._send_estop()
             elif self._clear_on_connect:
                 self._send_clear()
             self._clear_on_connect = False
@@ -353,8 +356,7 @@ class StepperLink:
             min_wait_s = 0.0
             repeat_at_s = self._estop_sent_s + ESTOP_REPEAT_S - CLOCK_SLACK_S
             if self._estop_latched and not self.controller_estopped and self.clock() >= repeat_at_s:
-                self._write(wire.encode(wire.MsgType.ESTOP, self._next_seq()), expect_reply=True)
-                self._estop_sent_s = self.clock()
+                self._send_estop(expect_reply=True)
             since = self._unanswered_since_s
             if since is None:
                 continue
