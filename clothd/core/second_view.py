@@ -1,11 +1,15 @@
 """What the tracker asks of its further cameras: whether to wait for a paired frame before tracking
 begins, the surface when it begins, and its points in every frame after (clothd/core/stereo.py has the
 geometry, docs/second-view.md the method). A frame's heights need only what `HeightsFrame` keeps of it, so
-they can be measured after its estimate is out, once its paired frame has arrived."""
+they are measured after its estimate is out, once its paired frame has arrived, on a thread of their own:
+the next frame's tracking runs meanwhile, and takes them (`collect`) when its correction needs them.
+OpenCV releases the GIL, so the two views' LK passes share the cores (docs/second-view.md, "Heights in
+every frame")."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -24,6 +28,10 @@ from clothd.core.stereo import (
     table_warp,
 )
 
+# A feature's height as the estimate puts it and as the last frame measured it, further apart than this:
+# one of them may start LK in a look-alike's basin (hwsim's twill repeats every ~5 px, some 13 mm of height
+# along the default cell's epipolar lines: half of that), so the feature is searched for afresh.
+PRIORS_APART_M = 0.0065
 # Tracking begins on a frame a further view pairs (its surface is measured then): this many frames are
 # waited for one before tracking begins on one view.
 PAIR_WAIT_FRAMES = 8
@@ -32,32 +40,69 @@ PAIR_WAIT_FRAMES = 8
 @dataclass(frozen=True)
 class HeightsFrame:
     """What a tracked frame's heights are measured from: its grey image, the features that survived it
-    (their pixels px (n, 2) and their binding to the mesh), the mesh's nodes (ny, nx, 3) after its
+    (their ids (n,), pixels px (n, 2) and binding to the mesh), the mesh's nodes (ny, nx, 3) after its
     correction, and its time. Copies: the tracker goes on with the next frame."""
 
     gray: np.ndarray
+    ids: np.ndarray
     px: np.ndarray
     binding: Binding
     nodes_m: np.ndarray
     t_s: float
 
 
+@dataclass(frozen=True)
+class FeatureHeights:
+    """Features' measured heights: ids (n,) ascending, z_m (n,)."""
+
+    ids: np.ndarray
+    z_m: np.ndarray
+
+    @staticmethod
+    def of(ids: np.ndarray, z_m: np.ndarray) -> FeatureHeights:
+        order = np.argsort(ids)
+        return FeatureHeights(ids[order], z_m[order])
+
+    def at(self, ids: np.ndarray) -> np.ndarray:
+        """The heights (m,) of features ids (m,); NaN for those not among them."""
+        if not len(self.ids):
+            return np.full(len(ids), np.nan)
+        slot = np.minimum(np.searchsorted(self.ids, ids), len(self.ids) - 1)
+        return np.where(self.ids[slot] == ids, self.z_m[slot], np.nan)
+
+
 class SecondView:
     """The first camera's model, the further cameras' (none: mono), the frames waited for a pair, the
-    last measured frame's time and nodes (the features' motion between the two captures), and the last
-    frame given while its heights are still to measure."""
+    last measured frame's time and nodes (the features' motion between the two captures), the last
+    frame given while its heights are still to measure, and the frame being measured."""
 
-    def __init__(self, first: CameraModel, others: Sequence[CameraModel], cfg: StereoConfig) -> None:
+    def __init__(
+        self,
+        first: CameraModel,
+        others: Sequence[CameraModel],
+        cfg: StereoConfig,
+        clock: Callable[[], float] = lambda: 0.0,
+    ) -> None:
         self.first = first
         self.others = tuple(others)
         self.cfg = cfg
+        self.clock = clock  # times the measuring only
         self._waits = 0
         self._nodes_before: tuple[float, np.ndarray] | None = None
         self._due: HeightsFrame | None = None
+        self._points_before: FeatureHeights | None = None  # the features the last measured frame found
+        self._measuring: Future[tuple[np.ndarray | None, float, FeatureHeights | None]] | None = None
+        # Settled and not yet collected: the heights (None: none measured) and how long they took.
+        self._measured: tuple[np.ndarray | None, float] | None = None
+        self._thread = ThreadPoolExecutor(1, thread_name_prefix="second-view") if self.others else None
         for other in self.others:  # the warp between the views, made now rather than in a frame
             table_warp(first, other)
 
     def reset(self) -> None:
+        """Forget the frames; one being measured is let finish, unread."""
+        self._measuring = None
+        self._measured = None
+        self._points_before = None
         self._waits = 0
         self._nodes_before = None
         self._due = None
@@ -69,33 +114,76 @@ class SecondView:
         nodes_m: np.ndarray,
         t_s: float,
         views: Sequence[PairedView | None] | None,
-    ) -> np.ndarray | None:
-        """Each mesh quad's highest point (ny-1, nx-1) at the features (their pixels in the first view's
-        frame `gray`) that a further view finds, starting where the mesh's nodes (ny, nx, 3) put them; None
-        when none pairs or finds enough. views None: they come later, and the frame is kept for
-        `heights_later` (None now). The mesh's own heights stay inferred (folds.py): set from these
-        points, the nodes of `compress`'s folds went 90 mm astray (docs/second-view.md)."""
-        self._due = HeightsFrame(gray, features.px.copy(), features.binding, nodes_m.copy(), t_s)
-        return None if views is None else self.heights_later(views)
+    ) -> None:
+        """Keep the frame `gray` of the first view, its features and the mesh's nodes (ny, nx, 3) after its
+        correction, and start measuring each mesh quad's highest point at the features a further view
+        finds, from `views` (None: they come later, `heights_later`). `collect` gives them. The mesh's own
+        heights stay inferred (folds.py): set from these points, the nodes of `compress`'s folds went 90 mm
+        astray (docs/second-view.md)."""
+        self._due = HeightsFrame(
+            gray, features.ids.copy(), features.px.copy(), features.binding, nodes_m.copy(), t_s
+        )
+        if views is not None:
+            self.heights_later(views)
 
-    def heights_later(self, views: Sequence[PairedView | None]) -> np.ndarray | None:
-        """`heights_now` of the frame last given to it, from its views; None when it was measured
-        already or none of them pairs it or finds enough."""
+    def heights_later(self, views: Sequence[PairedView | None]) -> None:
+        """Start measuring the frame last given to `heights_now` from its views, unless it was already."""
         frame, self._due = self._due, None
-        if frame is None:
-            return None
+        if frame is None or self._thread is None:
+            return
+        before, self._nodes_before = self._nodes_before, (frame.t_s, frame.nodes_m)
+        self._settle()  # one frame at a time: the one before keeps its heights, and gives its points'
+        self._measuring = self._thread.submit(self._measure, frame, before, self._points_before, list(views))
+
+    def collect(self) -> tuple[np.ndarray | None, float | None]:
+        """The quad heights (ny-1, nx-1) last measured and not yet collected, once the frame being measured
+        is done (waited for), and how long measuring took on its thread; (None, None) when no frame was
+        measured since, (None, seconds) when no view paired it or found enough."""
+        self._settle()
+        measured, self._measured = self._measured, None
+        return (None, None) if measured is None else measured
+
+    def _settle(self) -> None:
+        measuring, self._measuring = self._measuring, None
+        if measuring is None:
+            return
+        heights, took_s, points = measuring.result()
+        if heights is None and self._measured is not None:  # an unpaired frame keeps the one before's
+            heights = self._measured[0]
+        self._measured = heights, took_s
+        self._points_before = self._points_before if points is None else points
+
+    def _measure(
+        self,
+        frame: HeightsFrame,
+        before: tuple[float, np.ndarray] | None,
+        points_before: FeatureHeights | None,
+        views: Sequence[PairedView | None],
+    ) -> tuple[np.ndarray | None, float, FeatureHeights | None]:
+        """The frame's quad heights (None: none measured), how long they took, and the heights of the
+        features found; from `before` (the last frame measured: its time and nodes) and `points_before`
+        (the features it found): the work of the measuring thread, on its arguments alone.
+
+        LK starts where the estimate puts each feature, unless the last frame measured it more than
+        PRIORS_APART_M from there: then it is searched for over the whole height, from the table plane.
+        Always from the estimate, a flat edge quad whose nodes a ridge's inferred fold had lifted 17 mm was
+        looked for there, and two of its features matched a look-alike of the weave 21 mm up, every other
+        frame (laid start 17 of `clothd bench flatten --lockstep --start laid --seed 0`)."""
+        t0 = self.clock()
         nodes_m, t_s, binding = frame.nodes_m, frame.t_s, frame.binding
-        before, self._nodes_before = self._nodes_before, (t_s, nodes_m)
         velocity = None  # the features' on the table, from the last frame's nodes to this one's
         if before is not None and t_s > before[0]:
             velocity = blend((nodes_m - before[1])[..., :2] / (t_s - before[0]), binding)
-        points, found = self.points_now(frame.gray, frame.px, blend(nodes_m, binding), velocity, t_s, views)
+        guess_m = blend(nodes_m, binding)
+        if points_before is not None:  # NaN rows: searched for over the whole height
+            guess_m[np.abs(guess_m[:, 2] - points_before.at(frame.ids)) > PRIORS_APART_M] = np.nan
+        points, found = self.points_now(frame.gray, frame.px, guess_m, velocity, t_s, views)
         if points is None:
-            return None
+            return None, self.clock() - t0, None
         ny, nx = nodes_m.shape[:2]
-        return crest_heights(
-            quad_highest(binding.quad[found], points[:, 2], (ny - 1, nx - 1)), points, nodes_m
-        )
+        highest = quad_highest(binding.quad[found], points[:, 2], (ny - 1, nx - 1))
+        heights = FeatureHeights.of(frame.ids[found], points[:, 2])
+        return crest_heights(highest, points, nodes_m), self.clock() - t0, heights
 
     def awaits_pair(self, t_s: float, views: Sequence[PairedView | None]) -> bool:
         """No further view pairs the frame taken at t_s closely enough: wait for one, PAIR_WAIT_FRAMES at

@@ -37,7 +37,7 @@ from clothd.core.messages import PairedView
 
 MATCH_WINDOW_PX = 21  # wider than tracking's: the two views see a patch from different angles
 MATCH_LEVELS = 3  # pyramid levels: a match up to ~60 px along its line from the table-plane guess
-TRACKING_LEVELS = 1  # from where the estimate puts a point: a few pixels to find
+TRACKING_LEVELS = 1  # from where a point was measured last frame: a few pixels to find
 TRACKING_WINDOW_PX = 11  # ... in a window as tracking's own
 # Forward-backward, searching or not: the match must lead back within this. The epipolar check alone let
 # a look-alike on the line through (0.2 px per mm of height): a flat cloth's feature read 3.3 mm high.
@@ -120,13 +120,13 @@ def match_across(
     cfg: StereoConfig,
     guess_m: np.ndarray | None = None,
     seen_px0: np.ndarray | None = None,
-    levels: int = MATCH_LEVELS,
+    wide: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Pixels px0 (n, 2) of the first view found in the second: (px1 (n, 2), ok (n,)). guess_m (n, 3):
     where the points are believed to be when the second view saw them; None: on the table. LK starts
-    there and searches `levels` pyramid levels (MATCH_LEVELS: the whole height; TRACKING_LEVELS: a few
-    pixels about an estimate). seen_px0: where the first view would have seen them then (a skew between
-    the captures); None: px0."""
+    there; the points `wide` (n,) bool (None: all) are searched for over MATCH_LEVELS pyramid levels (the
+    whole height), the others only a few pixels about the guess (TRACKING_LEVELS). seen_px0: where the
+    first view would have seen them then (a skew between the captures); None: px0."""
     n = len(px0)
     if n == 0:
         return np.zeros((0, 2)), np.zeros(0, bool)
@@ -138,14 +138,15 @@ def match_across(
     p0 = np.nan_to_num(on_table - corner, nan=-1.0).astype(np.float32).reshape(-1, 1, 2)
     g = np.nan_to_num(guess - corner, nan=-1.0).astype(np.float32).reshape(-1, 1, 2)
     ok = np.isfinite(guess).all(axis=1) & np.isfinite(on_table).all(axis=1)
-    if levels > TRACKING_LEVELS:
+    wide = np.ones(n, bool) if wide is None else wide
+    if wide.any():
         # The search's wide window spans a ridge's whole rise at the coarse levels, and at the finest the
         # weave repeats every few pixels: it ended a weave period off on a third to a half of a 17 mm
         # ridge's points (10-14 mm low). So the search runs on both views blurred past the weave, and
         # only brings each point near; a small window finds it from there.
-        blurred = [cv2.GaussianBlur(view, (0, 0), SEARCH_BLUR_PX) for view in (warped, gray1_cut)]
-        g, searched = _lk_both_ways(blurred[0], blurred[1], p0, g, MATCH_WINDOW_PX, levels)
-        ok &= searched
+        b0, b1 = (cv2.GaussianBlur(view, (0, 0), SEARCH_BLUR_PX) for view in (warped, gray1_cut))
+        g[wide], searched = _lk_both_ways(b0, b1, p0[wide], g[wide], MATCH_WINDOW_PX, MATCH_LEVELS)
+        ok[wide] &= searched
     p1, found = _lk_both_ways(warped, gray1_cut, p0, g, TRACKING_WINDOW_PX, TRACKING_LEVELS)
     px1 = p1.reshape(-1, 2).astype(np.float64) + corner
     h, w = gray1.shape[:2]
@@ -187,9 +188,10 @@ def measure_surface(
     """Points of the surface (m, 3) at the first view's features px0 (n, 2) (its frame gray0, taken at
     t_s) and which features they are (n,) bool, through the first further view paired within
     cfg.max_skew_ms that finds at least cfg.min_matches of them; None when none does. guess_m: as
-    match_across's, at t_s. velocity_m_s (n, 2): how the points move on the table, so that a view taken
-    skew_s apart is matched and triangulated where they were then (v·skew_s), and the points moved back
-    to t_s; None: still."""
+    match_across's, at t_s; a row of NaN: that point's height is not known, and it is searched for from
+    the table plane over the whole height, as every point is with None. velocity_m_s (n, 2): how the
+    points move on the table, so that a view taken skew_s apart is matched and triangulated where they
+    were then (v·skew_s), and the points moved back to t_s; None: still."""
     for camera, view in zip(cameras, views, strict=False):
         skew_s = 0.0 if view is None else view.t_s - t_s
         if view is None or abs(skew_s) > cfg.max_skew_ms * 1e-3:
@@ -199,10 +201,11 @@ def measure_surface(
         shift_m = np.zeros((len(px0), 3))
         if velocity_m_s is not None:
             shift_m[:, :2] = velocity_m_s * skew_s
-        base_m = cam0.backproject_to_plane(px0, 0.0) if guess_m is None else guess_m
+        table_m = cam0.backproject_to_plane(px0, 0.0)
+        known = np.zeros(len(px0), bool) if guess_m is None else np.isfinite(guess_m).all(axis=1)
+        base_m = table_m if guess_m is None else np.where(known[:, None], guess_m, table_m)
         seen_px0 = px0 + cam0.project(base_m + shift_m) - cam0.project(base_m)
-        levels = MATCH_LEVELS if guess_m is None else TRACKING_LEVELS
-        px1, ok = match_across(gray0, gray1, px0, cam0, camera, cfg, base_m + shift_m, seen_px0, levels)
+        px1, ok = match_across(gray0, gray1, px0, cam0, camera, cfg, base_m + shift_m, seen_px0, ~known)
         if ok.sum() >= cfg.min_matches:
             return triangulate(cam0, seen_px0[ok], camera, px1[ok]) - shift_m[ok], ok
     return None

@@ -79,10 +79,11 @@ class Tracker:
         self.cfg = cfg
         self.camera_model = camera_model
         self._belts: BeltField | None = None  # under the cloth at the frame being tracked
-        self.second_view = SecondView(camera_model, other_cameras if cfg.estimates_shape else (), cfg.stereo)
         self.layout = layout
         self.roi = roi
         self.clock = clock or (lambda: 0.0)
+        others = other_cameras if cfg.estimates_shape else ()
+        self.second_view = SecondView(camera_model, others, cfg.stereo, self.clock)
         # Where the cloth is in the first frame: several pieces' trackers each take theirs (core/pieces.py).
         self.find_region: Callable[[np.ndarray], ClothRegion | None] = find_cloth
         self._engine_default = FeatureEngine(cfg.features)
@@ -127,7 +128,7 @@ class Tracker:
         self.repetitive = False
         self.engine = self._engine_default
         self.flatness_basis = FlatnessBasis.SINCE_START  # the rest shape: the first frame's, or measured
-        self.quad_height_m: np.ndarray | None = None  # measured through a further view this frame
+        self._quad_height_m: np.ndarray | None = None  # `quad_height_m`'s
         self.anchors.reset()
         self.second_view.reset()
         self._upkeep_frame: GrayFrame | None = None  # the tracked frame whose upkeep is still to do
@@ -194,6 +195,7 @@ class Tracker:
         if self.cfg.features.anchor:
             measured, _ = self.anchors.refine(self.engine, frame, features, result.px, result.ok)
         t3 = self.clock()
+        self._collect_heights(timing)  # the last frame's, measured on their thread meanwhile
         keep = result.ok
         ambiguous = np.zeros(len(keep), bool)
         if self.repetitive:
@@ -211,7 +213,7 @@ class Tracker:
                 edges = lambda nodes_m: outline.measure(image, nodes_m)  # noqa: E731
             shape_sigma_m = self.cfg.ekf.periodic_shape_sigma_m if self.periodic or self.repetitive else 0.0
             first = Measurements(
-                features, measured, keep & ~ambiguous, whiten, edges, shape_sigma_m, self.quad_height_m
+                features, measured, keep & ~ambiguous, whiten, edges, shape_sigma_m, self._quad_height_m
             )
             stats, accepted = self.estimator.correct(first)
             if ambiguous.any():
@@ -222,13 +224,14 @@ class Tracker:
         meas = measured[keep]
         features.keep(keep, measured)
         state = self.estimator.estimate()  # once: the heights and the estimate read the same belief
-        self.quad_height_m = self._heights_now(frame, frame_t_s, views, state.nodes_m)
         estimate = self._estimate(frame_t_s, meas, stats, timing, image, state)
         if self._diverged(stats):
             self.reset()
             estimate = Estimate.lost(frame_t_s, timing)
         else:
             self._upkeep_frame = frame
+            if self.flatness_basis == FlatnessBasis.MEASURED and state.nodes_m is not None:
+                self.second_view.heights_now(frame.gray, features, state.nodes_m, frame_t_s, views)
         self.prev, self.prev_t_s = frame, frame_t_s
         t5 = self.clock()
         timing.update(
@@ -288,7 +291,7 @@ class Tracker:
         assert self.mesh is not None
         if nodes_m is not None:  # first frame's quads: their 2nd-highest corner (the highest: flat read 1.8)
             z = nodes_m[:, 2].reshape(self.mesh.ny, self.mesh.nx)
-            self.quad_height_m = np.sort([z[:-1, :-1], z[:-1, 1:], z[1:, :-1], z[1:, 1:]], axis=0)[-2]
+            self._quad_height_m = np.sort([z[:-1, :-1], z[:-1, 1:], z[1:, :-1], z[1:, 1:]], axis=0)[-2]
         self.estimator.start(self.mesh, np.array([*self.mesh.centre_m, self.mesh.theta_rad]), nodes_m)
         self.features = FeatureSet(self.mesh, self._next_feature_id)
         self.prev, self.prev_t_s = frame, t_s
@@ -320,27 +323,24 @@ class Tracker:
         stats = UpdateStats(len(self.features), 0, 0.0)
         return self._estimate(t_s, self.features.px.astype(np.float64), stats, timing, image, state)
 
-    def _heights_now(
-        self,
-        frame: GrayFrame,
-        t_s: float,
-        views: Sequence[PairedView | None] | None,
-        nodes: np.ndarray | None,
-    ) -> np.ndarray | None:
-        """Each mesh quad's highest point (ny-1, nx-1) measured this frame at the features that survived
-        it, the estimate's nodes (ny, nx, 3) placing them, where the rest shape was measured too (heights
-        agree with its lengths only then); the last frame's when this one's pair is missing, or is still
-        to come (views None)."""
-        if self.flatness_basis != FlatnessBasis.MEASURED or self.features is None or nodes is None:
-            return None
-        measured = self.second_view.heights_now(frame.gray, self.features, nodes, t_s, views)
-        return self.quad_height_m if measured is None else measured
+    @property
+    def quad_height_m(self) -> np.ndarray | None:
+        """Each quad's highest point (ny-1, nx-1) as a further view last measured it (where the rest shape was
+        too: they agree with its lengths only then), a frame being measured waited for; None: none yet."""
+        return self._collect_heights()
+
+    def _collect_heights(self, timing: dict[str, float] | None = None) -> np.ndarray | None:
+        """Take (and give) the heights last measured; timing["heights"]: their time on their own thread."""
+        measured, took_s = self.second_view.collect()
+        self._quad_height_m = self._quad_height_m if measured is None else measured
+        if timing is not None and took_s is not None:
+            timing["heights"] = took_s
+        return self._quad_height_m
 
     def measure_heights(self, views: Sequence[PairedView | None]) -> None:
         """The last frame's heights, tracked with views None once tracking (they come later), from its
-        views now: the next estimate carries them; a frame they do not pair keeps the last."""
-        measured = self.second_view.heights_later(views)
-        self.quad_height_m = self.quad_height_m if measured is None else measured
+        views now; the next estimate carries them, and a frame they do not pair keeps the last."""
+        self.second_view.heights_later(views)
 
     def _lay_mesh(
         self,
@@ -446,5 +446,5 @@ class Tracker:
             quad_seen=quad_seen,
             detected=detected.subset(np.isin(detected.ids, self.features.ids)),  # the dropped never reach one
             flatness_basis=self.flatness_basis,
-            quad_height_m=self.quad_height_m,
+            quad_height_m=self._quad_height_m,
         )

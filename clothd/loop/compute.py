@@ -370,13 +370,11 @@ class Compute:
         paired = self.pairing.later_views(wait)
         if paired is None or self._after_failed or self.flow is not None:
             return
-        t0 = time.perf_counter()
         try:
-            self.tracker.measure_heights(paired[1])
+            self.tracker.measure_heights(paired[1])  # on a thread of its own: the estimate times it
             self.outputs.add_views(*paired)
         except Exception:  # as in a tick: a bug must not take the loop with it
             self._failed_between_ticks("measuring a frame's heights")
-        self._late_timing["tracker_heights"] = time.perf_counter() - t0
 
 
 def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
