@@ -48,7 +48,7 @@ from clothd.core.module_calibration import ModuleCalibration
 from clothd.core.workspace import Workspace
 from clothd.drivers.camera import VideoCaptureSource, redact_source
 from clothd.drivers.link_group import LinkGroup
-from clothd.drivers.priority import claim_realtime, set_session_nice, set_thread_nice
+from clothd.drivers.priority import bound_gil_wait, claim_realtime, set_session_nice, set_thread_nice
 from clothd.drivers.stepper_link import StepperLink
 from clothd.errors import ConfigError, HardwareError
 from clothd.formats import read_camera, read_module_calibration
@@ -62,7 +62,6 @@ from clothd.outputs.recorder import make_recording_place
 log = logging.getLogger(__name__)
 
 SIM_START_TIMEOUT_S = 120.0
-GIL_SWITCH_S = 0.001
 SIM_READ_POLL_S = 0.5
 
 
@@ -390,8 +389,7 @@ def run(
     """Run the daemon with `cfg` (loaded and validated by the caller), against hwsim when sim_scenario
     names a scenario (its modules split among `sim_controllers` controllers); with only the first
     `cameras` cameras when given (1: one view)."""
-    # The tick's thread waits at most this long for the GIL while another of its threads runs (default 5 ms).
-    sys.setswitchinterval(GIL_SWITCH_S)
+    bound_gil_wait()
     listener = bind_api(cfg.api)
     try:
         check_opcua_port(cfg.opcua)

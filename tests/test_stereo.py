@@ -18,11 +18,13 @@ from clothd.core.flatness import FlatnessMonitor
 from clothd.core.mesh import QuadMesh
 from clothd.core.messages import ModuleCommands, PairedView
 from clothd.core.modes import FlatnessBasis
+from clothd.core.second_view import FeatureHeights
 from clothd.core.stereo import (
     backed_heights,
     crest_heights,
     epipolar_distance_px,
     fit_height_field,
+    measure_surface,
     quad_highest,
     triangulate,
 )
@@ -400,7 +402,7 @@ def _on_rectangle(p: float, width: float, height: float) -> tuple[float, float]:
     return (-width / 2, height / 2 - (p - 2 * width - height))
 
 
-def test_a_feature_is_looked_for_where_it_was_measured_not_where_the_estimate_lifts_it() -> None:
+def test_a_feature_measured_far_from_where_the_estimate_puts_it_is_searched_for_afresh() -> None:
     """The estimate's node heights can be wrong: an inferred fold once lifted a flat edge quad's nodes
     17 mm, and from there two of its features matched a look-alike of the weave 21 mm up. A feature the
     last frame measured far from where the estimate puts it is searched for over the whole height, so a
@@ -422,3 +424,33 @@ def test_a_feature_is_looked_for_where_it_was_measured_not_where_the_estimate_li
     tracker.second_view.heights_now(gray, tracker.features, lifted, t_s, [PairedView(images[1], t_s)])
     heights, _ = tracker.second_view.collect()
     assert heights is not None and heights.max() < 0.0015
+
+
+def test_points_whose_height_is_not_known_are_searched_for_beside_those_started_at_theirs() -> None:
+    cfg = Config()
+    start_taichi(cfg.taichi.arch)
+    world, cameras, sensors = _default_cell()
+    layout = ConveyorLayout.of_cell(cfg.cell)
+    tracker = Tracker(cfg.tracker, cameras[0], layout, other_cameras=cameras[1:])
+    ((t_s, images),) = _frames(world, sensors, 1)
+    tracker.track(images[0], t_s, ModuleCommands.all_stop(layout.n_modules), [PairedView(images[1], t_s)])
+    assert tracker.features is not None
+    px = tracker.features.px.astype(np.float64)
+    guess_m = cameras[0].backproject_to_plane(px, 0.0)
+    unknown = np.arange(len(px)) % 2 == 1
+    guess_m[unknown] = np.nan  # searched for over the whole height; the others start on the flat cloth
+    gray = cv2.cvtColor(images[0], cv2.COLOR_BGR2GRAY)
+    views = [PairedView(images[1], t_s)]
+    found = measure_surface(gray, px, t_s, cameras[0], cameras[1:], views, cfg.tracker.stereo, guess_m)
+    assert found is not None
+    points, ok = found
+    assert ok[unknown].mean() > 0.8 and ok[~unknown].mean() > 0.8
+    assert np.abs(points[:, 2]).max() < 0.0015
+
+
+def test_feature_heights_are_looked_up_by_id_and_nan_for_the_rest() -> None:
+    heights = FeatureHeights.of(np.array([5, 2, 9]), np.array([0.005, 0.002, 0.009]))
+    np.testing.assert_array_equal(
+        heights.at(np.array([2, 3, 9, 100, 0])), [0.002, np.nan, 0.009, np.nan, np.nan]
+    )
+    assert np.isnan(FeatureHeights.of(np.zeros(0, int), np.zeros(0)).at(np.array([1]))).all()

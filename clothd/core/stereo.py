@@ -37,7 +37,7 @@ from clothd.core.messages import PairedView
 
 MATCH_WINDOW_PX = 21  # wider than tracking's: the two views see a patch from different angles
 MATCH_LEVELS = 3  # pyramid levels: a match up to ~60 px along its line from the table-plane guess
-TRACKING_LEVELS = 1  # from where a point was measured last frame: a few pixels to find
+TRACKING_LEVELS = 1  # from where the estimate puts a point: a few pixels to find
 TRACKING_WINDOW_PX = 11  # ... in a window as tracking's own
 # Forward-backward, searching or not: the match must lead back within this. The epipolar check alone let
 # a look-alike on the line through (0.2 px per mm of height): a flat cloth's feature read 3.3 mm high.

@@ -38,12 +38,21 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 import threading
 from pathlib import Path
 
 log = logging.getLogger(__name__)
 
 AUTOGROUP = Path("/proc/self/autogroup")
+GIL_SWITCH_S = 0.001  # Python's default is 5 ms
+
+
+def bound_gil_wait() -> None:
+    """A thread that wants the GIL waits at most GIL_SWITCH_S while another of the process's threads runs
+    Python: the daemon's tick beside its link and reply threads, the compute's tracking beside the second
+    view's heights (clothd/core/second_view.py)."""
+    sys.setswitchinterval(GIL_SWITCH_S)
 
 
 def set_thread_nice(nice: int, what: str) -> bool:

@@ -35,7 +35,7 @@ from clothd.core.messages import Estimate, ModuleCommands
 from clothd.core.modes import LoopState, Mode
 from clothd.core.tracker import Tracker
 from clothd.drivers.ports import CameraFrame, FrameSource
-from clothd.drivers.priority import leave_realtime
+from clothd.drivers.priority import bound_gil_wait, leave_realtime
 from clothd.errors import ClothdError
 from clothd.logs import configure_logging
 from clothd.loop.compute_messages import ComputeSpec, InForce, TickReply, TickRequest
@@ -315,6 +315,11 @@ class Compute:
         from whatever the tracker was left half done with."""
         log.exception("%s failed; stopping the modules, tracking afresh", what)
         self._after_failed = True
+        self.track_afresh()
+
+    def track_afresh(self) -> None:
+        """Forget the cloth, as a failed tick or work between ticks may have left it half tracked (a frame
+        predicted and not corrected, heights whose measuring raised)."""
         self.tracker.reset()
         if self.flow is not None:
             self.flow.reset()
@@ -387,6 +392,7 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
     configure_logging()
     start_taichi(spec.taichi_arch)
     cv2.setNumThreads(spec.opencv_threads)
+    bound_gil_wait()  # the tracking's thread beside the second view's heights
     compute = Compute(spec, spec.frame_source())
     try:
         compute.start()
@@ -411,12 +417,15 @@ def serve_compute(conn: Connection, spec: ComputeSpec) -> None:
             if isinstance(req, InForce):
                 compute.in_force(req.commands, req.sent_mono_s)
                 continue
+            failed = False
             try:
                 reply = compute.tick(req)
             except Exception:  # a bug in a stage must not take the loop, or the modules, with it
-                log.exception("tick failed; stopping the modules")
-                reply = compute.stop_reply(LoopState.FAULT)
+                log.exception("tick failed; stopping the modules, tracking afresh")
+                reply, failed = compute.stop_reply(LoopState.FAULT), True
             conn.send(reply)
+            if failed:  # once its all-stop is on its way
+                compute.track_afresh()
             compute.after_reply()
             compute.measure_heights(wait=not spec.track_ahead)  # else between requests too, polled
     finally:

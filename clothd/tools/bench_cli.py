@@ -154,11 +154,13 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
     import os
 
     # The tracker timed as the daemon's compute process runs it (compute_process.py, compute.py): one BLAS
-    # thread, and loop.compute_threads OpenCV threads. BLAS reads this when numpy first loads, below.
+    # thread, loop.compute_threads OpenCV threads and the GIL's switch interval bounded. BLAS reads this
+    # when numpy first loads, below.
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(var, "1")
     import cv2
 
+    from clothd.drivers.priority import bound_gil_wait
     from clothd.taichi_runtime import start_taichi
     from clothd.tools.bench_speed import (
         DEFAULT_BUDGETS,
@@ -173,6 +175,7 @@ def _cmd_bench_speed(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     cv2.setNumThreads(cfg.loop.compute_threads)
+    bound_gil_wait()
     start_taichi(cfg.taichi.arch)
     recording = scenario_recording(args.cache, args.scenario, cameras=args.cameras)
     budgets = tuple(args.features) if args.features else DEFAULT_BUDGETS

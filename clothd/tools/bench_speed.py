@@ -6,9 +6,9 @@ correction run on real frames; the stage times are the tracker's own
 (time.perf_counter around each stage). Beside it, filterpy's dense EKF does the same correction
 (6 states per node, 2 measurements per feature, dense P, F, H) wherever it finishes within the budget.
 Figures are medians (p50) and 99th percentiles over the ticks after a warm-up. The tracker runs with one
-BLAS thread and `loop.compute_threads` OpenCV threads, as in the daemon's compute process (the command
-sets them before numpy loads). `--plot` draws the tick against the node count, with a previous run's
-figures (`--baseline`) dashed beside this run's.
+BLAS thread, `loop.compute_threads` OpenCV threads and a 1 ms GIL switch interval, as in the daemon's
+compute process (the command sets them before numpy loads). `--plot` draws the tick against the node
+count, with a previous run's figures (`--baseline`) dashed beside this run's.
 """
 
 from __future__ import annotations
@@ -27,8 +27,9 @@ from clothd.core.mesh import QuadMesh, measurement_jacobian
 from clothd.tools.offline import OfflineTracking
 
 # prepare: the frame's grey image and pyramid; estimate: bookkeeping and the estimate; resample: new
-# features and their anchors (the live loop does it after the commands are out).
-STAGES = ("prepare", "klt", "predict", "update", "estimate", "resample", "tick")
+# features and their anchors (the live loop does it after the commands are out); heights: a second view's,
+# on their own thread beside the tick, not part of it.
+STAGES = ("prepare", "klt", "predict", "update", "estimate", "resample", "tick", "heights")
 WARMUP_TICKS = 3
 FILTERPY_BUDGET_S = 3.0  # one dense update slower than this is not worth repeating
 
@@ -70,7 +71,8 @@ def clothd_rows(
         if k > WARMUP_TICKS:
             counts.append(len(est.feature_id))
             for s in STAGES:
-                timings[s].append(est.timing_s[s])
+                if s in est.timing_s:
+                    timings[s].append(est.timing_s[s])
         if k + 1 >= frames:
             break
     name = f"{mesh[0]}x{mesh[1]}"
@@ -78,6 +80,7 @@ def clothd_rows(
     return [
         Row(budget, name, "clothd", s, float(np.median(v) * 1e3), float(np.percentile(v, 99) * 1e3), tracked)
         for s, v in timings.items()
+        if v
     ]
 
 

@@ -27,7 +27,7 @@ from clothd.formats import write_estimates
 from clothd.outputs.view import draw_estimate
 from clothd.tools.offline import OfflineTracking
 
-TIMED_STAGES = ("prepare", "predict", "klt", "update", "estimate", "resample", "tick")
+TIMED_STAGES = ("prepare", "predict", "klt", "update", "estimate", "resample", "tick", "heights")
 
 
 # Start-up (kernel compilation, initialisation) falls in the first ticks; the steady rate leaves them out.
