@@ -21,6 +21,10 @@ import numpy as np
 ARRIVALS_KEPT = 16  # the frames the period and phase are estimated over (about 1 s at 15 frames/s)
 MIN_ARRIVALS = 6
 WHOLE_TICKS_TOLERANCE = 0.05  # frame period / tick period within this of a whole number
+# The gaps between arrivals at this percentile are taken as one frame period apart: a quarter of the frames
+# on time finds the period with the rest dropped or late.
+DROP_FREE_PCT = 25.0
+GRID_PASSES = 2
 
 
 class FramePhaseLock:
@@ -30,8 +34,7 @@ class FramePhaseLock:
         self.max_shift_s = max_shift_s
         self.wait_s = wait_s
         self._arrivals: deque[float] = deque(maxlen=ARRIVALS_KEPT)
-        # Set as frames arrive: the camera's period while locked, and when the last frame was due on the
-        # arrivals' grid (its median phase: late frames are the usual jitter, and the compute waits for them).
+        # Set as frames arrive: the camera's period while locked, and when the last frame was due.
         self._frame_s: float | None = None
         self._last_due_s = 0.0
 
@@ -40,21 +43,37 @@ class FramePhaseLock:
         if self._arrivals and t_mono_s <= self._arrivals[-1]:
             return
         self._arrivals.append(t_mono_s)
-        self._frame_s = self._whole_ticks_period_s()
-        if self._frame_s is not None:
-            back = np.arange(len(self._arrivals))[::-1]  # frames back from the last
-            self._last_due_s = float(np.median(np.asarray(self._arrivals) + back * self._frame_s))
-
-    def _whole_ticks_period_s(self) -> float | None:
-        """The camera's frame period while it is a whole number of ticks; None otherwise."""
+        self._frame_s = None
         if len(self._arrivals) < MIN_ARRIVALS:
-            return None
-        frame_s = float(np.median(np.diff(self._arrivals)))
+            return
+        t = np.asarray(self._arrivals)
+        index = self._frame_index(np.diff(t))
+        ticks = self._whole_ticks((t[-1] - t[0]) / index[-1])
+        if ticks is not None:
+            # The period is taken as exactly whole ticks: estimated from a few jittered gaps it was off by
+            # tenths of a millisecond, which the frames back to the oldest kept multiplied into the phase.
+            self._frame_s = ticks * self.period_s
+            # The median phase: late frames are the usual jitter, and the compute waits for them.
+            self._last_due_s = float(np.median(t + (index[-1] - index) * self._frame_s))
+
+    @staticmethod
+    def _frame_index(gaps_s: np.ndarray) -> np.ndarray:
+        """Each kept arrival's frame number, counted from the oldest. A frame the camera dropped, or the
+        compute skipped, leaves a gap of whole periods: counted as such, it neither lengthens the period
+        nor shifts the phase."""
+        frame_s = float(np.percentile(gaps_s, DROP_FREE_PCT))
+        for _ in range(GRID_PASSES):  # the first guess runs short of early frames' gaps; the next, not
+            periods_apart = np.maximum(1.0, np.round(gaps_s / frame_s))
+            frame_s = float(np.median(gaps_s / periods_apart))
+        return np.concatenate([[0.0], np.cumsum(periods_apart)])
+
+    def _whole_ticks(self, frame_s: float) -> int | None:
+        """How many ticks a frame period is, when it is a whole number of them; None otherwise."""
         ticks = frame_s / self.period_s
         whole = round(ticks)
         if whole < 1 or abs(ticks - whole) > WHOLE_TICKS_TOLERANCE * whole:
             return None
-        return frame_s
+        return whole
 
     @property
     def locked(self) -> bool:
