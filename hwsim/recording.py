@@ -29,6 +29,7 @@ from hwsim.quantise import to_sensor_bgr8
 from hwsim.renderer import Renderer
 from hwsim.renderer_spares import make_renderer
 from hwsim.scenario import Scenario, ScenarioError
+from hwsim.scene import SceneState
 from hwsim.world import World
 
 # PNG level 1: about 3x faster than the default with files ~15 % larger; still lossless.
@@ -73,10 +74,16 @@ class FrameSink:
 def render_frame(world: World, renderer: Renderer, skew_s: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The frame at the world's current instant plus `skew_s` (a camera's capture_skew_s): image in [0, 1]
     and node visibility, with motion blur spread over the exposure when the scenario asks for it."""
+    return renderer.render(frame_states(world, skew_s))
+
+
+def frame_states(world: World, skew_s: float = 0.0) -> list[SceneState]:
+    """What a camera exposing at the world's current instant plus `skew_s` sees: one state per motion-blur
+    sample across the exposure, the last at the frame's instant."""
     noise = world.scenario.noise
     n = noise.motion_blur_samples
     backs = [noise.exposure_s * (n - 1 - k) / max(n - 1, 1) - skew_s for k in range(n)]
-    return renderer.render([world.scene_state(before_s=b) for b in backs])
+    return [world.scene_state(before_s=b) for b in backs]
 
 
 def noise_rng(scenario: Scenario, index: int) -> np.random.Generator:

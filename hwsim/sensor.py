@@ -8,9 +8,10 @@ import numpy as np
 from hwsim.camera import Camera
 from hwsim.cloth_grid import ClothGrid
 from hwsim.quantise import quantise_bgr8
-from hwsim.recording import noise_rng, render_frame
+from hwsim.recording import frame_states, noise_rng
 from hwsim.renderer_spares import make_renderer
 from hwsim.scenario import Scenario
+from hwsim.scene import SceneState
 from hwsim.world import World
 
 NOISE_BANK = 8  # sensor-noise frames drawn once and cycled: per-frame draws cost more than rendering
@@ -31,7 +32,11 @@ class Sensor:
 
     def jpeg(self, world: World, k: int) -> bytes:
         """Frame k of the stream, at the world's current instant."""
-        image, _ = render_frame(world, self.renderer, self.skew_s)
+        return self.encode(frame_states(world, self.skew_s), k)
+
+    def encode(self, states: list[SceneState], k: int) -> bytes:
+        """Frame k of the stream, of the scene `states` (hwsim.recording.frame_states)."""
+        image, _ = self.renderer.render(states)
         bgr = quantise_bgr8(image, self._noise[k % NOISE_BANK])
         ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
         if not ok:

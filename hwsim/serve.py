@@ -15,8 +15,9 @@
   scenario's `initial_pose` (lay the cloth down again there, ridges and all; 409 while a belt runs),
   POST /cloth/push with a JSON push (two hands push a ridge into the cloth where it lies).
 
-The world steps at the scenario's rate with absolute deadlines; each camera renders every `every`
-steps of its own. It moves only by what the firmware receives: the loop is closed through the real
+The world steps at the scenario's rate with absolute deadlines; each camera shoots every `every` steps
+of its own, rendered in a process of its own and delivered at its exposure plus a camera's latency
+(hwsim/camera_process.py). It moves only by what the firmware receives: the loop is closed through the real
 protocol and the real video. On start it prints one JSON line with the pty, the URLs and the paths of
 camera.json (camera-NAME.json for each further camera) and table.json (and writes it to
 STATE_DIR/ready.json).
@@ -24,12 +25,12 @@ STATE_DIR/ready.json).
 
 from __future__ import annotations
 
+import functools
 import json
 import threading
 import time
 import traceback
 from collections.abc import Callable
-from dataclasses import dataclass
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
@@ -39,12 +40,13 @@ from urllib.parse import parse_qs, urlparse
 import numpy as np
 
 from hwsim.camera import Camera
+from hwsim.camera_process import CAMERA_LATENCY_S, CameraProcess, FrameClock, Shot, VideoFrame
 from hwsim.firmware import Counters
 from hwsim.firmware_process import FirmwareProcess, start_firmwares
 from hwsim.pieces import piece_truth
-from hwsim.recording import write_table
+from hwsim.recording import frame_states, write_table
 from hwsim.scenario import Pose, Push, Scenario
-from hwsim.sensor import Sensor
+from hwsim.streams import Stream, frame_intervals
 from hwsim.taichi_runtime import ensure_taichi
 from hwsim.world import World
 
@@ -53,36 +55,6 @@ MAX_CATCH_UP_S = 1.0  # further behind, the world gives up the time rather than 
 # take no core of a real cell's PC, and a kernel worker waiting behind a long run of them (a serial port's
 # bytes) held the daemon's link answers up (docs/benchmarks.md, "A loaded PC").
 CORE_BREAK_S = 0.0005
-
-
-@dataclass
-class VideoFrame:
-    index: int
-    jpeg: bytes
-    t_s: float
-
-
-@dataclass
-class Stream:
-    """One camera of the cell: its sensor, how many world steps apart its frames are, its latest frame."""
-
-    name: str
-    camera: Camera
-    sensor: Sensor
-    every: int
-    json_name: str  # its camera.json in the state directory
-    frame: VideoFrame | None = None
-    readers: int = 0  # clients streaming it now (under the cell's frame_cond)
-
-
-def frame_intervals(
-    world_fps: float, n_cameras: int, camera_fps: float, others_fps: float | None
-) -> list[int]:
-    """World steps between frames, per camera. The others' are whole multiples of the first's, so that
-    each of their frames is taken with one of the first camera's (stereo needs simultaneous pairs)."""
-    first = max(1, round(world_fps / camera_fps))
-    other = first * max(1, round(world_fps / (others_fps or camera_fps) / first))
-    return [first] + [other] * (n_cameras - 1)
 
 
 class Cell:
@@ -100,8 +72,8 @@ class Cell:
         self.scenario = scenario
         self.state_dir = state_dir
         state_dir.mkdir(parents=True, exist_ok=True)
-        # One render thread: beside the daemon on a small machine, a real-time world must not take
-        # every core for itself.
+        # One thread for the world's kernels: beside the daemon on a small machine, a real-time world must
+        # not take every core for itself.
         ensure_taichi(arch, cpu_threads=1)
         self.world = World(scenario, arch, log_commands=False)
         self.streams = [
@@ -121,6 +93,18 @@ class Cell:
         self.video_dropped_until = 0.0
         self.video_generation = 0  # bumped by a drop: streaming clients hang up
         self.camera_frames_dropped = 0  # frames not rendered while the world caught up with real time
+        self.frame_clock = FrameClock(self._deliver)
+        self.cameras = [
+            CameraProcess(
+                scenario,
+                self.world.cloth.grid,
+                arch,
+                i,
+                functools.partial(self._rendered, i),
+                lambda err: self.world_died(err),
+            )
+            for i in range(len(self.streams))
+        ]
         self.behind_real_time_s = 0.0  # time the world fell behind real time for good
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="world", daemon=True)
@@ -132,8 +116,9 @@ class Cell:
         spec = self.scenario.camera_specs[index]
         name = str(spec.name)
         camera = Camera.from_spec(spec)
-        sensor = Sensor(self.scenario, camera, self.world.cloth.grid, index, spec.capture_skew_s)
-        return Stream(name, camera, sensor, every, "camera.json" if index == 0 else f"camera-{name}.json")
+        return Stream(
+            name, camera, spec.capture_skew_s, every, "camera.json" if index == 0 else f"camera-{name}.json"
+        )
 
     def stream(self, name: str | None) -> Stream | None:
         """The camera called `name`; None: the first."""
@@ -143,12 +128,21 @@ class Cell:
 
     def start(self) -> None:
         self._update_truth()  # /truth answers in full from the first request on
-        self._publish_frames(force=True)
+        # Every camera's first frame, its kernels compiled: a client that comes later finds it ready.
+        now = time.monotonic() - CAMERA_LATENCY_S
+        for camera, stream in zip(self.cameras, self.streams, strict=True):
+            stream.frame = camera.first(self._shot(stream, now))
+        self.frame_clock.start()
+        for camera in self.cameras:
+            camera.start()
         self._thread.start()
 
     def stop(self) -> None:
         self._stop.set()
         self._thread.join(timeout=5)
+        for camera in self.cameras:
+            camera.stop()
+        self.frame_clock.stop()
         for firmware in self.firmwares:
             firmware.stop()
 
@@ -194,7 +188,7 @@ class Cell:
 
     def _step_in_real_time(self) -> None:
         """Step at absolute deadlines. A world held up (a loaded PC) catches up by stepping without
-        rendering, as a real cloth keeps moving while a camera drops frames, though never two frames in a
+        shooting, as a real cloth keeps moving while a camera drops frames, though never two frames in a
         row: a camera does not fall silent. Only a world more than MAX_CATCH_UP_S behind gives up that
         time for good, counted in `behind_real_time_s`."""
         dt = self.world.dt_s
@@ -216,11 +210,12 @@ class Cell:
                 if dropped_last:
                     self.camera_frames_dropped += 1
                 else:
-                    # Under the lock too: a push or a lay between step and render would be half seen,
-                    # and Taichi takes one thread at a time (a push's kernels during a render broke the
-                    # render's to_numpy: "cannot be called in Taichi-scope", and the world thread died).
+                    # Under the lock too: a push or a lay between step and exposure would be half seen.
                     with self.lock:
-                        self._publish_frames()
+                        shots = self._shots(next_t)
+                    self.frame_clock.expect(self.world.frame_index, [i for i, _ in shots])
+                    for i, shot in shots:
+                        self.cameras[i].shoot(shot)
             if behind_s < 0:
                 self._stop.wait(-behind_s)
             elif behind_s > MAX_CATCH_UP_S:
@@ -246,38 +241,43 @@ class Cell:
             "controllers": [
                 {"serial": str(f.link_path), **c} for f, c in zip(self.firmwares, counters, strict=True)
             ],
-            "camera_frames_dropped": self.camera_frames_dropped,
+            "camera_frames_dropped": self.camera_frames_dropped + sum(c.dropped for c in self.cameras),
             "behind_real_time_s": self.behind_real_time_s,
             **{k: v for k, v in lead.items() if k != "pose"},
             "pieces": [piece_truth(p) for p in self.world.pieces],
         }
 
-    def _publish_frames(self, force: bool = False) -> None:
-        """Every camera due at this step renders the same world instant (plus its capture skew); a camera
-        other than the first renders only while a client streams it. The frames of one instant go out
-        together, as two cameras exposing at once deliver theirs: published one by one, the second camera's
-        frame left a render and an encode after the first's, a skew no real pair of that instant has."""
-        rendered: list[tuple[Stream, VideoFrame]] = []
+    def _shots(self, instant_mono_s: float) -> list[tuple[int, Shot]]:
+        """What each camera due at this step sees, the world's instant being real time instant_mono_s. A
+        camera other than the first is shot only while a client streams it."""
+        shots = []
         for i, stream in enumerate(self.streams):
-            if not force and self.world.frame_index % stream.every != 0:
+            if self.world.frame_index % stream.every != 0:
                 continue
             if i > 0 and not stream.readers:  # nobody watches it: a render would only cost CPU
                 stream.frame = None  # a client that comes waits for a fresh frame, not an old one
                 continue
-            k = self.world.frame_index // stream.every
-            if rendered:
-                time.sleep(CORE_BREAK_S)
-            rendered.append(
-                (
-                    stream,
-                    VideoFrame(k, stream.sensor.jpeg(self.world, k), self.world.t_s + stream.sensor.skew_s),
-                )
-            )
-        if rendered:
-            with self.frame_cond:
-                for stream, frame in rendered:
-                    stream.frame = frame
-                self.frame_cond.notify_all()
+            shots.append((i, self._shot(stream, instant_mono_s)))
+        return shots
+
+    def _shot(self, stream: Stream, instant_mono_s: float) -> Shot:
+        """The camera's frame of the world's current instant, due at the host a camera's latency after its
+        exposure."""
+        k = self.world.frame_index // stream.every
+        deliver_mono_s = instant_mono_s + stream.skew_s + CAMERA_LATENCY_S
+        states = frame_states(self.world, stream.skew_s)
+        return Shot(self.world.frame_index, k, self.world.t_s + stream.skew_s, states, deliver_mono_s)
+
+    def _rendered(self, stream: int, instant: int, due_mono_s: float, frame: VideoFrame) -> None:
+        """A camera's frame is rendered: it reaches the host when it is due."""
+        self.frame_clock.put(instant, due_mono_s, stream, frame)
+
+    def _deliver(self, frames: list[tuple[int, VideoFrame]]) -> None:
+        """Frames reach the host: each stream's clients get its new frame, all at once."""
+        with self.frame_cond:
+            for stream, frame in frames:
+                self.streams[stream].frame = frame
+            self.frame_cond.notify_all()
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -421,7 +421,7 @@ def serve(
                 "name": s.name,
                 "video_url": f"{base}/video/{s.name}.mjpg",
                 "camera_json": str(state_dir / s.json_name),
-                "capture_skew_s": s.sensor.skew_s,
+                "capture_skew_s": s.skew_s,
                 "camera_fps": scenario.fps / s.every,
             }
             for s in cell.streams

@@ -23,8 +23,8 @@ from hwsim import scenario as scenarios
 from hwsim.camera import Camera
 from hwsim.recording import record, render_frame
 from hwsim.renderer_spares import make_renderer
-from hwsim.serve import frame_intervals
 from hwsim.stereo import height_precision_mm, oblique_spec, sees_table
+from hwsim.streams import frame_intervals
 from hwsim.taichi_runtime import ensure_taichi
 from hwsim.world import World
 
