@@ -27,6 +27,7 @@ class RecordedFrames:
     def __init__(self, images: list[np.ndarray]) -> None:
         self.images = images
         self.index = -1
+        self.last: CameraFrame | None = None
 
     def start(self) -> None:
         pass
@@ -36,10 +37,14 @@ class RecordedFrames:
 
     def latest(self) -> CameraFrame:
         self.index += 1
-        return CameraFrame(self.index, time.monotonic(), self.images[self.index % len(self.images)])
+        self.last = CameraFrame(self.index, time.monotonic(), self.images[self.index % len(self.images)])
+        return self.last
 
     def newer_than(self, index: int, timeout_s: float) -> CameraFrame:
         return self.latest()  # every frame is new
+
+    def nearest(self, t_mono_s: float) -> CameraFrame:
+        return self.last or self.latest()
 
     def health(self) -> FrameSourceHealth:
         return FrameSourceHealth("streaming", True, None, 0)

@@ -14,7 +14,7 @@ from recorded_frames import RecordedFrames, compute_on, tick
 from clothd.core.control import Setpoint
 from clothd.core.messages import ModuleCommands, PairedView
 from clothd.drivers.footage import open_footage
-from clothd.drivers.ports import CameraFrame, FrameSourceHealth
+from clothd.drivers.ports import KEPT_FRAMES, CameraFrame, FrameSourceHealth
 from clothd.formats import read_camera
 from clothd.loop.compute_messages import TickRequest
 from clothd.loop.pairing import FramePairing, FurtherCamera
@@ -54,6 +54,14 @@ class ScheduledFrames:
         i = arrived[-1]
         return CameraFrame(i, self.arrivals_s[i], np.full((2, 2, 3), i, np.uint8))
 
+    def nearest(self, t_mono_s: float) -> CameraFrame | None:
+        newest = self.latest()
+        if newest is None:
+            return None
+        kept = range(max(0, newest.index - KEPT_FRAMES + 1), newest.index + 1)
+        i = min(kept, key=lambda k: abs(self.arrivals_s[k] - t_mono_s))
+        return CameraFrame(i, self.arrivals_s[i], np.full((2, 2, 3), i, np.uint8))
+
     def newer_than(self, index: int, timeout_s: float) -> CameraFrame | None:
         later = [t for t in self.arrivals_s[index + 1 :] if t <= self.clock.now_s + timeout_s]
         until = max(self.clock.now_s, later[0]) if later else self.clock.now_s + timeout_s
@@ -90,6 +98,18 @@ def test_the_newest_frame_is_taken_when_it_is_the_nearest_and_its_skew_is_kept()
     assert stats.skew_ms == pytest.approx(4.0) and stats.skew_p95_ms == pytest.approx(4.0)
     assert stats.paired_pct == 100.0
     assert not cam.waited_s  # nothing to wait for: the nearest frame was there
+
+
+def test_a_pair_taken_after_the_next_frame_came_still_finds_its_own() -> None:
+    """Each first-camera frame paired 80 ms after it arrived (a compute held up by a recording): the
+    further camera's next frame is there by then, and its own, 4 ms from t0, is still taken."""
+    clock = Clock()
+    cam = ScheduledFrames(clock, _grid(0.004))
+    pairing = FramePairing([cam], MAX_SKEW_S, clock)
+    views = _first_frames(pairing, clock, _grid(0.0, 20)[1:], after_s=0.080)
+    assert [v[0].image[0, 0, 0] for v in views] == list(range(1, 20))
+    (stats,) = pairing.stats()
+    assert stats.skew_ms == pytest.approx(4.0) and stats.paired_pct == 100.0
 
 
 def test_a_frame_due_within_the_bound_is_waited_for_and_the_wait_is_bounded() -> None:

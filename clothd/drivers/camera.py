@@ -1,7 +1,8 @@
 """Live frame sources for the daemon: any OpenCV VideoCapture source or a directory of images.
 
-A capture thread reads continuously and keeps only the newest frame, stamped with the host's monotonic
-clock when it arrived (`t_mono_s`), so a tick always gets the freshest image and never a backlog. A
+A capture thread reads continuously and hands out the newest frame, stamped with the host's monotonic
+clock when it arrived (`t_mono_s`), so a tick always gets the freshest image and never a backlog; it
+keeps the last few besides, for a further camera's pair (`nearest`). A
 source that fails or goes quiet is reopened with exponential backoff; `state` says which. The rate frames
 arrive at, and the longest wait between two, over the last RATE_WINDOW_S, show a camera that drops frames
 (a saturated USB bus, a slow exposure) before it is lost.
@@ -22,7 +23,7 @@ import numpy as np
 
 from clothd.config import CameraSourceConfig
 from clothd.drivers.footage import DEFAULT_FPS, IMAGE_SUFFIXES, natural_key
-from clothd.drivers.ports import RATE_WINDOW_S, CameraFrame, FrameSourceHealth
+from clothd.drivers.ports import KEPT_FRAMES, RATE_WINDOW_S, CameraFrame, FrameSourceHealth
 from clothd.drivers.priority import claim_realtime
 
 log = logging.getLogger(__name__)
@@ -51,6 +52,7 @@ class VideoCaptureSource:
         self.reconnects = 0
         self.shown = redact_source(cfg.source)  # for logs and status: no credentials
         self._frame: CameraFrame | None = None
+        self._recent: deque[CameraFrame] = deque(maxlen=KEPT_FRAMES)  # the newest last
         self._count = 0
         self._arrivals_s: deque[float] = deque()  # arrival times over the last RATE_WINDOW_S
         self._lock = threading.Lock()
@@ -79,6 +81,14 @@ class VideoCaptureSource:
         with self._arrived:
             self._arrived.wait_for(lambda: self._frame is not None and self._frame.index > index, timeout_s)
         return self.latest()
+
+    def nearest(self, t_mono_s: float) -> CameraFrame | None:
+        """Of the frames kept, the one that arrived nearest t_mono_s; None when `latest()` is."""
+        if self.latest() is None:
+            return None
+        with self._lock:
+            recent = list(self._recent)
+        return min(recent, key=lambda f: abs(f.t_mono_s - t_mono_s))
 
     @property
     def healthy(self) -> bool:
@@ -170,6 +180,7 @@ class VideoCaptureSource:
         now = time.monotonic()
         with self._arrived:
             self._frame = CameraFrame(self._count, now, image)
+            self._recent.append(self._frame)
             self._count += 1
             self._arrivals_s.append(now)
             while now - self._arrivals_s[0] > RATE_WINDOW_S:

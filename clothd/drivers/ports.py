@@ -21,6 +21,7 @@ class CameraFrame:
     image: np.ndarray  # BGR
 
 
+KEPT_FRAMES = 3  # frames a source keeps for `nearest` (200 ms at 15 frames/s)
 RATE_WINDOW_S = 5.0  # a source's frame rate and longest gap are taken over this much of its recent frames
 
 
@@ -47,6 +48,10 @@ class FrameSource(Protocol):
     def newer_than(self, index: int, timeout_s: float) -> CameraFrame | None:
         """The newest frame once one with an index past `index` is there, waiting up to timeout_s;
         otherwise what `latest` gives."""
+
+    def nearest(self, t_mono_s: float) -> CameraFrame | None:
+        """Of the last KEPT_FRAMES frames, the one that arrived nearest t_mono_s (None when `latest` is):
+        a pair taken after the camera's next frame came still finds its own."""
 
     def health(self) -> FrameSourceHealth: ...
 

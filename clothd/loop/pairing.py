@@ -1,7 +1,7 @@
 """Pairing the further cameras' frames with the first camera's, by arrival time: no hardware trigger.
 
-Each source keeps only its newest frame (drivers/camera.py), stamped with the host's monotonic clock as
-it arrived. For a first-camera frame at t0, each further camera's newest frame is taken; when it is
+Each source keeps its last few frames (drivers/camera.py), stamped with the host's monotonic clock as
+they arrived. For a first-camera frame at t0, each further camera's frame nearest t0 is taken; when it is
 older than t0 by more than half that camera's frame period, its next frame is the nearer one, and it is
 `due` while it can still arrive within `max_skew_s` of t0. `views` waits for it (`newer_than`), never
 past t0 + max_skew_s, or with wait=False takes what is there: the compute waits only when tracking
@@ -124,8 +124,10 @@ class FramePairing:
         return max(min(t0_s + self.max_skew_s - self.clock(), self.max_skew_s), 0.0)
 
     def _nearest(self, cam: _Camera, t0_s: float, wait: bool) -> CameraFrame | None:
-        frame = cam.source.latest()
-        cam.look(frame)
+        cam.look(cam.source.latest())
+        # Not the newest: paired after the camera's next frame came (a compute held up), the newest was a
+        # period off, and a live recording paired half its frames so.
+        frame = cam.source.nearest(t0_s)
         wait_s = self._wait_s(cam, frame, t0_s) if wait else 0.0
         if frame is None or wait_s <= 0:
             return frame
