@@ -41,6 +41,7 @@ import numpy as np
 
 from hwsim.camera import Camera
 from hwsim.camera_process import CAMERA_LATENCY_S, CameraProcess, FrameClock, Shot, VideoFrame
+from hwsim.cloth_grid import ClothGrid
 from hwsim.firmware import Counters
 from hwsim.firmware_process import FirmwareProcess, start_firmwares
 from hwsim.pieces import piece_truth
@@ -72,6 +73,19 @@ class Cell:
         self.scenario = scenario
         self.state_dir = state_dir
         state_dir.mkdir(parents=True, exist_ok=True)
+        # The cameras' processes first: their start (Taichi, the renderers) overlaps the world's.
+        self.frame_clock = FrameClock(self._deliver)
+        self.cameras = [
+            CameraProcess(
+                scenario,
+                ClothGrid.from_spec(scenario.cloth),  # the world's first piece's
+                arch,
+                i,
+                functools.partial(self._rendered, i),
+                lambda err: self.world_died(err),
+            )
+            for i in range(len(scenario.camera_specs))
+        ]
         # One thread for the world's kernels: beside the daemon on a small machine, a real-time world must
         # not take every core for itself.
         ensure_taichi(arch, cpu_threads=1)
@@ -93,18 +107,6 @@ class Cell:
         self.video_dropped_until = 0.0
         self.video_generation = 0  # bumped by a drop: streaming clients hang up
         self.camera_frames_dropped = 0  # frames not rendered while the world caught up with real time
-        self.frame_clock = FrameClock(self._deliver)
-        self.cameras = [
-            CameraProcess(
-                scenario,
-                self.world.cloth.grid,
-                arch,
-                i,
-                functools.partial(self._rendered, i),
-                lambda err: self.world_died(err),
-            )
-            for i in range(len(self.streams))
-        ]
         self.behind_real_time_s = 0.0  # time the world fell behind real time for good
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="world", daemon=True)

@@ -91,7 +91,7 @@ def children(pid: int) -> list[int]:
 
 
 def hwsim_processes(daemon_pid: int) -> list[int]:
-    """The `hwsim serve` child of `clothd run --sim` and its firmware's process."""
+    """The `hwsim serve` child of `clothd run --sim`, and its firmware's and its cameras' processes."""
     for child in children(daemon_pid):
         if "hwsim.cli" in Path(f"/proc/{child}/cmdline").read_text():
             return [child, *children(child)]
