@@ -90,11 +90,15 @@ def children(pid: int) -> list[int]:
     ]
 
 
-def hwsim_processes(daemon_pid: int) -> list[int]:
-    """The `hwsim serve` child of `clothd run --sim`, and its firmware's and its cameras' processes."""
+def hwsim_processes(daemon_pid: int) -> tuple[int, int, list[int]]:
+    """The `hwsim serve` child of `clothd run --sim`, its firmware's process, and its cameras'."""
     for child in children(daemon_pid):
         if "hwsim.cli" in Path(f"/proc/{child}/cmdline").read_text():
-            return [child, *children(child)]
+            theirs = children(child)
+            firmware = [
+                c for c in theirs if "hwsim.firmware_process" in Path(f"/proc/{c}/cmdline").read_text()
+            ]
+            return child, firmware[0], [c for c in theirs if c not in firmware]
     raise RuntimeError("clothd run --sim has no hwsim serve child")
 
 
@@ -175,11 +179,11 @@ def measure_phase(d: DaemonProcess, n_hogs: int, hwsim_as: HwsimAs = "started") 
     # one phase's browser starts is not the next phase's.
     httpx.post(f"{d.base}/api/v1/reset", timeout=10).raise_for_status()
     wait_ready(d, MOVE_TIMEOUT_S)
-    world, firmware = hwsim_processes(d.proc.pid)
+    world, firmware, cameras = hwsim_processes(d.proc.pid)
     # Each phase sets the session's weight afresh: the one before may have changed it.
     weigh_session_as(world, session_nice(d.proc.pid) if hwsim_as == "world_weighted" else SESSION_START_NICE)
     if hwsim_as == "normal":
-        for pid in (world, firmware):
+        for pid in (world, firmware, *cameras):
             to_normal_class(pid)
     hwsim = f"world {scheduling_of(world)}, firmware {scheduling_of(firmware)}"
     before = _status(d)
