@@ -71,9 +71,9 @@ class Rendered:
 
 
 class CameraProcess:
-    """Camera `index` of the scenario, rendered in a child process; `rendered` gets each frame as it comes
-    back, and when it is due, on a thread of this process, and `died` the error if the process ends
-    unasked."""
+    """Camera `index` of the scenario, rendered in a child process. `rendered` gets each frame as it comes
+    back (with its instant and when it is due), on a thread of this process; `died` the error if the
+    process ends unasked."""
 
     def __init__(
         self,
