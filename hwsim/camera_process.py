@@ -103,9 +103,8 @@ class CameraProcess:
         self._send_lock = threading.Lock()
         self._thread = threading.Thread(target=self._receive, name=f"camera-{index}", daemon=True)
 
-    def first(self, shot: Shot) -> VideoFrame:
-        """A first frame, rendered (its kernels compiled on the way) before returning."""
-        self.shoot(shot)
+    def first(self) -> VideoFrame:
+        """The first shot's frame, once rendered (its kernels compiled on the way), before `start`."""
         if not self._frames.poll(START_TIMEOUT_S):
             raise RuntimeError(f"hwsim's camera rendered nothing within {START_TIMEOUT_S:.0f} s")
         frame: VideoFrame = self._frames.recv().frame
@@ -166,7 +165,8 @@ class FrameClock:
         with self._cond:
             self._expected[instant] = set(streams)
 
-    def put(self, instant: int, due_mono_s: float, stream: int, frame: VideoFrame) -> None:
+    def put(self, stream: int, instant: int, due_mono_s: float, frame: VideoFrame) -> None:
+        """Stream `stream`'s frame of world instant `instant`, rendered, due at due_mono_s."""
         with self._cond:
             self._rendered.setdefault(instant, []).append((due_mono_s, stream, frame))
             self._newest[stream] = max(instant, self._newest.get(stream, instant))

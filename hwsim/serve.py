@@ -81,7 +81,7 @@ class Cell:
                 ClothGrid.from_spec(scenario.cloth),  # the world's first piece's
                 arch,
                 i,
-                functools.partial(self._rendered, i),
+                functools.partial(self.frame_clock.put, i),  # each frame handed on when due
                 lambda err: self.world_died(err),
             )
             for i in range(len(scenario.camera_specs))
@@ -133,7 +133,9 @@ class Cell:
         # Every camera's first frame, its kernels compiled: a client that comes later finds it ready.
         now = time.monotonic() - CAMERA_LATENCY_S
         for camera, stream in zip(self.cameras, self.streams, strict=True):
-            stream.frame = camera.first(self._shot(stream, now))
+            camera.shoot(self._shot(stream, now))  # all at once: each compiles its kernels meanwhile
+        for camera, stream in zip(self.cameras, self.streams, strict=True):
+            stream.frame = camera.first()
         self.frame_clock.start()
         for camera in self.cameras:
             camera.start()
@@ -269,10 +271,6 @@ class Cell:
         deliver_mono_s = instant_mono_s + stream.skew_s + CAMERA_LATENCY_S
         states = frame_states(self.world, stream.skew_s)
         return Shot(self.world.frame_index, k, self.world.t_s + stream.skew_s, states, deliver_mono_s)
-
-    def _rendered(self, stream: int, instant: int, due_mono_s: float, frame: VideoFrame) -> None:
-        """A camera's frame is rendered: it reaches the host when it is due."""
-        self.frame_clock.put(instant, due_mono_s, stream, frame)
 
     def _deliver(self, frames: list[tuple[int, VideoFrame]]) -> None:
         """Frames reach the host: each stream's clients get its new frame, all at once."""

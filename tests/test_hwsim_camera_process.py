@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import threading
 import time
-from pathlib import Path
 
 import pytest
 from small_scenarios import two_cameras
@@ -17,7 +16,6 @@ from hwsim.camera import Camera
 from hwsim.camera_process import CameraProcess, FrameClock, Shot, VideoFrame, _Latest
 from hwsim.recording import frame_states
 from hwsim.sensor import Sensor
-from hwsim.serve import Cell
 from hwsim.taichi_runtime import ensure_taichi
 from hwsim.world import World
 
@@ -58,7 +56,8 @@ def test_a_frame_is_rendered_apart_as_at_home() -> None:
     died: list[BaseException] = []
     camera = CameraProcess(sc, world.cloth.grid, "cpu", 1, handed_on, died.append)
     try:
-        first = camera.first(Shot(8, 4, world.t_s, states, 0.0))  # compiled, and back before first() returns
+        camera.shoot(Shot(8, 4, world.t_s, states, 0.0))
+        first = camera.first()  # compiled, and back before first() returns
         camera.start()
         camera.shoot(Shot(10, 5, world.t_s, states, 12.5))
         assert came.wait(60.0)
@@ -90,28 +89,18 @@ def test_frames_reach_the_host_when_due_an_instants_once_all_are_rendered() -> N
     try:
         for instant, streams in ((1, [0, 1]), (2, [0]), (3, [0, 1]), (4, [0, 1])):
             clock.expect(instant, streams)
-        clock.put(1, now + 0.1, 0, frame[1])
-        clock.put(2, now + 0.2, 0, frame[2])
+        clock.put(0, 1, now + 0.1, frame[1])
+        clock.put(0, 2, now + 0.2, frame[2])
         time.sleep(max(0.0, now + 0.4 - time.monotonic()))
         with delivered:
             assert not calls  # both due, both held for camera 1's frame of instant 1
-        clock.put(1, now + 0.1, 1, frame[1])
-        clock.put(3, now + 0.6, 0, frame[3])
-        clock.put(4, now + 0.7, 0, frame[4])
-        clock.put(4, now + 0.7, 1, frame[4])
+        clock.put(1, 1, now + 0.1, frame[1])
+        clock.put(0, 3, now + 0.6, frame[3])
+        clock.put(0, 4, now + 0.7, frame[4])
+        clock.put(1, 4, now + 0.7, frame[4])
         with delivered:
             assert delivered.wait_for(lambda: len(calls) == 3, 10.0)
     finally:
         clock.stop()
     assert [c for _, c in calls] == [[(0, 1), (1, 1), (0, 2)], [(0, 3)], [(0, 4), (1, 4)]]
     assert calls[1][0] >= now + 0.6 and calls[2][0] >= now + 0.7  # held until due
-
-
-def test_the_cell_stops_its_cameras(tmp_path: Path) -> None:
-    sc = scenarios.parse(two_cameras(name="stops", duration_s=3600.0))
-    cell = Cell(sc, tmp_path / "s", camera_fps=15.0)
-    cell.start()
-    assert all(c._proc.is_alive() for c in cell.cameras)
-    assert cell.streams[0].frame is not None  # the first frame is there before start() returns
-    cell.stop()
-    assert not any(c._proc.is_alive() for c in cell.cameras)

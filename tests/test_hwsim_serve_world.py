@@ -44,6 +44,7 @@ def test_frames_are_taken_under_the_worlds_lock_while_pushes_come(
     monkeypatch.setattr(hwsim.serve, "frame_states", watched)
     cell.start()
     try:
+        assert all(camera._proc.is_alive() for camera in cell.cameras)
         first = cell.streams[0].frame
         push = Push.model_validate({"at_m": [-0.03, 0.02], "direction_rad": 1.0, "slack_m": 0.004})
         while not taken.wait(0.05):
@@ -56,6 +57,7 @@ def test_frames_are_taken_under_the_worlds_lock_while_pushes_come(
         cell.stop()
     assert len(held) >= FRAMES and all(held)
     assert first is not None and last is not None and last.index > first.index  # the frames came
+    assert not any(camera._proc.is_alive() for camera in cell.cameras)  # stopped with the cell
 
 
 def test_a_world_thread_that_fails_says_so(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
