@@ -119,10 +119,14 @@ class CameraProcess:
         with self._send_lock:
             self._jobs.send(shot)
 
-    def stop(self) -> None:
+    def ask_to_stop(self) -> None:
+        """Tell the process to end, without waiting: several cameras end side by side."""
         self._stopping.set()
         with contextlib.suppress(OSError):  # the process is gone already
             self.shoot(None)
+
+    def stop(self) -> None:
+        self.ask_to_stop()
         self._proc.join(timeout=5)
         if self._proc.is_alive():
             self._proc.kill()

@@ -145,6 +145,8 @@ class Cell:
         self._stop.set()
         self._thread.join(timeout=5)
         for camera in self.cameras:
+            camera.ask_to_stop()
+        for camera in self.cameras:
             camera.stop()
         self.frame_clock.stop()
         for firmware in self.firmwares:
