@@ -75,13 +75,15 @@ def sim(tmp_path_factory: pytest.TempPathFactory) -> Iterator[SimRun]:
         "--sim-controllers",
         "2",
     ]
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+    log = tmp / "stderr.log"  # a file, not a pipe: nobody reads the daemon's log while the tests run
+    with log.open("w") as stderr:
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=stderr, text=True)
     try:
         assert proc.stdout is not None
         truth_url = ""
         while not truth_url:
             line = proc.stdout.readline()
-            assert line, "clothd run --sim exited before it was ready"
+            assert line, f"clothd run --sim exited before it was ready: {log.read_text()[-2000:]}"
             if "simulated cell truth" in line:
                 truth_url = line.split()[-1]
         run = SimRun(proc, f"http://127.0.0.1:{port}", truth_url)
